@@ -1,0 +1,204 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Typed, frozen config sections and a strict TOML loader (no silent fallbacks).
+
+Each config table is a frozen dataclass whose fields are declared with :func:`opt`, which carries
+the documentation (meaning and unit) and the range checks. :func:`build` turns a nested dict (from
+``tomllib``) into the dataclass, rejecting unknown keys, wrong types and out-of-range values with
+the dotted path of the offending key. :func:`to_toml` writes the documented reference file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import types
+import typing
+from collections.abc import Mapping
+from typing import Any, TypeVar, Union, get_args, get_origin, get_type_hints
+
+from pugsd.errors import ConfigError
+
+T = TypeVar("T")
+
+
+def opt(
+    default: Any,
+    doc: str,
+    *,
+    unit: str = "",
+    ge: float | None = None,
+    gt: float | None = None,
+    le: float | None = None,
+    lt: float | None = None,
+    choices: tuple[Any, ...] | None = None,
+) -> Any:
+    """Declare a config field with its documentation, unit and range."""
+    meta = {"doc": doc, "unit": unit, "ge": ge, "gt": gt, "le": le, "lt": lt, "choices": choices}
+    if isinstance(default, (list, dict)):
+        frozen_default = json.loads(json.dumps(default))
+        return dataclasses.field(
+            default_factory=lambda: json.loads(json.dumps(frozen_default)), metadata=meta
+        )
+    if dataclasses.is_dataclass(default):
+        return dataclasses.field(default_factory=lambda: default, metadata=meta)
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", str(tp))
+
+
+def _coerce(value: Any, tp: Any, path: str) -> Any:
+    """Check ``value`` against the annotation ``tp``; widen int to float; recurse into sections."""
+    origin = get_origin(tp)
+    if dataclasses.is_dataclass(tp) and isinstance(tp, type):
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{path}: expected a table, got {type(value).__name__}")
+        return build(tp, value, path)
+    if origin in (Union, types.UnionType):
+        args = get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(value, a, path)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError(errors[0] if errors else f"{path}: invalid value")
+    if origin is typing.Literal:
+        if value not in get_args(tp):
+            raise ConfigError(f"{path}: {value!r} is not one of {list(get_args(tp))}")
+        return value
+    if origin in (tuple,):
+        args = get_args(tp)
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{path}: expected an array, got {type(value).__name__}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], f"{path}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(f"{path}: expected {len(args)} values, got {len(value)}")
+        return tuple(_coerce(v, a, f"{path}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+    if origin in (dict,) or tp is dict:
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{path}: expected a table, got {type(value).__name__}")
+        return json.loads(json.dumps(dict(value)))
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{path}: expected a number, got {type(value).__name__}")
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{path}: expected an integer, got {type(value).__name__}")
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{path}: expected true or false, got {type(value).__name__}")
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{path}: expected a string, got {type(value).__name__}")
+        return value
+    raise ConfigError(f"{path}: unsupported config type {_type_name(tp)}")
+
+
+def check_range(value: Any, meta: Mapping[str, Any], path: str) -> None:
+    """Apply the ``ge/gt/le/lt/choices`` limits of a field (numbers and tuples of numbers)."""
+    items = value if isinstance(value, tuple) else (value,)
+    for v in items:
+        if not isinstance(v, (int, float)) or isinstance(v, bool):
+            continue
+        if meta.get("ge") is not None and not v >= meta["ge"]:
+            raise ConfigError(f"{path}: {v} is below the minimum {meta['ge']}")
+        if meta.get("gt") is not None and not v > meta["gt"]:
+            raise ConfigError(f"{path}: {v} must be greater than {meta['gt']}")
+        if meta.get("le") is not None and not v <= meta["le"]:
+            raise ConfigError(f"{path}: {v} is above the maximum {meta['le']}")
+        if meta.get("lt") is not None and not v < meta["lt"]:
+            raise ConfigError(f"{path}: {v} must be less than {meta['lt']}")
+    if meta.get("choices") is not None and value not in meta["choices"]:
+        raise ConfigError(f"{path}: {value!r} is not one of {list(meta['choices'])}")
+
+
+def build(cls: type[T], data: Mapping[str, Any], path: str = "") -> T:
+    """Build the frozen section ``cls`` from ``data``; unknown keys and bad values raise ConfigError."""
+    hints = get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    kwargs: dict[str, Any] = {}
+    for key, value in data.items():
+        dotted = f"{path}.{key}" if path else key
+        if key not in fields:
+            raise ConfigError(f"{dotted}: unknown key (known: {', '.join(sorted(fields))})")
+        coerced = _coerce(value, hints[key], dotted)
+        check_range(coerced, fields[key].metadata, dotted)
+        kwargs[key] = coerced
+    try:
+        obj = cls(**kwargs)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}" if path else str(exc)) from None
+    return obj
+
+
+def to_dict(obj: Any) -> Any:
+    """A section as plain nested dicts and lists (TOML-ready)."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, tuple):
+        return [to_dict(v) for v in obj]
+    if isinstance(obj, dict):
+        return {k: to_dict(v) for k, v in obj.items()}
+    return obj
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def _emit_table(lines: list[str], name: str, obj: Any, cls: Any) -> None:
+    """Write one table: documented scalars first, then sub-tables."""
+    doc = (cls.__doc__ or "").strip().splitlines()[0] if cls is not None and cls.__doc__ else ""
+    lines.append("")
+    if doc:
+        lines.append(f"# {doc}")
+    lines.append(f"[{name}]")
+    subtables: list[tuple[str, Any, Any]] = []
+    if dataclasses.is_dataclass(obj):
+        for f in dataclasses.fields(obj):
+            v = getattr(obj, f.name)
+            if dataclasses.is_dataclass(v):
+                subtables.append((f.name, v, type(v)))
+                continue
+            d = to_dict(v)
+            if isinstance(d, dict):
+                subtables.append((f.name, d, None))
+                continue
+            unit = f.metadata.get("unit", "")
+            lines.append(f"# {f.metadata.get('doc', '')}" + (f" [{unit}]" if unit else ""))
+            lines.append(f"{f.name} = {_toml_value(d)}")
+    else:
+        for k, v in obj.items():
+            if isinstance(v, dict):
+                subtables.append((k, v, None))
+            else:
+                lines.append(f"{k} = {_toml_value(v)}")
+    for key, sub, sub_cls in subtables:
+        _emit_table(lines, f"{name}.{key}", sub, sub_cls)
+
+
+def to_toml(obj: Any, header: str = "") -> str:
+    """Render a top-level config object as a documented TOML file."""
+    lines: list[str] = [f"# {h}" if h else "#" for h in header.splitlines()]
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        _emit_table(lines, f.name, v, type(v) if dataclasses.is_dataclass(v) else None)
+    return "\n".join(lines).lstrip("\n") + "\n"

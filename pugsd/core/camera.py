@@ -1,0 +1,84 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Pinhole camera with skew and the rectified stereo rig.
+
+Intrinsics ``K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` (pixels). Rectified stereo: both cameras
+share K, the right camera sits ``baseline_m`` along +x of the left one, and disparity
+``disp = fx * B / z``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pugsd.errors import InputError
+
+
+@dataclass(frozen=True, slots=True)
+class PinholeCamera:
+    """Pinhole intrinsics in pixels, image size in pixels."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    skew: float = 0.0
+
+    def __post_init__(self) -> None:
+        vals = (self.fx, self.fy, self.cx, self.cy, self.skew)
+        if not all(np.isfinite(v) for v in vals) or self.fx <= 0 or self.fy <= 0:
+            raise InputError(f"invalid intrinsics fx={self.fx} fy={self.fy} cx={self.cx} cy={self.cy}")
+        if self.width <= 0 or self.height <= 0:
+            raise InputError(f"invalid image size {self.width}x{self.height}")
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array(
+            [[self.fx, self.skew, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], dtype=np.float64
+        )
+
+    def scaled(self, factor: int) -> PinholeCamera:
+        """The camera of an image downsampled by an integer ``factor`` (pixel-centre convention)."""
+        f = float(factor)
+        return PinholeCamera(
+            fx=self.fx / f,
+            fy=self.fy / f,
+            cx=(self.cx + 0.5) / f - 0.5,
+            cy=(self.cy + 0.5) / f - 0.5,
+            width=self.width // factor,
+            height=self.height // factor,
+            skew=self.skew / f,
+        )
+
+    def rays(self) -> np.ndarray:
+        """Eq. 1 ray ``r(u, v) = K^-1 [u, v, 1]^T`` for every pixel: (H, W, 3), unit z component."""
+        v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
+        y = (v - self.cy) / self.fy
+        x = (u - self.cx - self.skew * y) / self.fx
+        return np.stack([x, y, np.ones_like(x)], axis=-1)
+
+    def project(self, points_C: np.ndarray) -> np.ndarray:
+        """Project camera-frame points (N, 3) to pixels (N, 2)."""
+        p = np.asarray(points_C, dtype=np.float64)
+        z = p[:, 2]
+        u = (self.fx * p[:, 0] + self.skew * p[:, 1]) / z + self.cx
+        v = self.fy * p[:, 1] / z + self.cy
+        return np.stack([u, v], axis=-1)
+
+
+@dataclass(frozen=True, slots=True)
+class StereoRig:
+    """A rectified stereo pair: the left camera's intrinsics and the baseline to the right camera."""
+
+    left: PinholeCamera
+    baseline_m: float
+
+    def __post_init__(self) -> None:
+        if not np.isfinite(self.baseline_m) or self.baseline_m <= 0:
+            raise InputError(f"invalid stereo baseline {self.baseline_m} m")
+
+    def scaled(self, factor: int) -> StereoRig:
+        return StereoRig(self.left.scaled(factor), self.baseline_m)
