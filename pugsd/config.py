@@ -126,13 +126,13 @@ class SvgpConfig:
     ngd_lr: float = opt(0.1, "natural-gradient step size", gt=0.0, le=1.0)
     adam_lr: float = opt(0.01, "Adam rate for kernel and likelihood hyperparameters", gt=0.0)
     inducing_lr: float = opt(1e-3, "Adam rate for the inducing locations", ge=0.0)
-    steps_per_update: int = opt(20, "streaming: optimisation steps per update call", ge=1)
+    steps_per_update: int = opt(4, "streaming: optimisation steps per update call", ge=1)
     replay_fraction: float = opt(
         0.5, "streaming: share of each minibatch drawn from the whole store (rest: newest points)",
         ge=0.0, le=1.0,
     )
     ready_min_steps: int = opt(
-        40, "streaming: model is ready after this many steps since the last inducing change", ge=0
+        30, "streaming: model is ready after this many steps since the last inducing change", ge=0
     )
     ready_elbo_tol: float = opt(
         0.05, "streaming: and the relative change of the ELBO EMA falls below this", gt=0.0
@@ -156,7 +156,7 @@ class CubatureConfig:
         choices=("total", "paper_literal"),
     )
     max_query_points: int = opt(
-        20000, "farthest-point cap on the query cloud given to Algorithm 1", ge=100
+        5000, "random subsample cap on the query cloud given to Algorithm 1", ge=100
     )
 
 
@@ -167,7 +167,7 @@ class ReconstructionConfig:
     tsdf_voxel_m: float = opt(0.003, "TSDF voxel size (paper: 3 mm)", unit="m", gt=0.0)
     sdf_trunc_voxels: float = opt(4.0, "TSDF truncation distance in voxels", gt=0.0)
     block_count: int = opt(40000, "VoxelBlockGrid block capacity", ge=100)
-    sample_points: int = opt(20000, "points sampled from the fused surface", ge=100)
+    sample_points: int = opt(8000, "points sampled from the fused surface", ge=100)
     outlier_nb_neighbors: int = opt(20, "statistical outlier removal neighbourhood", ge=1)
     outlier_std_ratio: float = opt(
         0.01, "statistical outlier removal std ratio (paper: 0.01; 0.1 less aggressive)", gt=0.0

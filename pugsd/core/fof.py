@@ -1,0 +1,301 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The fused occupancy field (Eq. 4-6) and its voxel-hashed, incremental point store.
+
+Eq. 4: ``OF(p) = sum_j w_j N(p; mu_j, Sigma_j)``; the *fused* field replaces each ``Sigma_j`` by
+``Sigma~_j`` from Eq. 5 evaluated at ``mu_j``.
+Eq. 6: ``gamma_k(x) = pi_k N(x; mu_k, Sigma_k) / sum_j pi_j N(x; mu_j, Sigma_j)`` over the K nearest
+Gaussians, with ``pi_k = 1/K`` (cancels); computed with log-sum-exp.
+Eq. 5: ``Sigma_pz = (sum_k gamma_k(p_z) Sigma_k^-1)^-1`` (information form, a convex combination of
+precisions).
+The SVGP regresses ``y_j = FOF(mu_j)`` (truncated to the K nearest), divided by a scale ``s``.
+
+Store: one Gaussian per voxel. Each voxel accumulates the count ``c``, ``sum Sigma_i^-1`` and
+``sum Sigma_i^-1 mu_i``; its Gaussian has the information-weighted mean and the covariance
+``(sum Sigma_i^-1 / c)^-1`` (the scale of one observation, not shrinking with the count), and the
+weight ``w = c`` (Eq. 4's weights: an intensity that grows with repeated observation).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pugsd.config import FofConfig
+from pugsd.errors import EmptyCloudError
+
+_LOG_2PI = float(np.log(2.0 * np.pi))
+
+
+def gaussian_logpdf(x: np.ndarray, mu: np.ndarray, prec: np.ndarray, logdet: np.ndarray) -> np.ndarray:
+    """``log N(x; mu, Sigma)`` for x (Q, 3), mu (Q, K, 3), precision (Q, K, 3, 3), log|Sigma| (Q, K)."""
+    diff = x[:, None, :] - mu
+    maha = np.einsum("qki,qkij,qkj->qk", diff, prec, diff)
+    return -0.5 * (maha + logdet + 3.0 * _LOG_2PI)
+
+
+def precision_and_logdet(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Precision matrices and log-determinants of a stack of SPD 3x3 covariances."""
+    L = np.linalg.cholesky(cov)
+    Linv = np.linalg.inv(L)
+    prec = np.swapaxes(Linv, -1, -2) @ Linv
+    logdet = 2.0 * np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum(-1)
+    return prec, logdet
+
+
+def responsibilities(log_pdf: np.ndarray) -> np.ndarray:
+    """Eq. 6 in log space: (Q, K) -> (Q, K), rows sum to 1 (uniform priors cancel)."""
+    m = log_pdf.max(axis=1, keepdims=True)
+    m = np.where(np.isfinite(m), m, 0.0)
+    e = np.exp(log_pdf - m)
+    return e / e.sum(axis=1, keepdims=True)
+
+
+def fuse_covariance(gamma: np.ndarray, prec: np.ndarray) -> np.ndarray:
+    """Eq. 5: ``(sum_k gamma_k Sigma_k^-1)^-1`` for gamma (Q, K), precisions (Q, K, 3, 3)."""
+    info = np.einsum("qk,qkij->qij", gamma, prec)
+    info = 0.5 * (info + np.swapaxes(info, -1, -2))
+    return np.linalg.inv(info)
+
+
+def fused_at(
+    x: np.ndarray, mu_nb: np.ndarray, prec_nb: np.ndarray, logdet_nb: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 5-6 at query points x (Q, 3) given their K neighbours: (Sigma_pz (Q,3,3), gamma (Q,K))."""
+    gamma = responsibilities(gaussian_logpdf(x, mu_nb, prec_nb, logdet_nb))
+    return fuse_covariance(gamma, prec_nb), gamma
+
+
+def information_mean(gamma: np.ndarray, prec: np.ndarray, mu: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Optional fused mean ``Sigma_pz sum_k gamma_k Sigma_k^-1 mu_k`` (the paper defines none)."""
+    return np.einsum("qij,qj->qi", cov, np.einsum("qk,qkij,qkj->qi", gamma, prec, mu))
+
+
+def mixture_density(
+    x: np.ndarray, mu_nb: np.ndarray, prec_nb: np.ndarray, logdet_nb: np.ndarray, w_nb: np.ndarray
+) -> np.ndarray:
+    """Eq. 4 truncated to the K neighbours: ``sum_k w_k N(x; mu_k, Sigma_k)`` (Q,)."""
+    return (w_nb * np.exp(gaussian_logpdf(x, mu_nb, prec_nb, logdet_nb))).sum(axis=1)
+
+
+@dataclass(frozen=True)
+class FofSnapshot:
+    """A consistent view of the field: Gaussians, fused covariances and scaled targets."""
+
+    version: int
+    mu_W: np.ndarray  # (N, 3)
+    cov_W: np.ndarray  # (N, 3, 3) per-voxel Gaussian
+    weight: np.ndarray  # (N,)
+    fused_cov_W: np.ndarray  # (N, 3, 3) Eq. 5 at mu_j
+    target: np.ndarray  # (N,) FOF(mu_j) / scale
+    scale: float
+
+
+class FofStore:
+    """Voxel-hashed Gaussian store with incremental Eq. 4-6 targets (dirty regions only)."""
+
+    def __init__(self, cfg: FofConfig) -> None:
+        self.cfg = cfg
+        self.reset()
+
+    def reset(self) -> None:
+        self._index: dict[int, int] = {}
+        cap = 1024
+        self._count = np.zeros(cap)
+        self._sum_prec = np.zeros((cap, 3, 3))
+        self._sum_prec_mu = np.zeros((cap, 3))
+        self._last_seen = np.zeros(cap, dtype=np.int64)
+        self._fused = np.zeros((cap, 3, 3))
+        self._density = np.zeros(cap)
+        self._n = 0
+        self._tick = 0
+        self.version = 0
+        self.scale = 1.0
+        self._dirty = np.zeros(cap, dtype=bool)
+        self._mu = np.zeros((0, 3))
+        self._cov = np.zeros((0, 3, 3))
+        self._prec = np.zeros((0, 3, 3))
+        self._logdet = np.zeros(0)
+        self._tree: cKDTree | None = None
+        self._fprec = np.zeros((0, 3, 3))
+        self._flogdet = np.zeros(0)
+        self.last_touched = np.zeros(0, dtype=np.int64)
+        self.evicted = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    # ------------------------------------------------------------------ insertion
+    def _grow(self, need: int) -> None:
+        cap = self._count.shape[0]
+        if need <= cap:
+            return
+        new = max(need, 2 * cap)
+        for name in ("_count", "_sum_prec", "_sum_prec_mu", "_last_seen", "_fused", "_density", "_dirty"):
+            old = getattr(self, name)
+            arr = np.zeros((new, *old.shape[1:]), dtype=old.dtype)
+            arr[:cap] = old
+            setattr(self, name, arr)
+
+    def _keys(self, points_W: np.ndarray) -> np.ndarray:
+        ijk = np.floor(points_W / self.cfg.voxel_size_m).astype(np.int64) + (1 << 20)
+        return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+
+    def insert(self, points_W: np.ndarray, cov_W: np.ndarray) -> np.ndarray:
+        """Add Gaussians; returns the indices of the voxels touched (marked dirty)."""
+        if len(points_W) == 0:
+            return np.zeros(0, dtype=np.int64)
+        self._tick += 1
+        prec, _ = precision_and_logdet(cov_W)
+        keys = self._keys(points_W)
+        ukeys, inv = np.unique(keys, return_inverse=True)
+        slots = np.empty(ukeys.size, dtype=np.int64)
+        for i, k in enumerate(ukeys.tolist()):
+            s = self._index.get(k)
+            if s is None:
+                s = self._n
+                self._grow(s + 1)
+                self._index[k] = s
+                self._n += 1
+            slots[i] = s
+        rows = slots[inv]
+        np.add.at(self._count, rows, 1.0)
+        np.add.at(self._sum_prec, rows, prec)
+        np.add.at(self._sum_prec_mu, rows, np.einsum("nij,nj->ni", prec, points_W))
+        self._last_seen[slots] = self._tick
+        self._dirty[slots] = True
+        if self._n > self.cfg.max_voxels:
+            slots = self._evict(slots)
+        self._refresh_gaussians()
+        self.last_touched = slots
+        return slots
+
+    def _evict(self, touched: np.ndarray) -> np.ndarray:
+        """Keep the most recently seen ``max_voxels``; compact arrays and rebuild the hash."""
+        n = self._n
+        keep = np.argsort(-self._last_seen[:n], kind="stable")[: self.cfg.max_voxels]
+        keep.sort()
+        self.evicted += n - keep.size
+        remap = -np.ones(n, dtype=np.int64)
+        remap[keep] = np.arange(keep.size)
+        for name in ("_count", "_sum_prec", "_sum_prec_mu", "_last_seen", "_fused", "_density", "_dirty"):
+            arr = getattr(self, name)
+            arr[: keep.size] = arr[keep]
+        self._index = {k: int(remap[s]) for k, s in self._index.items() if remap[s] >= 0}
+        self._n = keep.size
+        self._dirty[: self._n] = True  # neighbourhoods changed near evicted voxels
+        self._fprec = np.zeros((0, 3, 3))  # recomputed in full at the next update
+        self._flogdet = np.zeros(0)
+        t = remap[touched]
+        return t[t >= 0]
+
+    def _refresh_gaussians(self) -> None:
+        n = self._n
+        c = self._count[:n]
+        info = self._sum_prec[:n] / c[:, None, None]
+        cov = np.linalg.inv(info)
+        cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))
+        self._mu = np.einsum("nij,nj->ni", np.linalg.inv(self._sum_prec[:n]), self._sum_prec_mu[:n])
+        self._cov = cov
+        self._prec, self._logdet = precision_and_logdet(cov)
+        self._tree = cKDTree(self._mu)
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def mu_W(self) -> np.ndarray:
+        return self._mu
+
+    @property
+    def cov_W(self) -> np.ndarray:
+        return self._cov
+
+    @property
+    def weight(self) -> np.ndarray:
+        return self._count[: self._n].copy()
+
+    def neighbours(self, x: np.ndarray, k: int | None = None) -> np.ndarray:
+        """Indices (Q, K) of the K nearest stored Gaussians (KD-tree)."""
+        if self._tree is None or self._n == 0:
+            raise EmptyCloudError("the occupancy field is empty")
+        k = min(k or self.cfg.k_neighbours, self._n)
+        _, idx = self._tree.query(x, k=k, workers=-1)
+        return np.asarray(idx).reshape(len(x), k)
+
+    def fused_covariance(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Algorithm 1 lines 1-2 at arbitrary points: (Sigma_pz (Q,3,3), fused mean (Q,3))."""
+        nb = self.neighbours(x)
+        cov, gamma = fused_at(x, self._mu[nb], self._prec[nb], self._logdet[nb])
+        if self.cfg.fused_mean == "information":
+            mean = information_mean(gamma, self._prec[nb], self._mu[nb], cov)
+        else:
+            mean = x
+        return cov, mean
+
+    # ------------------------------------------------------------------ targets
+    def update_targets(self, full: bool = False) -> int:
+        """Recompute Eq. 5 and Eq. 4 targets where the field changed; returns how many changed.
+
+        Sigma~_j depends on the K nearest Gaussians of mu_j and FOF(mu_j) on their Sigma~, so the
+        dirty set is grown by two rings of K nearest neighbours.
+        """
+        n = self._n
+        if n == 0:
+            return 0
+        if full:
+            ring2 = np.arange(n)
+            ring1 = ring2
+        else:
+            dirty = np.flatnonzero(self._dirty[:n])
+            if dirty.size == 0:
+                return 0
+            ring1 = np.unique(np.concatenate([dirty, self.neighbours(self._mu[dirty]).ravel()]))
+            ring2 = np.unique(np.concatenate([ring1, self.neighbours(self._mu[ring1]).ravel()]))
+        k = min(self.cfg.k_neighbours, n)
+        # Eq. 5-6 at mu_j for ring 1
+        nb1 = self.neighbours(self._mu[ring1], k)
+        if not self.cfg.include_self and k > 1:
+            nb1 = self.neighbours(self._mu[ring1], k + 1)[:, 1:]
+        fused, _ = fused_at(self._mu[ring1], self._mu[nb1], self._prec[nb1], self._logdet[nb1])
+        self._fused[ring1] = fused
+        if full or self._fprec.shape[0] > n:
+            self._fprec, self._flogdet = precision_and_logdet(self._fused[:n])
+        else:
+            grow = n - self._fprec.shape[0]  # new voxels are dirty, hence in ring 1
+            self._fprec = np.concatenate([self._fprec, np.broadcast_to(np.eye(3), (grow, 3, 3))])
+            self._flogdet = np.concatenate([self._flogdet, np.zeros(grow)])
+            fp, fl = precision_and_logdet(fused)
+            self._fprec[ring1] = fp
+            self._flogdet[ring1] = fl
+        # Eq. 4 with fused covariances at mu_j for ring 2
+        nb2 = self.neighbours(self._mu[ring2], k)
+        w = self._count[:n]
+        self._density[ring2] = mixture_density(
+            self._mu[ring2], self._mu[nb2], self._fprec[nb2], self._flogdet[nb2], w[nb2]
+        )
+        self._dirty[:n] = False
+        self.version += 1
+        return int(ring2.size)
+
+    def raw_density(self) -> np.ndarray:
+        return self._density[: self._n].copy()
+
+    def compute_scale(self) -> float:
+        d = self._density[: self._n]
+        if d.size == 0:
+            return 1.0
+        s = float(d.max() if self.cfg.target_scale == "max" else np.percentile(d, 99))
+        return s if s > 0 else 1.0
+
+    def snapshot(self, scale: float | None = None) -> FofSnapshot:
+        n = self._n
+        s = self.compute_scale() if scale is None else scale
+        return FofSnapshot(
+            version=self.version,
+            mu_W=self._mu.copy(),
+            cov_W=self._cov.copy(),
+            weight=self._count[:n].copy(),
+            fused_cov_W=self._fused[:n].copy(),
+            target=self._density[:n] / s,
+            scale=s,
+        )

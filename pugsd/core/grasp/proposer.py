@@ -1,0 +1,285 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Grasp proposers producing per-point grasps (math spec 3.2) and the default antipodal sampler.
+
+Pose convention (Contact-GraspNet): ``R = [b, a x b, a]`` with baseline b (closing direction, from
+the contact towards its partner) and approach a; translation ``t = c + w/2 b - d_g a`` is the
+wrist origin, where c is the contact point, w the width and d_g the gripper depth. In the grasp
+frame the finger pads span ``z in [d_g - L/2, d_g + L/2]`` (L = finger length) and the jaws close
+along x, centred on the mid-point between the contacts.
+
+Default gripper (the Reach Bravo 7 parallel jaws, our estimate from public drawings; config
+``[grasp.gripper]``): opening up to 0.10 m, fingers 45 mm long, 20 mm wide, 12 mm thick, a palm
+block 30 mm deep and 60 mm wide, and a depth of 90 mm from the wrist origin to the contact line
+(the UW-APL TSGrasp wrapper's default for the Bravo).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+from pugsd.config import GraspConfig, GripperConfig
+from pugsd.core.predictive import farthest_point_sample
+from pugsd.errors import EmptyCloudError, PugsdError
+
+
+@dataclass(frozen=True)
+class GraspSet:
+    """Per-point grasps aligned with ``src_index`` into the proposer's input cloud."""
+
+    contact: np.ndarray  # (M, 3)
+    baseline: np.ndarray  # (M, 3) unit
+    approach: np.ndarray  # (M, 3) unit, orthogonal to baseline
+    width: np.ndarray  # (M,)
+    confidence: np.ndarray  # (M,) in [0, 1]
+    pose: np.ndarray  # (M, 4, 4)
+    valid: np.ndarray  # (M,) bool
+    src_index: np.ndarray  # (M,) int64
+
+    def __len__(self) -> int:
+        return int(self.width.shape[0])
+
+    def subset(self, idx: np.ndarray) -> GraspSet:
+        return GraspSet(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
+
+
+def grasp_poses(
+    contact: np.ndarray, baseline: np.ndarray, approach: np.ndarray, width: np.ndarray, depth_m: float
+) -> np.ndarray:
+    """``R = [b, a x b, a]``, ``t = c + w/2 b - d_g a`` for M grasps: (M, 4, 4)."""
+    m = len(contact)
+    T = np.tile(np.eye(4), (m, 1, 1))
+    T[:, :3, 0] = baseline
+    T[:, :3, 1] = np.cross(approach, baseline)
+    T[:, :3, 2] = approach
+    T[:, :3, 3] = contact + 0.5 * width[:, None] * baseline - depth_m * approach
+    return T
+
+
+class GraspProposer(Protocol):
+    def propose(
+        self, points_W: np.ndarray, normals_W: np.ndarray | None, view_origins_W: np.ndarray
+    ) -> GraspSet: ...
+
+
+def estimate_normals(points: np.ndarray, radius_m: float, view_origins_W: np.ndarray) -> np.ndarray:
+    """PCA normals (open3d hybrid search), each oriented towards its nearest camera centre."""
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius_m, max_nn=30))
+    n = np.asarray(pcd.normals).copy()
+    views = np.atleast_2d(view_origins_W)
+    nearest = views[cKDTree(views).query(points)[1]]
+    flip = ((nearest - points) * n).sum(1) < 0
+    n[flip] *= -1
+    return n
+
+
+def _orthonormal(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors orthogonal to each row of b (M, 3)."""
+    helper = np.where(np.abs(b[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    u = np.cross(b, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(b, u)
+    return u, v
+
+
+class AntipodalProposer:
+    """Geometric antipodal sampling (math spec 3.3; parameters after GPD).
+
+    For each contact p (farthest-point subset) with outward normal n_p, the partner q is the first
+    observed point along ``p + s b``, ``b = -n_p``, whose normal points along b (it leaves the
+    object there); both normals must lie in the friction cone of the line p-q. Approaches are
+    sampled around b; an orientation is kept if the finger and palm boxes hold no cloud point and
+    the closing region holds at least ``min_support`` points. Confidence in [0, 1]:
+    ``cos(theta_p) cos(theta_q) * (1 - exp(-support / 20)) * (0.75 + 0.25 a.v)``, v the direction
+    from the camera to the contact; the best orientation per contact is returned.
+    """
+
+    def __init__(self, cfg: GraspConfig, seed: int = 0) -> None:
+        self.cfg = cfg
+        self.g: GripperConfig = cfg.gripper
+        self.seed = seed
+
+    def propose(
+        self, points_W: np.ndarray, normals_W: np.ndarray | None, view_origins_W: np.ndarray
+    ) -> GraspSet:
+        if len(points_W) < 10:
+            raise EmptyCloudError(f"grasp proposal needs a cloud, got {len(points_W)} points")
+        cfg, g = self.cfg, self.g
+        pts = np.asarray(points_W, dtype=np.float64)
+        views = np.atleast_2d(view_origins_W)
+        normals = (
+            estimate_normals(pts, cfg.normal_radius_m, views) if normals_W is None else normals_W
+        )
+        tree = cKDTree(pts)
+        contacts = farthest_point_sample(pts, min(cfg.max_contacts, len(pts)), self.seed)
+        cos_f = np.cos(np.deg2rad(cfg.friction_cone_deg))
+
+        # partner search along b = -n_p, sampled every partner_radius
+        p = pts[contacts]
+        b0 = -normals[contacts]
+        step = cfg.partner_radius_m
+        s = np.arange(max(g.min_width_m, step), g.max_width_m + 1e-9, step)
+        probe = p[:, None, :] + s[None, :, None] * b0[:, None, :]  # (C, S, 3)
+        dist, idx = tree.query(probe.reshape(-1, 3), k=1, distance_upper_bound=step)
+        idx = idx.reshape(len(p), len(s))
+        hit = np.isfinite(dist.reshape(len(p), len(s)))
+        safe = np.where(hit, idx, 0)
+        along = (normals[safe] * b0[:, None, :]).sum(-1) >= cos_f
+        ok = hit & along
+        first = np.where(ok.any(1), ok.argmax(1), -1)
+
+        m = len(contacts)
+        out_contact = p.copy()
+        out_b = b0.copy()
+        out_a = np.zeros((m, 3))
+        out_w = np.zeros(m)
+        out_conf = np.zeros(m)
+        out_valid = np.zeros(m, dtype=bool)
+        for i in np.flatnonzero(first >= 0):
+            q = pts[safe[i, first[i]]]
+            line = q - p[i]
+            w = float(np.linalg.norm(line))
+            if w < g.min_width_m or w > g.max_width_m:
+                continue
+            b = line / w
+            cos_p = float(-normals[contacts[i]] @ b)
+            cos_q = float(normals[safe[i, first[i]]] @ b)
+            if cos_p < cos_f or cos_q < cos_f:
+                continue
+            res = self._best_orientation(pts, tree, p[i], b, w, views)
+            if res is None:
+                continue
+            a, support, pref = res
+            out_b[i] = b
+            out_a[i] = a
+            out_w[i] = w
+            out_conf[i] = cos_p * cos_q * (1.0 - np.exp(-support / 20.0)) * pref
+            out_valid[i] = True
+        out_a[~out_valid] = _orthonormal(out_b[~out_valid])[0] if (~out_valid).any() else out_a[~out_valid]
+        poses = grasp_poses(out_contact, out_b, out_a, out_w, g.depth_m)
+        return GraspSet(
+            contact=out_contact,
+            baseline=out_b,
+            approach=out_a,
+            width=out_w,
+            confidence=np.clip(out_conf, 0.0, 1.0),
+            pose=poses,
+            valid=out_valid,
+            src_index=contacts.astype(np.int64),
+        )
+
+    def _best_orientation(
+        self,
+        pts: np.ndarray,
+        tree: cKDTree,
+        p: np.ndarray,
+        b: np.ndarray,
+        w: float,
+        views: np.ndarray,
+    ) -> tuple[np.ndarray, int, float] | None:
+        """Collision-free approach around b with the most support: (a, support, preference)."""
+        g = self.g
+        centre = p + 0.5 * w * b
+        reach = np.sqrt((w / 2 + g.finger_thickness_m + 0.005) ** 2
+                        + (g.finger_length_m / 2 + g.palm_depth_m) ** 2
+                        + (max(g.finger_width_m, g.palm_width_m) / 2) ** 2)
+        local = pts[tree.query_ball_point(centre, reach)] - centre
+        if len(local) == 0:
+            return None
+        u, v = _orthonormal(b[None])
+        view_dir = p - views[np.argmin(((views - p) ** 2).sum(1))]
+        view_dir /= max(np.linalg.norm(view_dir), 1e-9)
+        best: tuple[np.ndarray, int, float] | None = None
+        best_score = -1.0
+        x = local @ b
+        clear = 0.002
+        half_l = g.finger_length_m / 2
+        for k in range(self.cfg.num_orientations):
+            th = 2.0 * np.pi * k / self.cfg.num_orientations
+            a = np.cos(th) * u[0] + np.sin(th) * v[0]
+            y = local @ np.cross(a, b)
+            z = local @ a
+            in_y = np.abs(y) <= g.finger_width_m / 2
+            in_z = np.abs(z) <= half_l
+            ax = np.abs(x)
+            finger = in_y & in_z & (ax >= w / 2 + clear) & (ax <= w / 2 + clear + g.finger_thickness_m)
+            palm = (
+                (z < -half_l)
+                & (z >= -half_l - g.palm_depth_m)
+                & (np.abs(y) <= g.palm_width_m / 2)
+                & (ax <= w / 2 + clear + g.finger_thickness_m)
+            )
+            if finger.any() or palm.any():
+                continue
+            support = int((in_y & in_z & (ax < w / 2 + clear)).sum())
+            if support < self.cfg.min_support:
+                continue
+            pref = 0.75 + 0.25 * float(a @ view_dir)
+            score = support * pref
+            if score > best_score:
+                best_score = score
+                best = (a, support, pref)
+        return best
+
+
+class TorchScriptProposer:
+    """A user's TorchScript grasp network with per-point outputs (TSGrasp-like heads).
+
+    The model takes points (N, 3) float32 and returns a tuple ``(logit (N,), baseline (N, 3),
+    approach (N, 3), width (N,))``; confidence is ``sigmoid(logit)``, the approach is
+    Gram-Schmidt-orthogonalised against the baseline, and the pose follows the module convention.
+    """
+
+    def __init__(self, cfg: GraspConfig) -> None:
+        import torch
+
+        path = Path(cfg.model_path)
+        if not path.is_file():
+            raise PugsdError(f"grasp.model_path: no TorchScript model at {path!s}")
+        self.cfg = cfg
+        self._torch = torch
+        self.model = torch.jit.load(str(path), map_location="cpu")
+        self.model.eval()
+
+    def propose(
+        self, points_W: np.ndarray, normals_W: np.ndarray | None, view_origins_W: np.ndarray
+    ) -> GraspSet:
+        torch = self._torch
+        if len(points_W) == 0:
+            raise EmptyCloudError("grasp proposal needs a cloud")
+        with torch.no_grad():
+            out = self.model(torch.as_tensor(points_W, dtype=torch.float32))
+        if not isinstance(out, (tuple, list)) or len(out) != 4:
+            raise PugsdError("TorchScript proposer must return (logit, baseline, approach, width)")
+        logit, b, a, w = (t.detach().double().cpu().numpy() for t in out)
+        n = len(points_W)
+        if logit.shape != (n,) or b.shape != (n, 3) or a.shape != (n, 3) or w.shape != (n,):
+            raise PugsdError("TorchScript proposer output shapes do not match the input points")
+        b = b / np.clip(np.linalg.norm(b, axis=1, keepdims=True), 1e-9, None)
+        a = a - (a * b).sum(1, keepdims=True) * b
+        a = a / np.clip(np.linalg.norm(a, axis=1, keepdims=True), 1e-9, None)
+        w = np.clip(w, 0.0, self.cfg.gripper.max_width_m)
+        conf = 1.0 / (1.0 + np.exp(-logit))
+        contact = np.asarray(points_W, dtype=np.float64)
+        return GraspSet(
+            contact=contact,
+            baseline=b,
+            approach=a,
+            width=w,
+            confidence=conf,
+            pose=grasp_poses(contact, b, a, w, self.cfg.gripper.depth_m),
+            valid=np.isfinite(conf),
+            src_index=np.arange(n, dtype=np.int64),
+        )
+
+
+def make_proposer(cfg: GraspConfig, seed: int = 0) -> GraspProposer:
+    if cfg.proposer == "torchscript":
+        return TorchScriptProposer(cfg)
+    return AntipodalProposer(cfg, seed)

@@ -1,0 +1,244 @@
+# SPDX-License-Identifier: Apache-2.0
+"""PugsPipeline: frames in, ranked grasps out (synchronous; the daemon drives it from workers).
+
+Stages, with the equations they implement:
+  StereoDepth (depth + sigma) -> Observation (Eq. 1-3) -> FofStore (Eq. 4-6 targets)
+  -> OccupancySVGP (Eq. 7-8) ; Reconstruction (TSDF cloud) -> proposer -> Algorithm 1
+  (Eq. 9-12 on the cloud) -> Eq. 13 ranking.
+
+Thread model: ``depth_from_stereo`` is stateless. ``integrate``, ``train_steps``, ``fit`` and
+``compute`` share state and must be called from one thread at a time (the daemon holds a lock).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pugsd.config import CoreConfig
+from pugsd.core.cubature import algorithm1
+from pugsd.core.fof import FofStore
+from pugsd.core.grasp.proposer import GraspSet, make_proposer
+from pugsd.core.grasp.scoring import rank_grasps, reweight
+from pugsd.core.observation import Observation
+from pugsd.core.predictive import OccupancySVGP, TrainStats
+from pugsd.core.reconstruction import Reconstruction
+from pugsd.core.stereo import StereoDepth
+from pugsd.core.types import DepthFrame, ScoredGrasps, StereoFrame
+from pugsd.errors import EmptyCloudError, ModelNotReadyError
+
+
+@dataclass(frozen=True)
+class PipelineResult:
+    """Grasps and the per-point uncertainty of the query cloud."""
+
+    grasps: ScoredGrasps  # ranked by PUGS confidence (Eq. 13)
+    baseline_grasps: ScoredGrasps  # the same candidates ranked by the proposer's confidence
+    cloud_W: np.ndarray  # (Q, 3) query cloud
+    mu_occ: np.ndarray  # (Q,) Algorithm 1 mean
+    sigma2_occ: np.ndarray  # (Q,) Algorithm 1 variance
+    occupancy_confidence: np.ndarray  # (Q,) 1 / (1 + gamma sigma2_occ)
+    pugs_conf_points: np.ndarray  # (Q,) Eq. 13 where a valid grasp exists, else 0
+    candidates: GraspSet
+    model_version: int
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+class PugsPipeline:
+    """The complete PUGS method as a synchronous library."""
+
+    def __init__(self, cfg: CoreConfig | None = None, seed: int = 0) -> None:
+        self.cfg = cfg if cfg is not None else CoreConfig()
+        self.seed = seed
+        self.stereo = StereoDepth(self.cfg.stereo)
+        self.observation = Observation(self.cfg.observation, self.cfg.stereo.sigma_d2_m2, seed)
+        self.store = FofStore(self.cfg.fof)
+        self.svgp = OccupancySVGP(self.cfg.svgp)
+        self.recon = Reconstruction(self.cfg.reconstruction)
+        self.proposer = make_proposer(self.cfg.grasp, seed)
+        self._pending: list[np.ndarray] = []
+        self._scale: float | None = None
+        self.frames = 0
+        self.points = 0
+        self.last_stamp_ns = 0
+        self.last_train: TrainStats | None = None
+        self.timings_s: dict[str, float] = {}
+
+    # ------------------------------------------------------------------ ingest
+    def depth_from_stereo(self, frame: StereoFrame) -> DepthFrame:
+        """Stage 1 (stateless)."""
+        return self.stereo.estimate(frame)
+
+    def integrate(self, depth: DepthFrame) -> int:
+        """Eq. 1-6 for one depth frame: back-project, fuse into the store, refresh dirty targets,
+        and integrate the frame into the TSDF. Returns the number of points added."""
+        t0 = time.perf_counter()
+        batch = self.observation.backproject(depth)
+        t1 = time.perf_counter()
+        touched = self.store.insert(batch.points_W, batch.cov_W)
+        self.store.update_targets()
+        t2 = time.perf_counter()
+        self.recon.integrate(depth)
+        t3 = time.perf_counter()
+        self._pending.append(touched)
+        self.frames += 1
+        self.points += len(batch)
+        self.last_stamp_ns = max(self.last_stamp_ns, depth.stamp_ns)
+        self.timings_s.update(backproject=t1 - t0, fof=t2 - t1, tsdf=t3 - t2)
+        return len(batch)
+
+    def add_stereo(self, frame: StereoFrame) -> DepthFrame:
+        t0 = time.perf_counter()
+        depth = self.depth_from_stereo(frame)
+        self.timings_s["depth"] = time.perf_counter() - t0
+        self.integrate(depth)
+        return depth
+
+    def add_depth(self, depth: DepthFrame) -> int:
+        return self.integrate(depth)
+
+    # ------------------------------------------------------------------ training
+    def _targets(self) -> tuple[np.ndarray, np.ndarray]:
+        """Training inputs and targets; the target scale is kept unless it drifts by > 25 %."""
+        s = self.store.compute_scale()
+        if self._scale is None or abs(s / self._scale - 1.0) > 0.25:
+            self._scale = s
+        snap = self.store.snapshot(self._scale)
+        return snap.mu_W, snap.target
+
+    def train_steps(self, steps: int | None = None) -> TrainStats:
+        """Streaming SVGP update (warm start, NGD + Adam, replay) on what changed since last call."""
+        t0 = time.perf_counter()
+        x, y = self._targets()
+        new = np.unique(np.concatenate(self._pending)) if self._pending else np.zeros(0, np.int64)
+        new = new[new < len(x)]
+        self._pending.clear()
+        self.last_train = self.svgp.update(x, y, new, steps)
+        self.timings_s["train"] = time.perf_counter() - t0
+        return self.last_train
+
+    def fit_paper(self, epochs: int | None = None) -> TrainStats:
+        """The paper's batch fit on all current points (fresh model, Adam 1e-3, 100 epochs)."""
+        t0 = time.perf_counter()
+        self.store.update_targets(full=True)
+        self._scale = None
+        x, y = self._targets()
+        self._pending.clear()
+        self.last_train = self.svgp.fit_paper(x, y, epochs)
+        self.timings_s["train"] = time.perf_counter() - t0
+        return self.last_train
+
+    def fit(self, mode: str = "paper", steps: int | None = None) -> TrainStats:
+        if mode == "paper":
+            return self.fit_paper()
+        return self.train_steps(steps)
+
+    @property
+    def ready(self) -> bool:
+        if self.last_train is None:
+            return False
+        return self.last_train.ready
+
+    # ------------------------------------------------------------------ query
+    def sigma2_occ(self, points_W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Algorithm 1 at query points: (mu_occ, sigma2_occ)."""
+        if not self.svgp.initialised:
+            raise ModelNotReadyError("the SVGP has not been trained")
+        cov, mean = self.store.fused_covariance(points_W)  # lines 1-2, Eq. 5-6
+        c = self.cfg.cubature
+
+        def predict(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            mu, _, var_pred = self.svgp.predict(p)  # Eq. 7-8
+            return mu, var_pred
+
+        return algorithm1(mean, cov, predict, c.alpha, c.beta, c.kappa, c.variance_form)
+
+    def query_cloud(self) -> np.ndarray:
+        cloud = self.recon.cloud(self.seed)
+        cap = self.cfg.cubature.max_query_points
+        if len(cloud) > cap:
+            rng = np.random.default_rng(self.seed)
+            cloud = cloud[np.sort(rng.choice(len(cloud), cap, replace=False))]
+        return cloud
+
+    def compute(self, cloud_W: np.ndarray | None = None) -> PipelineResult:
+        """Reconstruction -> grasp candidates -> Algorithm 1 -> Eq. 13 ranking."""
+        if len(self.store) == 0:
+            raise EmptyCloudError("no observations")
+        t0 = time.perf_counter()
+        cloud = self.query_cloud() if cloud_W is None else np.asarray(cloud_W, dtype=np.float64)
+        t1 = time.perf_counter()
+        views = np.asarray(self.recon.camera_centers_W) if self.recon.camera_centers_W else np.zeros((1, 3))
+        cands = self.proposer.propose(cloud, None, views)
+        t2 = time.perf_counter()
+        mu_occ, s2 = self.sigma2_occ(cloud)
+        t3 = time.perf_counter()
+        g = self.cfg.grasp
+        ranked = rank_grasps(cands, s2, g.gamma, g.top_k, g.thin_distance_m, "pugs", self.last_stamp_ns)
+        base = rank_grasps(cands, s2, g.gamma, g.top_k, g.thin_distance_m, "baseline", self.last_stamp_ns)
+        t4 = time.perf_counter()
+        pc = np.zeros(len(cloud))
+        v = cands.valid
+        pc[cands.src_index[v]] = reweight(cands.confidence[v], s2[cands.src_index[v]], g.gamma)
+        timings = {"cloud": t1 - t0, "propose": t2 - t1, "algorithm1": t3 - t2, "eq13": t4 - t3}
+        self.timings_s.update(timings)
+        return PipelineResult(
+            grasps=ranked,
+            baseline_grasps=base,
+            cloud_W=cloud,
+            mu_occ=mu_occ,
+            sigma2_occ=s2,
+            occupancy_confidence=1.0 / (1.0 + g.gamma * s2),
+            pugs_conf_points=pc,
+            candidates=cands,
+            model_version=self.svgp.version,
+            timings_s=timings,
+        )
+
+    # ------------------------------------------------------------------ helpers
+    def reset(self) -> None:
+        self.store.reset()
+        self.svgp.reset()
+        self.recon.reset()
+        self._pending.clear()
+        self._scale = None
+        self.frames = 0
+        self.points = 0
+        self.last_train = None
+
+    def stats(self) -> dict[str, float | int | bool]:
+        t = self.last_train
+        return {
+            "frames": self.frames,
+            "points": self.points,
+            "voxels": len(self.store),
+            "evicted": self.store.evicted,
+            "model_version": self.svgp.version,
+            "svgp_steps": self.svgp.total_steps,
+            "elbo": float(t.elbo) if t is not None else float("nan"),
+            "ready": self.ready,
+        }
+
+    @classmethod
+    def run(
+        cls,
+        frames: Iterable[StereoFrame | DepthFrame],
+        cfg: CoreConfig | None = None,
+        mode: str = "paper",
+        seed: int = 0,
+    ) -> PipelineResult:
+        """Offline convenience: ingest all frames, train (paper batch or streaming), compute."""
+        pipe = cls(cfg, seed)
+        for f in frames:
+            if isinstance(f, StereoFrame):
+                pipe.add_stereo(f)
+            else:
+                pipe.integrate(f)
+            if mode == "streaming":
+                pipe.train_steps()
+        if mode == "paper":
+            pipe.fit_paper()
+        return pipe.compute()

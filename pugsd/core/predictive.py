@@ -1,0 +1,330 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Predictive uncertainty of the fused occupancy field: a GPyTorch SVGP (Eq. 7-8).
+
+Eq. 7: ``SVGP(P_z) = {mu_z, sigma_z^2}``, the predictive mean and variance (latent f by default).
+Eq. 8: ``sigma_pred^2 = sigma_z^2 / (1 + |mu_z|)``: dense regions get their variance divided down.
+
+Targets are the FOF values divided by a scale ``s`` (``FofStore.compute_scale``), so the field the
+GP sees is dimensionless and of order one; Eq. 8 and Eq. 13 are applied in these units
+(``output_units = normalised``), which is what makes the paper's fixed gamma = 5 meaningful.
+
+Two training schemes share one model object:
+- ``fit_paper``: the paper's batch fit (Adam, lr 1e-3, 100 epochs over all points).
+- ``update``: streaming (math spec 5.3): warm-started natural-gradient steps on q(u) plus Adam on
+  the hyperparameters and inducing locations, minibatches mixing the newest points with a replay
+  sample of the whole store, ``num_data`` equal to the store size, inducing points moved into newly
+  observed regions with q(u) re-projected.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import gpytorch
+import numpy as np
+import torch
+
+from pugsd.config import SvgpConfig
+from pugsd.errors import EmptyCloudError, ModelNotReadyError
+
+
+def farthest_point_sample(points: np.ndarray, m: int, seed: int = 0) -> np.ndarray:
+    """Indices of ``m`` farthest-point samples (greedy, O(N m))."""
+    n = len(points)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    m = min(m, n)
+    rng = np.random.default_rng(seed)
+    idx = np.empty(m, dtype=np.int64)
+    idx[0] = rng.integers(n)
+    d2 = ((points - points[idx[0]]) ** 2).sum(1)
+    for i in range(1, m):
+        idx[i] = int(np.argmax(d2))
+        d2 = np.minimum(d2, ((points - points[idx[i]]) ** 2).sum(1))
+    return idx
+
+
+class _SVGP(gpytorch.models.ApproximateGP):  # type: ignore[misc]
+    def __init__(self, Z: torch.Tensor, natural: bool, kernel: str, lengthscale: float) -> None:
+        m = Z.shape[0]
+        vd: gpytorch.variational._VariationalDistribution
+        if natural:
+            vd = gpytorch.variational.NaturalVariationalDistribution(m)
+        else:
+            vd = gpytorch.variational.CholeskyVariationalDistribution(m)
+        vs = gpytorch.variational.VariationalStrategy(self, Z, vd, learn_inducing_locations=True)
+        super().__init__(vs)
+        # zero prior mean: the occupancy density vanishes away from observed surfaces
+        self.mean_module = gpytorch.means.ZeroMean()
+        base: gpytorch.kernels.Kernel
+        if kernel == "matern52":
+            base = gpytorch.kernels.MaternKernel(nu=2.5, ard_num_dims=3)
+        else:
+            base = gpytorch.kernels.RBFKernel(ard_num_dims=3)
+        base.lengthscale = lengthscale
+        self.covar_module = gpytorch.kernels.ScaleKernel(base)
+
+    def forward(self, x: torch.Tensor) -> gpytorch.distributions.MultivariateNormal:
+        return gpytorch.distributions.MultivariateNormal(self.mean_module(x), self.covar_module(x))
+
+
+@dataclass(frozen=True)
+class TrainStats:
+    steps: int
+    elbo: float
+    ready: bool
+    inducing_moved: int
+    num_data: int
+
+
+class OccupancySVGP:
+    """The SVGP on the FOF targets, with batch (paper) and streaming training."""
+
+    def __init__(self, cfg: SvgpConfig, natural: bool | None = None) -> None:
+        self.cfg = cfg
+        if cfg.device == "auto":
+            self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        else:
+            self.device = torch.device(cfg.device)
+        self.dtype = torch.float64 if cfg.dtype == "float64" else torch.float32
+        self.natural = cfg.natural_gradient if natural is None else natural
+        self._gen = torch.Generator().manual_seed(cfg.seed)
+        self._rng = np.random.default_rng(cfg.seed)
+        self.model: _SVGP | None = None
+        self.likelihood: gpytorch.likelihoods.GaussianLikelihood | None = None
+        self.total_steps = 0
+        self.steps_since_inducing_change = 0
+        self.elbo_ema: float | None = None
+        self.last_elbo = float("nan")
+        self.version = 0
+        self._ngd: gpytorch.optim.NGD | None = None
+        self._adam: torch.optim.Optimizer | None = None
+        self._mll: gpytorch.mlls.VariationalELBO | None = None
+
+    # ------------------------------------------------------------------ set-up
+    def _t(self, a: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(a, dtype=self.dtype, device=self.device)
+
+    def _init_model(self, x: np.ndarray, y: np.ndarray) -> None:
+        zi = farthest_point_sample(x, self.cfg.num_inducing, self.cfg.seed)
+        Z = self._t(x[zi])
+        model = _SVGP(Z, self.natural, self.cfg.kernel, self.cfg.lengthscale_init_m)
+        lik = gpytorch.likelihoods.GaussianLikelihood()
+        lik.noise = 1e-3
+        self.model = model.to(device=self.device, dtype=self.dtype)
+        self.likelihood = lik.to(device=self.device, dtype=self.dtype)
+        self._mll = gpytorch.mlls.VariationalELBO(self.likelihood, self.model, num_data=len(x))
+        hyper = [p for n, p in self.model.named_parameters() if "variational_strategy" not in n]
+        hyper += list(self.likelihood.parameters())
+        if self.natural:
+            self._ngd = gpytorch.optim.NGD(
+                self.model.variational_parameters(), num_data=len(x), lr=self.cfg.ngd_lr
+            )
+            groups = [{"params": hyper, "lr": self.cfg.adam_lr}]
+            if self.cfg.inducing_lr > 0:
+                groups.append(
+                    {
+                        "params": [self.model.variational_strategy.inducing_points],
+                        "lr": self.cfg.inducing_lr,
+                    }
+                )
+            self._adam = torch.optim.Adam(groups)
+        else:
+            self._adam = torch.optim.Adam(
+                [*self.model.parameters(), *self.likelihood.parameters()], lr=self.cfg.paper_lr
+            )
+        self.steps_since_inducing_change = 0
+        self.version += 1
+
+    @property
+    def initialised(self) -> bool:
+        return self.model is not None
+
+    def reset(self) -> None:
+        self.model = None
+        self.likelihood = None
+        self.total_steps = 0
+        self.elbo_ema = None
+        self.version += 1
+
+    # ------------------------------------------------------------------ training
+    def _step(self, xb: torch.Tensor, yb: torch.Tensor) -> float:
+        assert self.model is not None and self._mll is not None and self._adam is not None
+        self.model.train()
+        assert self.likelihood is not None
+        self.likelihood.train()
+        if self._ngd is not None:
+            self._ngd.zero_grad()
+        self._adam.zero_grad()
+        out = self.model(xb)
+        loss = -self._mll(out, yb)
+        loss.backward()
+        if self._ngd is not None:
+            self._ngd.step()
+        self._adam.step()
+        self.total_steps += 1
+        self.steps_since_inducing_change += 1
+        elbo = -float(loss.detach())
+        self.last_elbo = elbo
+        if self.elbo_ema is None:
+            self.elbo_ema = elbo
+        else:
+            self.elbo_ema = 0.9 * self.elbo_ema + 0.1 * elbo
+        return elbo
+
+    def fit_paper(self, x: np.ndarray, y: np.ndarray, epochs: int | None = None) -> TrainStats:
+        """The paper's batch fit: a fresh model, Adam (lr ``paper_lr``), ``paper_epochs`` epochs."""
+        if len(x) == 0:
+            raise EmptyCloudError("no training points")
+        self.natural = False
+        self.reset()
+        self._init_model(x, y)
+        xt, yt = self._t(x), self._t(y)
+        n = len(x)
+        bs = self.cfg.batch_size
+        epochs = self.cfg.paper_epochs if epochs is None else epochs
+        elbo = float("nan")
+        for _ in range(epochs):
+            perm = torch.randperm(n, generator=self._gen)
+            for i in range(0, n, bs):
+                sel = perm[i : i + bs].to(self.device)
+                elbo = self._step(xt[sel], yt[sel])
+        self.version += 1
+        return TrainStats(self.total_steps, elbo, True, 0, n)
+
+    def update(
+        self, x: np.ndarray, y: np.ndarray, new_idx: np.ndarray, steps: int | None = None
+    ) -> TrainStats:
+        """Streaming update on the whole store ``(x, y)`` after ``new_idx`` changed (Sec. 5.3)."""
+        n = len(x)
+        if n == 0:
+            raise EmptyCloudError("no training points")
+        moved = 0
+        if self.model is None:
+            self.natural = self.cfg.natural_gradient
+            self._init_model(x, y)
+        else:
+            moved = self._cover_new_region(x, new_idx)
+        assert self._mll is not None
+        self._mll.num_data = n
+        if self._ngd is not None:
+            for g in self._ngd.param_groups:
+                g["num_data"] = n
+        xt, yt = self._t(x), self._t(y)
+        bs = min(self.cfg.batch_size, n)
+        n_new = int(round(bs * (1.0 - self.cfg.replay_fraction))) if len(new_idx) else 0
+        elbo = float("nan")
+        prev = self.elbo_ema
+        steps = self.cfg.steps_per_update if steps is None else steps
+        for _ in range(steps):
+            parts = []
+            if n_new > 0:
+                parts.append(self._rng.choice(new_idx, size=min(n_new, len(new_idx)), replace=False))
+            parts.append(self._rng.choice(n, size=bs - sum(len(p) for p in parts), replace=False))
+            sel = torch.as_tensor(np.concatenate(parts), device=self.device)
+            elbo = self._step(xt[sel], yt[sel])
+        self.version += 1
+        return TrainStats(self.total_steps, elbo, self.is_ready(prev), moved, n)
+
+    def is_ready(self, prev_ema: float | None = None) -> bool:
+        """Ready once ``ready_min_steps`` steps have passed since the last inducing change and the
+        ELBO moving average changes by less than ``ready_elbo_tol`` (relative) between updates."""
+        if self.model is None:
+            return False
+        if self.steps_since_inducing_change < self.cfg.ready_min_steps:
+            return False
+        if prev_ema is None or self.elbo_ema is None:
+            return self.steps_since_inducing_change >= 2 * self.cfg.ready_min_steps
+        rel = abs(self.elbo_ema - prev_ema) / max(abs(prev_ema), 1e-6)
+        return rel < self.cfg.ready_elbo_tol or (
+            self.steps_since_inducing_change >= 4 * self.cfg.ready_min_steps
+        )
+
+    def _cover_new_region(self, x: np.ndarray, new_idx: np.ndarray) -> int:
+        """Swap inducing points into newly observed regions and re-project q(u) (Sec. 5.1).
+
+        New points farther than ``coverage_lengthscales`` lengthscales (Mahalanobis in the ARD
+        metric) from every inducing point are covered by FPS samples, replacing the inducing
+        points with the least posterior influence (smallest |m| of the whitened mean). The
+        variational distribution is re-projected so the predictive field is unchanged at the moment
+        of the swap: m = mu_f(Z_new), S = Sigma_f(Z_new), whitened with the new Cholesky factor.
+        """
+        assert self.model is not None
+        if len(new_idx) == 0:
+            return 0
+        vs = self.model.variational_strategy
+        Z = vs.inducing_points.detach()
+        ls = self.model.covar_module.base_kernel.lengthscale.detach().reshape(1, 3)
+        xn = self._t(x[new_idx])
+        d = torch.cdist(xn / ls, Z / ls).min(dim=1).values
+        far = (d > self.cfg.coverage_lengthscales).cpu().numpy()
+        if not far.any():
+            return 0
+        cand = x[new_idx][far]
+        k = int(min(len(cand), max(1, 0.3 * len(Z)), max(1, math.ceil(len(cand) / 20))))
+        pick = cand[farthest_point_sample(cand, k, self.cfg.seed + self.total_steps)]
+        with torch.no_grad():
+            m_white = self._whitened_mean()
+            influence = m_white.abs()
+            replace = torch.argsort(influence)[:k]
+            Z_new = Z.clone()
+            Z_new[replace] = self._t(pick)
+            self._reproject(Z_new)
+        self.steps_since_inducing_change = 0
+        return k
+
+    def _whitened_mean(self) -> torch.Tensor:
+        assert self.model is not None
+        vd = self.model.variational_strategy._variational_distribution
+        return vd().mean.detach()
+
+    def _reproject(self, Z_new: torch.Tensor) -> None:
+        """Write q(u) for new inducing points so that it matches the current posterior at Z_new."""
+        assert self.model is not None
+        model = self.model
+        model.eval()
+        with torch.no_grad(), gpytorch.settings.cholesky_jitter(1e-4):
+            post = model(Z_new)
+            m = post.mean - model.mean_module(Z_new)
+            S = post.covariance_matrix
+            Kzz = model.covar_module(Z_new).to_dense()
+            eye = torch.eye(len(Z_new), dtype=Z_new.dtype, device=Z_new.device)
+            L = torch.linalg.cholesky(Kzz + 1e-4 * eye)
+            m_w = torch.linalg.solve_triangular(L, m.unsqueeze(-1), upper=False).squeeze(-1)
+            tmp = torch.linalg.solve_triangular(L, S, upper=False)
+            S_w = torch.linalg.solve_triangular(L, tmp.mT, upper=False).mT
+            S_w = 0.5 * (S_w + S_w.mT) + 1e-6 * eye
+            vs = model.variational_strategy
+            vs.inducing_points.data.copy_(Z_new)
+            vd = vs._variational_distribution
+            if isinstance(vd, gpytorch.variational.NaturalVariationalDistribution):
+                S_inv = torch.linalg.inv(S_w)
+                vd.natural_vec.data.copy_(S_inv @ m_w)
+                vd.natural_mat.data.copy_(-0.5 * S_inv)
+            else:
+                vd.variational_mean.data.copy_(m_w)
+                vd.chol_variational_covar.data.copy_(torch.linalg.cholesky(S_w))
+            # cached Cholesky factors of Kzz depend on Z: drop them
+            vs._memoize_cache = {}
+        model.train()
+
+    # ------------------------------------------------------------------ prediction
+    def predict(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Eq. 7-8 at points x (N, 3): (mu_z, sigma_z^2, sigma_pred^2) in normalised units."""
+        if self.model is None or self.likelihood is None:
+            raise ModelNotReadyError("the SVGP has not been trained")
+        self.model.eval()
+        self.likelihood.eval()
+        mus, vs = [], []
+        with torch.no_grad(), gpytorch.settings.fast_pred_var():
+            for i in range(0, len(x), self.cfg.predict_chunk):
+                xt = self._t(x[i : i + self.cfg.predict_chunk])
+                f = self.model(xt)
+                if self.cfg.variance == "observed":
+                    f = self.likelihood(f)
+                mus.append(f.mean.double().cpu().numpy())
+                vs.append(f.variance.double().cpu().numpy())
+        mu = np.concatenate(mus) if mus else np.zeros(0)
+        var = np.clip(np.concatenate(vs) if vs else np.zeros(0), 0.0, None)
+        return mu, var, var / (1.0 + np.abs(mu))  # Eq. 8
