@@ -201,7 +201,7 @@ class GraspConfig:
         0.01, "farthest-point thinning: minimum distance between kept grasps", unit="m", ge=0.0
     )
     normal_radius_m: float = opt(0.01, "PCA normal radius", unit="m", gt=0.0)
-    friction_cone_deg: float = opt(20.0, "antipodal friction cone half-angle", unit="deg", gt=0.0, lt=90.0)
+    friction_cone_deg: float = opt(25.0, "antipodal friction cone half-angle", unit="deg", gt=0.0, lt=90.0)
     num_orientations: int = opt(8, "approach orientations tried per contact pair", ge=1)
     max_contacts: int = opt(1500, "contacts sampled (farthest point) per proposal", ge=10)
     min_support: int = opt(6, "points required in the closing region", ge=1)

@@ -94,8 +94,9 @@ class AntipodalProposer:
     For each contact p (farthest-point subset) with outward normal n_p, the partner q is the first
     observed point along ``p + s b``, ``b = -n_p``, whose normal points along b (it leaves the
     object there); both normals must lie in the friction cone of the line p-q. Approaches are
-    sampled around b; an orientation is kept if the finger and palm boxes hold no cloud point and
-    the closing region holds at least ``min_support`` points. Confidence in [0, 1]:
+    sampled around b; like GPD, the hand is checked against *observed* points only: an
+    orientation is kept if the open fingers and the palm hold no cloud point and the closing slab
+    holds at least ``min_support`` points; the jaws close on the slab's outermost points. Confidence in [0, 1]:
     ``cos(theta_p) cos(theta_q) * (1 - exp(-support / 20)) * (0.75 + 0.25 a.v)``, v the direction
     from the camera to the contact; the best orientation per contact is returned.
     """
@@ -147,18 +148,24 @@ class AntipodalProposer:
             w = float(np.linalg.norm(line))
             if w < g.min_width_m or w > g.max_width_m:
                 continue
-            b = line / w
-            cos_p = float(-normals[contacts[i]] @ b)
-            cos_q = float(normals[safe[i, first[i]]] @ b)
+            b_line = line / w
+            n_q = normals[safe[i, first[i]]]
+            cos_p = float(-normals[contacts[i]] @ b_line)
+            cos_q = float(n_q @ b_line)
             if cos_p < cos_f or cos_q < cos_f:
                 continue
+            # closing axis: the mean of the two contact normals (less sensitive to sampling)
+            b = n_q - normals[contacts[i]]
+            b /= np.linalg.norm(b)
             res = self._best_orientation(pts, tree, p[i], b, w, views)
             if res is None:
                 continue
-            a, support, pref = res
+            a, support, pref, width, shift = res
+            centre = p[i] + (0.5 * w + shift) * b
+            out_contact[i] = centre - 0.5 * width * b
             out_b[i] = b
             out_a[i] = a
-            out_w[i] = w
+            out_w[i] = width
             out_conf[i] = cos_p * cos_q * (1.0 - np.exp(-support / 20.0)) * pref
             out_valid[i] = True
         out_a[~out_valid] = _orthonormal(out_b[~out_valid])[0] if (~out_valid).any() else out_a[~out_valid]
@@ -182,11 +189,18 @@ class AntipodalProposer:
         b: np.ndarray,
         w: float,
         views: np.ndarray,
-    ) -> tuple[np.ndarray, int, float] | None:
-        """Collision-free approach around b with the most support: (a, support, preference)."""
+    ) -> tuple[np.ndarray, int, float, float, float] | None:
+        """The best collision-free approach around b.
+
+        The jaws open to ``max_width`` centred on the mid-point of the contact pair; an approach is
+        rejected if an observed point lies in an open finger or in the palm. The jaws then close on
+        the outermost observed points of the closing slab (|y| <= finger width / 2, |z| <= L / 2),
+        which gives the width. Returns (a, support, preference, width, centre offset along b).
+        """
         g = self.g
         centre = p + 0.5 * w * b
-        reach = np.sqrt((w / 2 + g.finger_thickness_m + 0.005) ** 2
+        half_open = g.max_width_m / 2
+        reach = np.sqrt((half_open + g.finger_thickness_m) ** 2
                         + (g.finger_length_m / 2 + g.palm_depth_m) ** 2
                         + (max(g.finger_width_m, g.palm_width_m) / 2) ** 2)
         local = pts[tree.query_ball_point(centre, reach)] - centre
@@ -195,10 +209,9 @@ class AntipodalProposer:
         u, v = _orthonormal(b[None])
         view_dir = p - views[np.argmin(((views - p) ** 2).sum(1))]
         view_dir /= max(np.linalg.norm(view_dir), 1e-9)
-        best: tuple[np.ndarray, int, float] | None = None
+        best: tuple[np.ndarray, int, float, float, float] | None = None
         best_score = -1.0
         x = local @ b
-        clear = 0.002
         half_l = g.finger_length_m / 2
         for k in range(self.cfg.num_orientations):
             th = 2.0 * np.pi * k / self.cfg.num_orientations
@@ -208,23 +221,30 @@ class AntipodalProposer:
             in_y = np.abs(y) <= g.finger_width_m / 2
             in_z = np.abs(z) <= half_l
             ax = np.abs(x)
-            finger = in_y & in_z & (ax >= w / 2 + clear) & (ax <= w / 2 + clear + g.finger_thickness_m)
+            finger = in_y & in_z & (ax >= half_open) & (ax <= half_open + g.finger_thickness_m)
             palm = (
                 (z < -half_l)
                 & (z >= -half_l - g.palm_depth_m)
                 & (np.abs(y) <= g.palm_width_m / 2)
-                & (ax <= w / 2 + clear + g.finger_thickness_m)
+                & (ax <= half_open + g.finger_thickness_m)
             )
             if finger.any() or palm.any():
                 continue
-            support = int((in_y & in_z & (ax < w / 2 + clear)).sum())
+            slab = in_y & in_z & (ax < half_open)
+            support = int(slab.sum())
             if support < self.cfg.min_support:
+                continue
+            x_lo, x_hi = float(x[slab].min()), float(x[slab].max())
+            if not (x_lo < 0.0 < x_hi):
+                continue
+            width = x_hi - x_lo
+            if width < g.min_width_m:
                 continue
             pref = 0.75 + 0.25 * float(a @ view_dir)
             score = support * pref
             if score > best_score:
                 best_score = score
-                best = (a, support, pref)
+                best = (a, support, pref, width, 0.5 * (x_lo + x_hi))
         return best
 
 

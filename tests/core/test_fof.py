@@ -1,0 +1,93 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Eq. 4-6: responsibilities, information fusion, the store's incremental targets."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.stats import multivariate_normal
+
+from pugsd.config import FofConfig
+from pugsd.core.fof import (
+    FofStore,
+    fused_at,
+    gaussian_logpdf,
+    mixture_density,
+    precision_and_logdet,
+    responsibilities,
+)
+
+
+def test_two_gaussian_case_by_hand() -> None:
+    mu = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]])
+    cov = np.array([np.diag([1e-4, 1e-4, 1e-4]), np.diag([4e-4, 1e-4, 2e-4])])
+    x = np.array([[0.004, 0.001, -0.002]])
+    prec, logdet = precision_and_logdet(cov)
+    lp = gaussian_logpdf(x, mu[None], prec[None], logdet[None])
+    n0 = multivariate_normal(mu[0], cov[0]).pdf(x[0])
+    n1 = multivariate_normal(mu[1], cov[1]).pdf(x[0])
+    np.testing.assert_allclose(np.exp(lp[0]), [n0, n1], rtol=1e-10)
+    # Eq. 6 with pi_k = 1/K
+    g0, g1 = n0 / (n0 + n1), n1 / (n0 + n1)
+    fused, gamma = fused_at(x, mu[None], prec[None], logdet[None])
+    np.testing.assert_allclose(gamma[0], [g0, g1], rtol=1e-10)
+    # Eq. 5
+    expected = np.linalg.inv(g0 * np.linalg.inv(cov[0]) + g1 * np.linalg.inv(cov[1]))
+    np.testing.assert_allclose(fused[0], expected, rtol=1e-10)
+    # Eq. 4 with unit weights
+    dens = mixture_density(x, mu[None], prec[None], logdet[None], np.ones((1, 2)))
+    np.testing.assert_allclose(dens, [n0 + n1], rtol=1e-10)
+
+
+def test_responsibilities_sum_to_one_and_stay_finite_far_away() -> None:
+    rng = np.random.default_rng(0)
+    mu = rng.normal(size=(50, 8, 3)) * 0.01
+    A = rng.normal(size=(50, 8, 3, 3)) * 0.003
+    cov = A @ np.swapaxes(A, -1, -2) + 1e-6 * np.eye(3)
+    prec, logdet = precision_and_logdet(cov)
+    x = np.full((50, 3), 100.0)  # metres away: every pdf underflows to 0 in linear space
+    lp = gaussian_logpdf(x, mu, prec, logdet)
+    assert np.all(np.exp(lp) == 0.0)
+    g = responsibilities(lp)
+    assert np.all(np.isfinite(g))
+    np.testing.assert_allclose(g.sum(1), 1.0, atol=1e-12)
+    fused, _ = fused_at(x, mu, prec, logdet)
+    assert np.all(np.isfinite(fused))
+    # the convex combination of precisions stays between the neighbours' scales
+    assert np.linalg.eigvalsh(fused).min() > 0
+
+
+def test_store_merges_voxels_and_incremental_targets_match_full() -> None:
+    rng = np.random.default_rng(3)
+    cfg = FofConfig(voxel_size_m=0.004, k_neighbours=8)
+    store = FofStore(cfg)
+    cov = np.broadcast_to(np.eye(3) * 1e-6, (400, 3, 3)).copy()
+    pts1 = rng.uniform(0, 0.05, (400, 3))
+    store.insert(pts1, cov)
+    store.update_targets()
+    pts2 = pts1[:100] + rng.normal(0, 1e-4, (100, 3))  # re-observe part of the surface
+    store.insert(pts2, cov[:100])
+    pts3 = rng.uniform(0.2, 0.25, (200, 3))  # a new, separate region
+    store.insert(pts3, cov[:200])
+    store.update_targets()
+    incremental = store.raw_density()
+    store.update_targets(full=True)
+    full = store.raw_density()
+    np.testing.assert_allclose(incremental, full, rtol=1e-6)
+    assert store.weight.sum() == 700  # every observation counted once
+    assert len(store) < 700  # voxels merged
+
+
+def test_store_cap_evicts_oldest() -> None:
+    cfg = FofConfig(voxel_size_m=0.001, max_voxels=100)
+    store = FofStore(cfg)
+    cov = np.broadcast_to(np.eye(3) * 1e-6, (80, 3, 3)).copy()
+    old = np.c_[np.arange(80) * 0.002, np.zeros(80), np.zeros(80)] + 0.0005
+    new = old + [0, 1.0, 0]
+    store.insert(old, cov)
+    store.insert(new, cov)
+    assert len(store) == 100
+    assert store.evicted == 60
+    # all the newest voxels survive
+    assert np.sum(store.mu_W[:, 1] > 0.5) == 80
+    store.update_targets()
+    assert np.all(np.isfinite(store.raw_density()))

@@ -1,0 +1,106 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Eq. 1-3 against hand-computed values and the closed forms of the math spec (2.1-2.3)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pugsd.config import ObservationConfig
+from pugsd.core.camera import PinholeCamera
+from pugsd.core.geometry import make_T, skew
+from pugsd.core.observation import Observation, backproject_camera, to_world
+from pugsd.core.types import DepthFrame
+from pugsd.errors import CovarianceError, EmptyCloudError, ImageSizeError, PoseError
+
+
+def _rot_z(deg: float) -> np.ndarray:
+    c, s = np.cos(np.deg2rad(deg)), np.sin(np.deg2rad(deg))
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def test_ray_with_skew_matches_hand_computation() -> None:
+    cam = PinholeCamera(fx=100.0, fy=200.0, cx=10.0, cy=20.0, width=40, height=50, skew=2.0)
+    r = cam.rays()[30, 15]  # v = 30, u = 15
+    # r = [(u - cx)/fx - s (v - cy)/(fx fy), (v - cy)/fy, 1]
+    expected = [(15 - 10) / 100 - 2.0 * (30 - 20) / (100 * 200), (30 - 20) / 200, 1.0]
+    np.testing.assert_allclose(r, expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(cam.K @ r, [15, 30, 1], atol=1e-12)
+
+
+def test_backprojection_and_camera_covariance() -> None:
+    r = np.array([[0.05, -0.1, 1.0]])
+    mu, cov = backproject_camera(np.array([2.0]), r, np.array([0.001]))
+    np.testing.assert_allclose(mu[0], [0.1, -0.2, 2.0])
+    np.testing.assert_allclose(cov[0], 0.001 * np.outer(r[0], r[0]))
+    assert np.linalg.matrix_rank(cov[0]) == 1
+
+
+def test_rotated_covariance_equals_closed_form() -> None:
+    rng = np.random.default_rng(1)
+    R = _rot_z(37.0) @ np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0.0]])
+    t = np.array([0.3, -0.2, 1.1])
+    d = rng.uniform(0.4, 2.0, 5)
+    rays = np.c_[rng.uniform(-0.3, 0.3, (5, 2)), np.ones(5)]
+    s2 = np.full(5, 0.01)
+    A = rng.normal(size=(3, 3)) * 1e-3
+    Sigma_t = A @ A.T
+    pose_cov = np.zeros((6, 6))
+    pose_cov[:3, :3] = Sigma_t
+    mu_C, cov_C = backproject_camera(d, rays, s2)
+    mu_W, cov_W = to_world(mu_C, cov_C, make_T(R, t), pose_cov, "rotated", False, 0.0)
+    for i in range(5):
+        diff = mu_W[i] - t
+        closed = 0.01 / d[i] ** 2 * np.outer(diff, diff) + Sigma_t
+        np.testing.assert_allclose(cov_W[i], closed, atol=1e-15)
+    # paper_literal adds the camera-frame needle unrotated
+    _, cov_P = to_world(mu_C, cov_C, make_T(R, t), pose_cov, "paper_literal", False, 0.0)
+    np.testing.assert_allclose(cov_P, cov_C + Sigma_t, atol=1e-15)
+    assert not np.allclose(cov_P, cov_W)
+
+
+def test_rotation_term_matches_monte_carlo() -> None:
+    """G Sigma_xi G^T with G = [I, -[p]_x] is the first-order spread under small rotations."""
+    rng = np.random.default_rng(2)
+    pose_cov = np.diag([1e-6, 1e-6, 1e-6, 1e-5, 2e-5, 3e-5])
+    p = np.array([[0.2, -0.4, 1.0]])
+    mu_W, cov_W = to_world(p, np.zeros((1, 3, 3)), np.eye(4), pose_cov, "rotated", True, 0.0)
+    G = np.hstack([np.eye(3), -skew(p[0])])
+    np.testing.assert_allclose(cov_W[0], G @ pose_cov @ G.T, atol=1e-18)
+    xi = rng.multivariate_normal(np.zeros(6), pose_cov, size=200_000)
+    from scipy.spatial.transform import Rotation
+
+    Rs = Rotation.from_rotvec(xi[:, 3:]).as_matrix()
+    samples = np.einsum("nij,j->ni", Rs, p[0]) + xi[:, :3]
+    np.testing.assert_allclose(np.cov(samples.T), cov_W[0], rtol=0.05, atol=2e-8)
+
+
+def test_regulariser_makes_rank_one_invertible() -> None:
+    cam = PinholeCamera(100, 100, 15.5, 11.5, 32, 24)
+    depth = np.full((24, 32), 1.5, np.float32)
+    frame = DepthFrame(1, depth, cam, np.eye(4))
+    obs = Observation(ObservationConfig(regulariser_m=0.0005), 0.001)
+    batch = obs.backproject(frame)
+    assert len(batch) == 24 * 32
+    assert np.linalg.eigvalsh(batch.cov_W).min() >= 0.0005**2 * 0.999
+    # the largest eigenvalue is sigma_d^2 |r|^2 along the ray (+ eps^2)
+    r = cam.rays()[0, 0]
+    lam = np.linalg.eigvalsh(batch.cov_W[0]).max()
+    assert lam == pytest.approx(0.001 * r @ r + 0.0005**2, rel=1e-9)
+
+
+def test_bad_inputs_are_typed_errors() -> None:
+    cam = PinholeCamera(100, 100, 15.5, 11.5, 32, 24)
+    with pytest.raises(ImageSizeError):
+        DepthFrame(1, np.zeros((10, 10), np.float32), cam, np.eye(4))
+    T = np.eye(4)
+    T[0, 3] = np.nan
+    with pytest.raises(PoseError):
+        DepthFrame(1, np.zeros((24, 32), np.float32), cam, T)
+    bad = np.eye(6)
+    bad[0, 0] = -1.0
+    with pytest.raises(CovarianceError):
+        DepthFrame(1, np.zeros((24, 32), np.float32), cam, np.eye(4), pose_cov=bad)
+    frame = DepthFrame(1, np.full((24, 32), np.nan, np.float32), cam, np.eye(4))
+    with pytest.raises(EmptyCloudError):
+        Observation(ObservationConfig(), 0.001).backproject(frame)

@@ -1,0 +1,91 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Eq. 7-8: the SVGP learns a known field; variance is low near data and high away from it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from pugsd.config import SvgpConfig
+from pugsd.core.predictive import OccupancySVGP, farthest_point_sample
+from pugsd.errors import ModelNotReadyError
+
+
+def _field(x: np.ndarray) -> np.ndarray:
+    return np.exp(-(x[:, 0] ** 2) / 0.002) + 0.5 * np.exp(-((x[:, 1] - 0.05) ** 2) / 0.001)
+
+
+@pytest.fixture(scope="module")
+def trained() -> tuple[OccupancySVGP, np.ndarray]:
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-0.1, 0.1, (3000, 3))
+    x[:, 2] *= 0.1  # a thin slab of observations around z = 0
+    m = OccupancySVGP(SvgpConfig(num_inducing=64, seed=0))
+    m.update(x, _field(x), np.arange(len(x)), steps=250)
+    return m, x
+
+
+def test_mean_fits_known_field(trained: tuple[OccupancySVGP, np.ndarray]) -> None:
+    m, _ = trained
+    rng = np.random.default_rng(1)
+    q = rng.uniform(-0.08, 0.08, (200, 3))
+    q[:, 2] *= 0.1
+    mu, _, _ = m.predict(q)
+    err = np.abs(mu - _field(q))
+    assert np.median(err) < 0.05
+
+
+def test_variance_low_near_data_high_far(trained: tuple[OccupancySVGP, np.ndarray]) -> None:
+    m, _ = trained
+    near = np.array([[0.0, 0.0, 0.0], [0.05, -0.05, 0.0]])
+    far = np.array([[0.0, 0.0, 0.3], [0.5, 0.5, 0.5]])
+    _, v_near, _ = m.predict(near)
+    _, v_far, _ = m.predict(far)
+    assert v_near.max() < 0.05 * v_far.min()
+
+
+def test_eq8_scaling(trained: tuple[OccupancySVGP, np.ndarray]) -> None:
+    m, x = trained
+    mu, var, var_pred = m.predict(x[:50])
+    np.testing.assert_allclose(var_pred, var / (1.0 + np.abs(mu)))
+
+
+def test_reprojection_keeps_predictions(trained: tuple[OccupancySVGP, np.ndarray]) -> None:
+    """Moving inducing points re-projects q(u): the predictive mean barely moves at the swap."""
+    m, x = trained
+    q = x[::37]
+    mu0, v0, _ = m.predict(q)
+    Z = m.model.variational_strategy.inducing_points.detach().clone()  # type: ignore[union-attr]
+    Z[:10] += 0.01
+    m._reproject(Z)
+    mu1, v1, _ = m.predict(q)
+    assert np.abs(mu1 - mu0).max() < 0.05
+    assert np.abs(v1 - v0).max() < 0.05
+
+
+def test_streaming_moves_inducing_points_into_new_region() -> None:
+    rng = np.random.default_rng(2)
+    x1 = rng.uniform(0.0, 0.05, (1500, 3))
+    m = OccupancySVGP(SvgpConfig(num_inducing=40, seed=1, lengthscale_init_m=0.01))
+    m.update(x1, np.ones(len(x1)), np.arange(len(x1)), steps=30)
+    x2 = rng.uniform(0.3, 0.35, (1500, 3))
+    X = np.vstack([x1, x2])
+    st = m.update(X, np.ones(len(X)), np.arange(1500, 3000), steps=60)
+    assert st.inducing_moved > 0
+    assert st.num_data == 3000
+    _, v, _ = m.predict(np.array([[0.325, 0.325, 0.325]]))
+    _, v_gap, _ = m.predict(np.array([[0.18, 0.18, 0.18]]))
+    assert v[0] < 0.5 * v_gap[0]
+
+
+def test_not_ready_raises() -> None:
+    with pytest.raises(ModelNotReadyError):
+        OccupancySVGP(SvgpConfig()).predict(np.zeros((1, 3)))
+
+
+def test_fps_spreads_points() -> None:
+    pts = np.r_[np.zeros((100, 3)), np.ones((1, 3))]
+    idx = farthest_point_sample(pts, 2, seed=0)
+    assert 100 in idx
