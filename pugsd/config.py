@@ -142,6 +142,12 @@ class SvgpConfig:
         gt=0.0,
     )
     predict_chunk: int = opt(20000, "points per batched prediction call", ge=256)
+    output_units: str = opt(
+        "density",
+        "units of mu and sigma^2 before Eq. 8: density (mapped back: mu s, sigma^2 s^2) or the "
+        "normalised training units",
+        choices=("density", "normalised"),
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -152,7 +158,10 @@ class CubatureConfig:
     beta: float = opt(0.0, "unscented beta", ge=0.0)
     kappa: float = opt(0.0, "unscented kappa", ge=-2.9)
     variance_form: str = opt(
-        "total", "sigma^2_occ: law of total variance or the paper-literal weighted mean",
+        "paper_literal",
+        "sigma^2_occ: paper_literal = sum w sigma2_pred (A); total = law of total variance (B), "
+        "whose spread term peaks where the density is highest (measured: it penalises the densely "
+        "observed surface, not the torn edge)",
         choices=("total", "paper_literal"),
     )
     max_query_points: int = opt(

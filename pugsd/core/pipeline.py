@@ -150,8 +150,11 @@ class PugsPipeline:
         cov, mean = self.store.fused_covariance(points_W)  # lines 1-2, Eq. 5-6
         c = self.cfg.cubature
 
+        units = self.cfg.svgp.output_units
+        scale = float(self._scale or 1.0) if units == "density" else 1.0
+
         def predict(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            mu, _, var_pred = self.svgp.predict(p)  # Eq. 7-8
+            mu, _, var_pred = self.svgp.predict(p, scale)  # Eq. 7-8
             return mu, var_pred
 
         return algorithm1(mean, cov, predict, c.alpha, c.beta, c.kappa, c.variance_form)

@@ -5,8 +5,9 @@ Eq. 7: ``SVGP(P_z) = {mu_z, sigma_z^2}``, the predictive mean and variance (late
 Eq. 8: ``sigma_pred^2 = sigma_z^2 / (1 + |mu_z|)``: dense regions get their variance divided down.
 
 Targets are the FOF values divided by a scale ``s`` (``FofStore.compute_scale``), so the field the
-GP sees is dimensionless and of order one; Eq. 8 and Eq. 13 are applied in these units
-(``output_units = normalised``), which is what makes the paper's fixed gamma = 5 meaningful.
+GP sees is dimensionless and of order one (conditioning). Predictions are mapped back to density
+units (mu s, sigma^2 s^2) before Eq. 8 by default, as the math spec (2.6) recommends;
+``output_units = normalised`` keeps them dimensionless.
 
 Two training schemes share one model object:
 - ``fit_paper``: the paper's batch fit (Adam, lr 1e-3, 100 epochs over all points).
@@ -109,7 +110,12 @@ class OccupancySVGP:
     def _init_model(self, x: np.ndarray, y: np.ndarray) -> None:
         zi = farthest_point_sample(x, self.cfg.num_inducing, self.cfg.seed)
         Z = self._t(x[zi])
-        model = _SVGP(Z, self.natural, self.cfg.kernel, self.cfg.lengthscale_init_m)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(self.cfg.seed)  # q(u) is initialised with random noise
+            model = _SVGP(Z, self.natural, self.cfg.kernel, self.cfg.lengthscale_init_m)
+            model.variational_strategy._variational_distribution.initialize_variational_distribution(
+                model.variational_strategy.prior_distribution
+            )
         lik = gpytorch.likelihoods.GaussianLikelihood()
         lik.noise = 1e-3
         self.model = model.to(device=self.device, dtype=self.dtype)
@@ -310,8 +316,13 @@ class OccupancySVGP:
         model.train()
 
     # ------------------------------------------------------------------ prediction
-    def predict(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Eq. 7-8 at points x (N, 3): (mu_z, sigma_z^2, sigma_pred^2) in normalised units."""
+    def predict(
+        self, x: np.ndarray, scale: float = 1.0
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Eq. 7-8 at points x (N, 3): (mu_z, sigma_z^2, sigma_pred^2).
+
+        The model predicts in normalised units; ``scale`` maps back (mu s, sigma^2 s^2) before
+        Eq. 8 (``output_units = density``; pass 1 for the normalised units)."""
         if self.model is None or self.likelihood is None:
             raise ModelNotReadyError("the SVGP has not been trained")
         self.model.eval()
@@ -325,6 +336,6 @@ class OccupancySVGP:
                     f = self.likelihood(f)
                 mus.append(f.mean.double().cpu().numpy())
                 vs.append(f.variance.double().cpu().numpy())
-        mu = np.concatenate(mus) if mus else np.zeros(0)
-        var = np.clip(np.concatenate(vs) if vs else np.zeros(0), 0.0, None)
+        mu = (np.concatenate(mus) if mus else np.zeros(0)) * scale
+        var = np.clip(np.concatenate(vs) if vs else np.zeros(0), 0.0, None) * scale**2
         return mu, var, var / (1.0 + np.abs(mu))  # Eq. 8

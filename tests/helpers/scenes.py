@@ -54,6 +54,7 @@ def orbit_frames(
     object_ids: tuple[int, ...] = (0,),
     sigma_m: float = 0.0,
     seed: int = 0,
+    declared_sigma_m: float | None = None,
 ) -> list[DepthFrame]:
     """Depth frames from cameras on a circle around ``target`` (object pixels masked)."""
     rng = np.random.default_rng(seed)
@@ -74,7 +75,7 @@ def orbit_frames(
                 camera=cam,
                 T_W_C=T,
                 pose_cov=cov,
-                sigma_m=np.full(z.shape, max(sigma_m, 0.001), np.float32),
+                sigma_m=np.full(z.shape, declared_sigma_m or max(sigma_m, 0.001), np.float32),
                 mask=mask,
             )
         )
