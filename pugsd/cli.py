@@ -9,7 +9,6 @@ import logging
 import sys
 from collections.abc import Sequence
 
-from pugsd import __version__
 from pugsd.errors import PugsdError
 
 # Each module defines ``register(subparsers)``; a subcommand sets ``func(args) -> int``.

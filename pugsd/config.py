@@ -47,16 +47,21 @@ class StereoConfig:
     min_depth_m: float = opt(0.1, "nearer depths are invalid (NaN)", unit="m", gt=0.0)
     max_depth_m: float = opt(3.0, "farther depths are invalid (NaN)", unit="m", gt=0.0)
     noise_mode: str = opt(
-        "fixed", "per-pixel depth noise model: fixed sigma_d^2 or stereo disparity model",
+        "fixed",
+        "per-pixel depth noise model: fixed sigma_d^2 or stereo disparity model",
         choices=("fixed", "disparity"),
     )
     sigma_d2_m2: float = opt(
-        0.001, "fixed depth variance sigma_d^2 (paper: 0.001; noisy experiments 0.01)",
-        unit="m^2", gt=0.0,
+        0.001,
+        "fixed depth variance sigma_d^2 (paper: 0.001; noisy experiments 0.01)",
+        unit="m^2",
+        gt=0.0,
     )
     sigma_disp_px: float = opt(
-        0.5, "disparity std for noise_mode=disparity: sigma_z = z^2 sigma_disp / (f B)",
-        unit="px", gt=0.0,
+        0.5,
+        "disparity std for noise_mode=disparity: sigma_z = z^2 sigma_disp / (f B)",
+        unit="px",
+        gt=0.0,
     )
 
     def __post_init__(self) -> None:
@@ -70,15 +75,18 @@ class ObservationConfig:
     """Back-projection with covariance and the world transform (Eq. 1-3)."""
 
     covariance_form: str = opt(
-        "rotated", "Eq. 3 form: rotated = R Sigma R^T + Sigma_t; paper_literal = Sigma + Sigma_t",
+        "rotated",
+        "Eq. 3 form: rotated = R Sigma R^T + Sigma_t; paper_literal = Sigma + Sigma_t",
         choices=("rotated", "paper_literal"),
     )
     rotation_term: bool = opt(
         True, "add G Sigma_phi G^T from the 6x6 pose covariance (rotated form only)"
     )
     regulariser_m: float = opt(
-        0.0005, "isotropic std eps added as eps^2 I so every covariance is invertible",
-        unit="m", ge=0.0,
+        0.0005,
+        "isotropic std eps added as eps^2 I so every covariance is invertible",
+        unit="m",
+        ge=0.0,
     )
     max_points_per_frame: int = opt(
         20000, "random subsample of back-projected points per frame (0 keeps all)", ge=0
@@ -95,12 +103,14 @@ class FofConfig:
     )
     max_voxels: int = opt(200000, "cap on stored voxels; the oldest are evicted beyond it", ge=100)
     target_scale: str = opt(
-        "p99", "divide FOF targets by their max or 99th percentile for conditioning",
+        "p99",
+        "divide FOF targets by their max or 99th percentile for conditioning",
         choices=("max", "p99"),
     )
     include_self: bool = opt(True, "a point counts as its own neighbour when building targets")
     fused_mean: str = opt(
-        "query", "centre of the cubature: the query point or the information-form mean",
+        "query",
+        "centre of the cubature: the query point or the information-form mean",
         choices=("query", "information"),
     )
 
@@ -112,10 +122,13 @@ class SvgpConfig:
     num_inducing: int = opt(500, "inducing points M (paper: 500)", ge=8, le=5000)
     kernel: str = opt("rbf", "ARD kernel inside a ScaleKernel", choices=("rbf", "matern52"))
     variance: str = opt(
-        "latent", "predictive variance of the latent f or of the observation y",
+        "latent",
+        "predictive variance of the latent f or of the observation y",
         choices=("latent", "observed"),
     )
-    device: str = opt("cpu", "torch device; auto uses CUDA when present", choices=("cpu", "cuda", "auto"))
+    device: str = opt(
+        "cpu", "torch device; auto uses CUDA when present", choices=("cpu", "cuda", "auto")
+    )
     dtype: str = opt("float32", "torch dtype", choices=("float32", "float64"))
     seed: int = opt(0, "random seed for inducing points and minibatches", ge=0)
     paper_lr: float = opt(1e-3, "Adam learning rate in paper mode (paper: 1e-3)", gt=0.0)
@@ -128,8 +141,10 @@ class SvgpConfig:
     inducing_lr: float = opt(1e-3, "Adam rate for the inducing locations", ge=0.0)
     steps_per_update: int = opt(4, "streaming: optimisation steps per update call", ge=1)
     replay_fraction: float = opt(
-        0.5, "streaming: share of each minibatch drawn from the whole store (rest: newest points)",
-        ge=0.0, le=1.0,
+        0.5,
+        "streaming: share of each minibatch drawn from the whole store (rest: newest points)",
+        ge=0.0,
+        le=1.0,
     )
     ready_min_steps: int = opt(
         30, "streaming: model is ready after this many steps since the last inducing change", ge=0
@@ -138,7 +153,8 @@ class SvgpConfig:
         0.05, "streaming: and the relative change of the ELBO EMA falls below this", gt=0.0
     )
     coverage_lengthscales: float = opt(
-        1.5, "new points farther than this many lengthscales from all inducing points trigger a move",
+        1.5,
+        "new points farther than this many lengthscales from all inducing points trigger a move",
         gt=0.0,
     )
     predict_chunk: int = opt(20000, "points per batched prediction call", ge=256)
@@ -190,10 +206,14 @@ class GripperConfig:
 
     max_width_m: float = opt(0.10, "maximum jaw opening", unit="m", gt=0.0)
     min_width_m: float = opt(0.005, "narrowest graspable width", unit="m", ge=0.0)
-    depth_m: float = opt(0.09, "wrist origin to finger-pad line along the approach", unit="m", gt=0.0)
+    depth_m: float = opt(
+        0.09, "wrist origin to finger-pad line along the approach", unit="m", gt=0.0
+    )
     finger_length_m: float = opt(0.045, "finger length along the approach", unit="m", gt=0.0)
     finger_width_m: float = opt(0.02, "finger extent along the jaw-plane normal", unit="m", gt=0.0)
-    finger_thickness_m: float = opt(0.012, "finger thickness along the closing axis", unit="m", gt=0.0)
+    finger_thickness_m: float = opt(
+        0.012, "finger thickness along the closing axis", unit="m", gt=0.0
+    )
     palm_depth_m: float = opt(0.03, "palm block depth behind the fingers", unit="m", gt=0.0)
     palm_width_m: float = opt(0.06, "palm extent along the jaw-plane normal", unit="m", gt=0.0)
 
@@ -210,14 +230,14 @@ class GraspConfig:
         0.01, "farthest-point thinning: minimum distance between kept grasps", unit="m", ge=0.0
     )
     normal_radius_m: float = opt(0.01, "PCA normal radius", unit="m", gt=0.0)
-    friction_cone_deg: float = opt(25.0, "antipodal friction cone half-angle", unit="deg", gt=0.0, lt=90.0)
+    friction_cone_deg: float = opt(
+        25.0, "antipodal friction cone half-angle", unit="deg", gt=0.0, lt=90.0
+    )
     num_orientations: int = opt(8, "approach orientations tried per contact pair", ge=1)
     max_contacts: int = opt(1500, "contacts sampled (farthest point) per proposal", ge=10)
     min_support: int = opt(6, "points required in the closing region", ge=1)
-    partner_radius_m: float = opt(
-        0.004, "radius of the partner search cylinder", unit="m", gt=0.0
-    )
-    gripper: GripperConfig = opt(GripperConfig(), "gripper geometry")
+    partner_radius_m: float = opt(0.004, "radius of the partner search cylinder", unit="m", gt=0.0)
+    gripper: GripperConfig = dataclasses.field(default_factory=GripperConfig)
 
 
 @dataclass(frozen=True, slots=True)

@@ -30,14 +30,17 @@ class PinholeCamera:
     def __post_init__(self) -> None:
         vals = (self.fx, self.fy, self.cx, self.cy, self.skew)
         if not all(np.isfinite(v) for v in vals) or self.fx <= 0 or self.fy <= 0:
-            raise InputError(f"invalid intrinsics fx={self.fx} fy={self.fy} cx={self.cx} cy={self.cy}")
+            raise InputError(
+                f"invalid intrinsics fx={self.fx} fy={self.fy} cx={self.cx} cy={self.cy}"
+            )
         if self.width <= 0 or self.height <= 0:
             raise InputError(f"invalid image size {self.width}x{self.height}")
 
     @property
     def K(self) -> np.ndarray:
         return np.array(
-            [[self.fx, self.skew, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], dtype=np.float64
+            [[self.fx, self.skew, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]],
+            dtype=np.float64,
         )
 
     def scaled(self, factor: int) -> PinholeCamera:

@@ -53,7 +53,9 @@ def sigma_points(mean: np.ndarray, cov: np.ndarray, alpha: float, kappa: float) 
     except np.linalg.LinAlgError as exc:
         raise CovarianceError(f"cubature: covariance not positive definite ({exc})") from None
     cols = np.swapaxes(L, -1, -2)  # (Q, d, d): row i = column i of L
-    return np.concatenate([mean[:, None, :], mean[:, None, :] + cols, mean[:, None, :] - cols], axis=1)
+    return np.concatenate(
+        [mean[:, None, :], mean[:, None, :] + cols, mean[:, None, :] - cols], axis=1
+    )
 
 
 def combine(

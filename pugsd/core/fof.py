@@ -28,7 +28,9 @@ from pugsd.errors import EmptyCloudError
 _LOG_2PI = float(np.log(2.0 * np.pi))
 
 
-def gaussian_logpdf(x: np.ndarray, mu: np.ndarray, prec: np.ndarray, logdet: np.ndarray) -> np.ndarray:
+def gaussian_logpdf(
+    x: np.ndarray, mu: np.ndarray, prec: np.ndarray, logdet: np.ndarray
+) -> np.ndarray:
     """``log N(x; mu, Sigma)`` for x (Q, 3), mu (Q, K, 3), precision (Q, K, 3, 3), log|Sigma| (Q, K)."""
     diff = x[:, None, :] - mu
     maha = np.einsum("qki,qkij,qkj->qk", diff, prec, diff)
@@ -67,7 +69,9 @@ def fused_at(
     return fuse_covariance(gamma, prec_nb), gamma
 
 
-def information_mean(gamma: np.ndarray, prec: np.ndarray, mu: np.ndarray, cov: np.ndarray) -> np.ndarray:
+def information_mean(
+    gamma: np.ndarray, prec: np.ndarray, mu: np.ndarray, cov: np.ndarray
+) -> np.ndarray:
     """Optional fused mean ``Sigma_pz sum_k gamma_k Sigma_k^-1 mu_k`` (the paper defines none)."""
     return np.einsum("qij,qj->qi", cov, np.einsum("qk,qkij,qkj->qi", gamma, prec, mu))
 
@@ -113,13 +117,13 @@ class FofStore:
         self.version = 0
         self.scale = 1.0
         self._dirty = np.zeros(cap, dtype=bool)
-        self._mu = np.zeros((0, 3))
-        self._cov = np.zeros((0, 3, 3))
-        self._prec = np.zeros((0, 3, 3))
-        self._logdet = np.zeros(0)
+        self._mu: np.ndarray = np.zeros((0, 3))
+        self._cov: np.ndarray = np.zeros((0, 3, 3))
+        self._prec: np.ndarray = np.zeros((0, 3, 3))
+        self._logdet: np.ndarray = np.zeros(0)
         self._tree: cKDTree | None = None
-        self._fprec = np.zeros((0, 3, 3))
-        self._flogdet = np.zeros(0)
+        self._fprec: np.ndarray = np.zeros((0, 3, 3))
+        self._flogdet: np.ndarray = np.zeros(0)
         self.last_touched = np.zeros(0, dtype=np.int64)
         self.evicted = 0
 
@@ -132,7 +136,15 @@ class FofStore:
         if need <= cap:
             return
         new = max(need, 2 * cap)
-        for name in ("_count", "_sum_prec", "_sum_prec_mu", "_last_seen", "_fused", "_density", "_dirty"):
+        for name in (
+            "_count",
+            "_sum_prec",
+            "_sum_prec_mu",
+            "_last_seen",
+            "_fused",
+            "_density",
+            "_dirty",
+        ):
             old = getattr(self, name)
             arr = np.zeros((new, *old.shape[1:]), dtype=old.dtype)
             arr[:cap] = old
@@ -179,7 +191,15 @@ class FofStore:
         self.evicted += n - keep.size
         remap = -np.ones(n, dtype=np.int64)
         remap[keep] = np.arange(keep.size)
-        for name in ("_count", "_sum_prec", "_sum_prec_mu", "_last_seen", "_fused", "_density", "_dirty"):
+        for name in (
+            "_count",
+            "_sum_prec",
+            "_sum_prec_mu",
+            "_last_seen",
+            "_fused",
+            "_density",
+            "_dirty",
+        ):
             arr = getattr(self, name)
             arr[: keep.size] = arr[keep]
         self._index = {k: int(remap[s]) for k, s in self._index.items() if remap[s] >= 0}

@@ -174,14 +174,22 @@ class PugsPipeline:
         t0 = time.perf_counter()
         cloud = self.query_cloud() if cloud_W is None else np.asarray(cloud_W, dtype=np.float64)
         t1 = time.perf_counter()
-        views = np.asarray(self.recon.camera_centers_W) if self.recon.camera_centers_W else np.zeros((1, 3))
+        views = (
+            np.asarray(self.recon.camera_centers_W)
+            if self.recon.camera_centers_W
+            else np.zeros((1, 3))
+        )
         cands = self.proposer.propose(cloud, None, views)
         t2 = time.perf_counter()
         mu_occ, s2 = self.sigma2_occ(cloud)
         t3 = time.perf_counter()
         g = self.cfg.grasp
-        ranked = rank_grasps(cands, s2, g.gamma, g.top_k, g.thin_distance_m, "pugs", self.last_stamp_ns)
-        base = rank_grasps(cands, s2, g.gamma, g.top_k, g.thin_distance_m, "baseline", self.last_stamp_ns)
+        ranked = rank_grasps(
+            cands, s2, g.gamma, g.top_k, g.thin_distance_m, "pugs", self.last_stamp_ns
+        )
+        base = rank_grasps(
+            cands, s2, g.gamma, g.top_k, g.thin_distance_m, "baseline", self.last_stamp_ns
+        )
         t4 = time.perf_counter()
         pc = np.zeros(len(cloud))
         v = cands.valid

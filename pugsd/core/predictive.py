@@ -219,14 +219,16 @@ class OccupancySVGP:
                 g["num_data"] = n
         xt, yt = self._t(x), self._t(y)
         bs = min(self.cfg.batch_size, n)
-        n_new = int(round(bs * (1.0 - self.cfg.replay_fraction))) if len(new_idx) else 0
+        n_new = round(bs * (1.0 - self.cfg.replay_fraction)) if len(new_idx) else 0
         elbo = float("nan")
         prev = self.elbo_ema
         steps = self.cfg.steps_per_update if steps is None else steps
         for _ in range(steps):
             parts = []
             if n_new > 0:
-                parts.append(self._rng.choice(new_idx, size=min(n_new, len(new_idx)), replace=False))
+                parts.append(
+                    self._rng.choice(new_idx, size=min(n_new, len(new_idx)), replace=False)
+                )
             parts.append(self._rng.choice(n, size=bs - sum(len(p) for p in parts), replace=False))
             sel = torch.as_tensor(np.concatenate(parts), device=self.device)
             elbo = self._step(xt[sel], yt[sel])

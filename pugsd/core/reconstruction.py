@@ -8,12 +8,17 @@ fixed budget and cleaned by statistical outlier removal (paper: std ratio 0.01).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
-import open3d as o3d
+import open3d as _o3d
 
 from pugsd.config import ReconstructionConfig
 from pugsd.core.types import DepthFrame
 from pugsd.errors import EmptyCloudError
+
+# open3d's bundled stubs reject valid numpy arguments (Tensor overloads): use it untyped
+o3d: Any = _o3d
 
 
 class Reconstruction:
@@ -54,7 +59,9 @@ class Reconstruction:
         color_img = o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(color)))
         max_depth = float(np.nanmax(frame.depth_m)) + 0.01
         trunc = self.cfg.sdf_trunc_voxels  # open3d takes the truncation in voxels
-        blocks = self._vbg.compute_unique_block_coordinates(depth_img, K, ext, 1.0, max_depth, trunc)
+        blocks = self._vbg.compute_unique_block_coordinates(
+            depth_img, K, ext, 1.0, max_depth, trunc
+        )
         self._vbg.integrate(blocks, depth_img, color_img, K, ext, 1.0, max_depth, trunc)
         self.frames += 1
         self.camera_centers_W.append(frame.T_W_C[:3, 3].copy())

@@ -45,7 +45,7 @@ class StereoDepth:
         f = c.downsample
         num_disp = max(16, int(np.ceil(c.num_disparities / f / 16.0)) * 16)
         bs = c.block_size
-        return cv2.StereoSGBM_create(
+        return cv2.StereoSGBM.create(
             minDisparity=c.min_disparity // f,
             numDisparities=num_disp,
             blockSize=bs,

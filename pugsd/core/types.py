@@ -75,9 +75,13 @@ class StereoFrame:
         if self.left.shape != self.right.shape:
             raise ImageSizeError(f"stereo pair mismatch: {self.left.shape} vs {self.right.shape}")
         if self.mask is not None and self.mask.shape != (cam.height, cam.width):
-            raise ImageSizeError(f"mask is {self.mask.shape}, camera expects {(cam.height, cam.width)}")
+            raise ImageSizeError(
+                f"mask is {self.mask.shape}, camera expects {(cam.height, cam.width)}"
+            )
         object.__setattr__(self, "T_W_C", _readonly(check_pose(self.T_W_C, "T_W_C")))
-        object.__setattr__(self, "pose_cov", _readonly(check_covariance(self.pose_cov, 6, "pose_cov")))
+        object.__setattr__(
+            self, "pose_cov", _readonly(check_covariance(self.pose_cov, 6, "pose_cov"))
+        )
 
 
 @dataclass(frozen=True)
@@ -101,7 +105,9 @@ class DepthFrame:
             if arr is not None and arr.shape != shape:
                 raise ImageSizeError(f"{name} is {arr.shape}, camera expects {shape}")
         object.__setattr__(self, "T_W_C", _readonly(check_pose(self.T_W_C, "T_W_C")))
-        object.__setattr__(self, "pose_cov", _readonly(check_covariance(self.pose_cov, 6, "pose_cov")))
+        object.__setattr__(
+            self, "pose_cov", _readonly(check_covariance(self.pose_cov, 6, "pose_cov"))
+        )
 
 
 @dataclass(frozen=True)

@@ -82,7 +82,7 @@ def test_store_cap_evicts_oldest() -> None:
     store = FofStore(cfg)
     cov = np.broadcast_to(np.eye(3) * 1e-6, (80, 3, 3)).copy()
     old = np.c_[np.arange(80) * 0.002, np.zeros(80), np.zeros(80)] + 0.0005
-    new = old + [0, 1.0, 0]
+    new = old + np.array([0, 1.0, 0])
     store.insert(old, cov)
     store.insert(new, cov)
     assert len(store) == 100

@@ -64,7 +64,9 @@ def test_pose_convention() -> None:
 
 
 class _TinyNet(torch.nn.Module):
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(
+        self, x: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         logit = 10.0 * x[:, 0]
         b = torch.zeros_like(x)
         b[:, 1] = 1.0
@@ -85,11 +87,15 @@ def test_torchscript_adapter(tmp_path: Path) -> None:
     np.testing.assert_allclose(gs.approach, [[0, 0, -1.0]] * 3, atol=1e-7)  # Gram-Schmidt
     assert np.all(np.abs((gs.approach * gs.baseline).sum(1)) < 1e-9)
     with pytest.raises(PugsdError):
-        TorchScriptProposer(GraspConfig(proposer="torchscript", model_path=str(tmp_path / "nope.pt")))
+        TorchScriptProposer(
+            GraspConfig(proposer="torchscript", model_path=str(tmp_path / "nope.pt"))
+        )
 
 
 def test_eq13_reweighting_changes_ranking() -> None:
-    np.testing.assert_allclose(reweight(np.array([0.9, 0.6]), np.array([0.1, 0.0]), 5.0), [0.6, 0.6])
+    np.testing.assert_allclose(
+        reweight(np.array([0.9, 0.6]), np.array([0.1, 0.0]), 5.0), [0.6, 0.6]
+    )
     pts = _surface(box_mesh((0.04, 0.07, 0.12), (0.0, 0.0, 0.06)))
     gs = AntipodalProposer(GraspConfig(max_contacts=300)).propose(pts, None, VIEWS)
     s2 = np.zeros(len(pts))

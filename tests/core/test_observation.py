@@ -64,7 +64,7 @@ def test_rotation_term_matches_monte_carlo() -> None:
     rng = np.random.default_rng(2)
     pose_cov = np.diag([1e-6, 1e-6, 1e-6, 1e-5, 2e-5, 3e-5])
     p = np.array([[0.2, -0.4, 1.0]])
-    mu_W, cov_W = to_world(p, np.zeros((1, 3, 3)), np.eye(4), pose_cov, "rotated", True, 0.0)
+    _, cov_W = to_world(p, np.zeros((1, 3, 3)), np.eye(4), pose_cov, "rotated", True, 0.0)
     G = np.hstack([np.eye(3), -skew(p[0])])
     np.testing.assert_allclose(cov_W[0], G @ pose_cov @ G.T, atol=1e-18)
     xi = rng.multivariate_normal(np.zeros(6), pose_cov, size=200_000)

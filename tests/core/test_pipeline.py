@@ -24,8 +24,14 @@ def partial_box() -> tuple[PugsPipeline, PipelineResult]:
     cam = PinholeCamera(300, 300, 159.5, 119.5, 320, 240)
     meshes = [box_mesh(BOX, (0, 0, 0.06)), box_mesh((1, 1, 0.01), (0, 0, -0.005))]
     frames = orbit_frames(
-        meshes, np.array([0, 0, 0.06]), 0.45, 0.25, np.linspace(-50, 50, 6), cam,
-        sigma_m=0.002, declared_sigma_m=float(np.sqrt(0.001)),  # the paper's sigma_d^2
+        meshes,
+        np.array([0, 0, 0.06]),
+        0.45,
+        0.25,
+        np.linspace(-50, 50, 6),
+        cam,
+        sigma_m=0.002,
+        declared_sigma_m=float(np.sqrt(0.001)),  # the paper's sigma_d^2
     )
     pipe = PugsPipeline(CoreConfig(svgp=SvgpConfig(num_inducing=200)))
     for f in frames:
@@ -40,7 +46,9 @@ def test_torn_edge_is_more_uncertain_than_dense_surface(partial_box) -> None:  #
     c = r.cloud_W
     side = (c[:, 2] > 0.01) & (c[:, 2] < 0.11)
     dense = side & (c[:, 0] > BOX[0] / 2 - 0.004)  # the +x face, seen head-on by every view
-    torn = side & (np.abs(c[:, 1]) > BOX[1] / 2 - 0.004) & (c[:, 0] < -0.012)  # next to the unseen face
+    torn = (
+        side & (np.abs(c[:, 1]) > BOX[1] / 2 - 0.004) & (c[:, 0] < -0.012)
+    )  # next to the unseen face
     assert dense.sum() > 50 and torn.sum() > 10
     assert np.median(r.sigma2_occ[torn]) > 3.0 * np.median(r.sigma2_occ[dense])
 
@@ -85,8 +93,19 @@ def test_empty_pipeline_errors() -> None:
 
 def test_core_is_pure() -> None:
     """pugsd/core never imports asyncio, zenoh, I/O layers or the daemon."""
-    forbidden = {"asyncio", "zenoh", "mcap", "serial", "can", "socket", "rosbags", "pugsd.daemon",
-                 "pugsd.wire", "pugsd.record", "pugsd.arm"}
+    forbidden = {
+        "asyncio",
+        "zenoh",
+        "mcap",
+        "serial",
+        "can",
+        "socket",
+        "rosbags",
+        "pugsd.daemon",
+        "pugsd.wire",
+        "pugsd.record",
+        "pugsd.arm",
+    }
     core = Path(__file__).resolve().parents[2] / "pugsd" / "core"
     for path in core.rglob("*.py"):
         tree = ast.parse(path.read_text())

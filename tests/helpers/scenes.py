@@ -11,13 +11,17 @@ from pugsd.core.geometry import look_at
 from pugsd.core.types import DepthFrame
 
 
-def box_mesh(size_m: tuple[float, float, float], center: tuple[float, float, float]) -> o3d.geometry.TriangleMesh:
+def box_mesh(
+    size_m: tuple[float, float, float], center: tuple[float, float, float]
+) -> o3d.geometry.TriangleMesh:
     m = o3d.geometry.TriangleMesh.create_box(*size_m)
     m.translate(np.asarray(center) - np.asarray(size_m) / 2)
     return m
 
 
-def cylinder_mesh(radius_m: float, height_m: float, center: tuple[float, float, float]) -> o3d.geometry.TriangleMesh:
+def cylinder_mesh(
+    radius_m: float, height_m: float, center: tuple[float, float, float]
+) -> o3d.geometry.TriangleMesh:
     m = o3d.geometry.TriangleMesh.create_cylinder(radius_m, height_m, resolution=64)
     m.translate(np.asarray(center))
     return m

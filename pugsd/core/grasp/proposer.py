@@ -17,15 +17,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
-import open3d as o3d
+import open3d as _o3d
 from scipy.spatial import cKDTree
 
 from pugsd.config import GraspConfig, GripperConfig
 from pugsd.core.predictive import farthest_point_sample
 from pugsd.errors import EmptyCloudError, PugsdError
+
+# open3d's bundled stubs reject valid numpy arguments (Tensor overloads): use it untyped
+o3d: Any = _o3d
 
 
 @dataclass(frozen=True)
@@ -49,7 +52,11 @@ class GraspSet:
 
 
 def grasp_poses(
-    contact: np.ndarray, baseline: np.ndarray, approach: np.ndarray, width: np.ndarray, depth_m: float
+    contact: np.ndarray,
+    baseline: np.ndarray,
+    approach: np.ndarray,
+    width: np.ndarray,
+    depth_m: float,
 ) -> np.ndarray:
     """``R = [b, a x b, a]``, ``t = c + w/2 b - d_g a`` for M grasps: (M, 4, 4)."""
     m = len(contact)
@@ -96,7 +103,8 @@ class AntipodalProposer:
     object there); both normals must lie in the friction cone of the line p-q. Approaches are
     sampled around b; like GPD, the hand is checked against *observed* points only: an
     orientation is kept if the open fingers and the palm hold no cloud point and the closing slab
-    holds at least ``min_support`` points; the jaws close on the slab's outermost points. Confidence in [0, 1]:
+    holds at least ``min_support`` points; the jaws close on the slab's outermost points.
+    Confidence in [0, 1]:
     ``cos(theta_p) cos(theta_q) * (1 - exp(-support / 20)) * (0.75 + 0.25 a.v)``, v the direction
     from the camera to the contact; the best orientation per contact is returned.
     """
@@ -168,7 +176,9 @@ class AntipodalProposer:
             out_w[i] = width
             out_conf[i] = cos_p * cos_q * (1.0 - np.exp(-support / 20.0)) * pref
             out_valid[i] = True
-        out_a[~out_valid] = _orthonormal(out_b[~out_valid])[0] if (~out_valid).any() else out_a[~out_valid]
+        out_a[~out_valid] = (
+            _orthonormal(out_b[~out_valid])[0] if (~out_valid).any() else out_a[~out_valid]
+        )
         poses = grasp_poses(out_contact, out_b, out_a, out_w, g.depth_m)
         return GraspSet(
             contact=out_contact,
@@ -200,9 +210,11 @@ class AntipodalProposer:
         g = self.g
         centre = p + 0.5 * w * b
         half_open = g.max_width_m / 2
-        reach = np.sqrt((half_open + g.finger_thickness_m) ** 2
-                        + (g.finger_length_m / 2 + g.palm_depth_m) ** 2
-                        + (max(g.finger_width_m, g.palm_width_m) / 2) ** 2)
+        reach = np.sqrt(
+            (half_open + g.finger_thickness_m) ** 2
+            + (g.finger_length_m / 2 + g.palm_depth_m) ** 2
+            + (max(g.finger_width_m, g.palm_width_m) / 2) ** 2
+        )
         local = pts[tree.query_ball_point(centre, reach)] - centre
         if len(local) == 0:
             return None

@@ -1,0 +1,89 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Config: the reference file equals the defaults; unknown keys, types and ranges are rejected."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from pugsd.config import PugsdConfig, dump_config, load_config, load_config_dict
+from pugsd.configbase import to_dict
+from pugsd.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_reference_file_equals_defaults() -> None:
+    ref = tomllib.loads((ROOT / "config" / "pugsd.toml").read_text())
+    assert ref == to_dict(PugsdConfig())
+    assert load_config(ROOT / "config" / "pugsd.toml") == PugsdConfig()
+    assert (ROOT / "config" / "pugsd.toml").read_text() == dump_config()
+
+
+def test_every_key_is_documented() -> None:
+    text = dump_config()
+    lines = text.splitlines()
+    for i, line in enumerate(lines):
+        if " = " in line and not line.startswith("#"):
+            section = next(ln for ln in reversed(lines[:i]) if ln.startswith("["))
+            if section.startswith("[zenoh"):
+                continue  # passed through to zenoh, documented there
+            assert lines[i - 1].startswith("# ") and len(lines[i - 1]) > 5, line
+
+
+@pytest.mark.parametrize(
+    "data,message",
+    [
+        ({"fof": {"k_neighbors": 3}}, "fof.k_neighbors: unknown key"),
+        ({"nope": {}}, "nope: unknown key"),
+        ({"fof": {"k_neighbours": "ten"}}, "fof.k_neighbours: expected an integer"),
+        ({"fof": {"k_neighbours": 0}}, "fof.k_neighbours: 0 is below the minimum 1"),
+        (
+            {"grasp": {"gripper": {"max_width_m": -1}}},
+            "grasp.gripper.max_width_m: -1.0 must be greater",
+        ),
+        ({"cubature": {"variance_form": "B"}}, "cubature.variance_form: 'B' is not one of"),
+        ({"stereo": {"block_size": 4}}, "block_size: must be odd"),
+        ({"svgp": {"ngd_lr": True}}, "svgp.ngd_lr: expected a number"),
+    ],
+)
+def test_bad_values_name_the_dotted_path(data: dict, message: str) -> None:  # type: ignore[type-arg]
+    with pytest.raises(ConfigError) as exc:
+        load_config_dict(data)
+    assert message in str(exc.value)
+
+
+def test_int_widens_to_float_and_overrides() -> None:
+    cfg = load_config_dict({"grasp": {"gamma": 2}}, ["fof.k_neighbours=7", "svgp.kernel=matern52"])
+    assert cfg.grasp.gamma == 2.0 and isinstance(cfg.grasp.gamma, float)
+    assert cfg.fof.k_neighbours == 7
+    assert cfg.svgp.kernel == "matern52"
+
+
+def test_default_zenoh_config_is_loopback_only() -> None:
+    z = PugsdConfig().zenoh
+    assert z["scouting"]["multicast"]["enabled"] is False
+    assert z["scouting"]["gossip"]["enabled"] is False
+    eps = z["listen"]["endpoints"] + z["connect"]["endpoints"]
+    assert eps and all(e.startswith("tcp/127.0.0.1:") for e in eps)
+
+
+def test_cli_check_config_exit_codes(tmp_path: Path) -> None:
+    good = tmp_path / "good.toml"
+    good.write_text("[grasp]\ngamma = 3.0\n")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[grasp]\ngama = 3.0\n")
+    run = [sys.executable, "-m", "pugsd", "check-config"]
+    ok = subprocess.run([*run, str(good)], capture_output=True, text=True, timeout=60)
+    assert ok.returncode == 0, ok.stderr
+    ko = subprocess.run([*run, str(bad)], capture_output=True, text=True, timeout=60)
+    assert ko.returncode == 1
+    assert "grasp.gama: unknown key" in ko.stderr
+    v = subprocess.run(
+        [sys.executable, "-m", "pugsd", "version"], capture_output=True, text=True, timeout=60
+    )
+    assert v.returncode == 0 and v.stdout.startswith("pugsd ")
