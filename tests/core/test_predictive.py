@@ -89,3 +89,21 @@ def test_fps_spreads_points() -> None:
     pts = np.r_[np.zeros((100, 3)), np.ones((1, 3))]
     idx = farthest_point_sample(pts, 2, seed=0)
     assert 100 in idx
+
+
+@pytest.mark.gpu
+def test_cuda_matches_cpu() -> None:
+    """The CUDA path (svgp.device = auto) predicts what the CPU path predicts for the same model."""
+    rng = np.random.default_rng(3)
+    x = rng.uniform(-0.1, 0.1, (2000, 3))
+    cpu = OccupancySVGP(SvgpConfig(num_inducing=64, seed=0, dtype="float64"))
+    cpu.update(x, _field(x), np.arange(len(x)), steps=50)
+    gpu = OccupancySVGP(SvgpConfig(num_inducing=64, seed=0, dtype="float64", device="cuda"))
+    gpu.update(x[:10], _field(x[:10]), np.arange(10), steps=1)
+    assert gpu.model is not None and cpu.model is not None
+    gpu.model.load_state_dict(cpu.model.state_dict())
+    q = rng.uniform(-0.1, 0.1, (500, 3))
+    mu_c, v_c, _ = cpu.predict(q)
+    mu_g, v_g, _ = gpu.predict(q)
+    np.testing.assert_allclose(mu_g, mu_c, atol=1e-6)
+    np.testing.assert_allclose(v_g, v_c, atol=1e-6)
