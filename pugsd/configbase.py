@@ -132,6 +132,11 @@ def build(cls: type[T], data: Mapping[str, Any], path: str = "") -> T:
         if key not in fields:
             raise ConfigError(f"{dotted}: unknown key (known: {', '.join(sorted(fields))})")
         coerced = _coerce(value, hints[key], dotted)
+        default_factory = fields[key].default_factory
+        if isinstance(coerced, dict) and default_factory is not dataclasses.MISSING:
+            # free-form tables (zenoh) are merged over their defaults, so a partial table keeps
+            # the safe defaults (loopback, scouting off) for every key it does not set
+            coerced = deep_merge(default_factory(), coerced)
         check_range(coerced, fields[key].metadata, dotted)
         kwargs[key] = coerced
     try:
@@ -139,6 +144,17 @@ def build(cls: type[T], data: Mapping[str, Any], path: str = "") -> T:
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}" if path else str(exc)) from None
     return obj
+
+
+def deep_merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """``over`` merged into ``base`` recursively (tables merge, everything else replaces)."""
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, Mapping) and isinstance(out.get(k), dict):
+            out[k] = deep_merge(out[k], v)
+        else:
+            out[k] = v
+    return out
 
 
 def to_dict(obj: Any) -> Any:

@@ -87,3 +87,12 @@ def test_cli_check_config_exit_codes(tmp_path: Path) -> None:
         [sys.executable, "-m", "pugsd", "version"], capture_output=True, text=True, timeout=60
     )
     assert v.returncode == 0 and v.stdout.startswith("pugsd ")
+
+
+def test_partial_zenoh_table_keeps_safe_defaults() -> None:
+    cfg = load_config_dict({}, ["zenoh.listen.endpoints=['tcp/127.0.0.1:17999']"])
+    assert cfg.zenoh["listen"]["endpoints"] == ["tcp/127.0.0.1:17999"]
+    assert cfg.zenoh["scouting"]["multicast"]["enabled"] is False
+    assert cfg.zenoh["scouting"]["gossip"]["enabled"] is False
+    cfg = load_config_dict({"zenoh": {"mode": "client"}})
+    assert cfg.zenoh["mode"] == "client" and cfg.zenoh["scouting"]["gossip"]["enabled"] is False

@@ -1,10 +1,293 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Subcommands of this subsystem."""
+"""Subcommands: ``record``, ``play``, ``replay``, ``mcap recover|info|synth``."""
 
 from __future__ import annotations
 
 import argparse
+import json
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from pugsd.config import PugsdConfig, dump_config, load_config
+from pugsd.errors import ConfigError
+
+
+def _load(args: argparse.Namespace) -> PugsdConfig:
+    return load_config(getattr(args, "config", None), getattr(args, "set", None) or ())
+
+
+def _open_tool_session(args: argparse.Namespace, cfg: PugsdConfig) -> Any:
+    from pugsd.wire.session import open_session, tool_config
+
+    zc = tool_config(cfg.zenoh, args.connect, args.listen)
+    return open_session(zc, require_loopback=True)
+
+
+def _stop_on_signals() -> threading.Event:
+    ev = threading.Event()
+
+    def handler(signum: int, frame: Any) -> None:
+        ev.set()
+
+    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGINT, handler)
+    return ev
+
+
+# ------------------------------------------------------------------------------ record
+
+
+def _record(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from pugsd.record.recorder import Recorder, default_record_keys
+    from pugsd.wire.session import close_session
+    from pugsd.wire.topics import topic_types
+
+    cfg = _load(args)
+    rc = cfg.record
+    if args.prefix:
+        rc = dataclasses.replace(rc, name_prefix=args.prefix)
+    keys = list(args.key) if args.key else default_record_keys(cfg)
+    t = cfg.topics
+    stop = _stop_on_signals()
+    session = _open_tool_session(args, cfg)
+    rec = Recorder(
+        rc,
+        directory=args.out or rc.directory,
+        queue_size=cfg.queues.record,
+        topic_types=topic_types(t),
+        metadata={"pugsd.config": {"toml": dump_config(cfg), "keys": json.dumps(keys)}},
+    )
+    rec.start()
+    if rec.stats.error:
+        close_session(session)
+        raise ConfigError(f"record: {rec.stats.error}")
+    rec.subscribe(session, keys)
+    sys.stderr.write(f"pugsd record: {len(keys)} key expressions -> {rec.directory}\n")
+    sys.stderr.flush()
+    t_end = None if args.duration is None else time.monotonic() + args.duration
+    tick = min(1.0, args.status_interval) if args.status_interval > 0 else 1.0
+    next_status = time.monotonic() + args.status_interval
+    try:
+        while not stop.is_set():
+            timeout = tick if t_end is None else min(tick, t_end - time.monotonic())
+            if timeout <= 0:
+                break
+            stop.wait(timeout)
+            if args.status_interval > 0 and time.monotonic() >= next_status:
+                next_status += args.status_interval
+                s = rec.stats
+                sys.stderr.write(
+                    f"pugsd record: status received={s.received} written={s.written} "
+                    f"dropped={s.dropped_queue + s.dropped_error} files={s.files_finished} "
+                    f"error={s.error or '-'}\n"
+                )
+                sys.stderr.flush()
+    finally:
+        rec.unsubscribe()
+        files = rec.stop()
+        close_session(session)
+    s = rec.stats
+    sys.stderr.write(
+        f"pugsd record: {s.written} written, {s.dropped_queue} dropped (slow disk), "
+        f"{s.dropped_error} dropped (disk error), {s.unknown_type} of unknown type\n"
+    )
+    for f in files:
+        sys.stdout.write(f"{f}\n")
+    if s.error:
+        sys.stderr.write(f"pugsd record: error: {s.error}\n")
+        return 1
+    return 0
+
+
+# ------------------------------------------------------------------------------ play
+
+
+def _play(args: argparse.Namespace) -> int:
+    from pugsd.record.player import Player, PlayOptions, PlayProgress, parse_remap
+    from pugsd.wire.session import close_session
+
+    cfg = _load(args)
+    opts = PlayOptions(
+        rate=args.rate,
+        start_s=args.start,
+        end_s=args.end,
+        topics=tuple(args.topic) if args.topic else None,
+        remap=parse_remap(args.remap or ()),
+        loop=args.loop,
+        key_style=args.key_style,
+        domain_id=args.domain,
+        hash_mode=cfg.topics.hash_mode,
+    )
+    for f in args.files:
+        if not Path(f).is_file():
+            raise ConfigError(f"play: no such file {f}")
+    tty = sys.stderr.isatty()
+
+    def progress(p: PlayProgress) -> None:
+        if args.quiet:
+            return
+        line = f"[play] {p.position_s:8.1f} / {p.duration_s:.1f} s  {p.published} msgs  loop {p.loop}"
+        sys.stderr.write(("\r" + line) if tty else (line + "\n"))
+        sys.stderr.flush()
+
+    stop = _stop_on_signals()
+    session = _open_tool_session(args, cfg)
+    try:
+        player = Player(
+            session, args.files, opts, progress=progress, stop_event=stop,
+            wait_for_subscribers_s=args.wait_subscribers,
+        )  # fmt: skip
+        n = player.run()
+    finally:
+        close_session(session)
+    if tty and not args.quiet:
+        sys.stderr.write("\n")
+    sys.stderr.write(f"pugsd play: {n} messages published\n")
+    return 0
+
+
+# ------------------------------------------------------------------------------ replay
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from pugsd.record.replay import iter_top, replay
+
+    cfg = _load(args)
+    res = replay(args.files, cfg, out_dir=args.out, mode=args.mode, seed=args.seed)
+    sys.stdout.write(f"pugsd replay: {res.frames} frames, {len(res.grasps)} grasps\n")
+    for line in iter_top(res.grasps):
+        sys.stdout.write(line + "\n")
+    if res.json_path:
+        sys.stdout.write(f"{res.json_path}\n{res.mcap_path}\n")
+    return 0
+
+
+# ------------------------------------------------------------------------------ mcap tools
+
+
+def _recover(args: argparse.Namespace) -> int:
+    from pugsd.record.mcapio import recover
+
+    r = recover(args.input, args.output)
+    sys.stdout.write(
+        f"recovered {r.messages} messages on {r.channels} channels ({r.schemas} schemas, "
+        f"{r.metadata} metadata) -> {args.output}\n"
+        f"reading stopped: {r.error or 'input was complete'}\n"
+    )
+    return 0
+
+
+def _info(args: argparse.Namespace) -> int:
+    from pugsd.record.mcapio import scan
+
+    infos = [scan(f) for f in args.files]
+    if args.json:
+        sys.stdout.write(json.dumps([i.to_dict() for i in infos], indent=1) + "\n")
+        return 0
+    for i in infos:
+        state = "complete" if i.complete else f"INCOMPLETE ({i.error})"
+        sys.stdout.write(
+            f"{i.path}: {i.size_bytes / 1e6:.2f} MB, {state}\n"
+            f"  profile {i.profile!r}, library {i.library!r}\n"
+            f"  {i.message_count} messages, {i.duration_s:.3f} s, {i.chunk_count} chunks\n"
+        )
+        for c in i.channels:
+            sys.stdout.write(f"  {c.count:8d}  {c.topic}  [{c.typename}]\n")
+        for name, enc in sorted(i.schemas.items()):
+            sys.stdout.write(f"  schema {name} ({enc})\n")
+        for name in sorted(i.metadata):
+            sys.stdout.write(f"  metadata {name}: {', '.join(sorted(i.metadata[name]))}\n")
+    return 0
+
+
+def _synth(args: argparse.Namespace) -> int:
+    from pugsd.record.synth import generate
+
+    cfg = _load(args)
+    n = generate(args.output, args.kind, args.object, args.frames, args.width, args.height,
+                 args.seed, cfg.topics)  # fmt: skip
+    sys.stdout.write(f"{args.output}: {n} messages ({args.kind}, {args.object})\n")
+    return 0
+
+
+def _add_cfg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", default=None, help="pugsd TOML config")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key")
+
+
+def _add_net(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help="zenoh endpoint to connect to (default: the config's listen endpoints)",
+    )
+    p.add_argument("--listen", action="append", metavar="ENDPOINT",
+                   help="zenoh endpoint to listen on (default: none)")  # fmt: skip
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    """No subcommands yet."""
+    p = sub.add_parser("record", help="record zenoh traffic (ROS 2 CDR) to MCAP")
+    _add_cfg(p)
+    _add_net(p)
+    p.add_argument("--out", default=None, help="output directory (default: [record] directory)")
+    p.add_argument("--key", action="append", help="key expression (default: [record] keys or "
+                   "every [topics] input and output)")  # fmt: skip
+    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    p.add_argument("--prefix", default=None, help="file name prefix")
+    p.add_argument("--status-interval", type=float, default=10.0,
+                   help="print counters to stderr this often [s]; 0: never")  # fmt: skip
+    p.set_defaults(func=_record)
+
+    p = sub.add_parser("play", help="publish MCAP recordings on zenoh")
+    _add_cfg(p)
+    _add_net(p)
+    p.add_argument("files", nargs="+")
+    p.add_argument("--rate", type=float, default=1.0, help="speed factor; 0 = as fast as possible")
+    p.add_argument("--start", type=float, default=0.0, help="start offset [s]")
+    p.add_argument("--end", type=float, default=None, help="end offset [s]")
+    p.add_argument("--topic", action="append", help="only this ROS topic (repeatable)")
+    p.add_argument("--remap", action="append", metavar="OLD:=NEW", help="topic remap")
+    p.add_argument("--loop", action="store_true")
+    p.add_argument("--key-style", choices=("rmw_zenoh", "ros2dds"), default=None,
+                   help="rebuild keys in this style (default: the recorded keys)")  # fmt: skip
+    p.add_argument("--domain", type=int, default=None, help="ROS domain for rebuilt keys")
+    p.add_argument("--wait-subscribers", type=float, default=0.0,
+                   help="wait up to this long for a subscriber on each new key")  # fmt: skip
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.set_defaults(func=_play)
+
+    p = sub.add_parser("replay", help="run the pipeline on a recording (no zenoh)")
+    _add_cfg(p)
+    p.add_argument("files", nargs="+")
+    p.add_argument("--out", default=None, help="write grasps.json and grasps.mcap here")
+    p.add_argument("--mode", choices=("paper", "streaming"), default="paper")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_replay)
+
+    p = sub.add_parser("mcap", help="MCAP tools: recover, info, synth")
+    msub = p.add_subparsers(dest="mcap_command", required=True, metavar="TOOL")
+    q = msub.add_parser("recover", help="rebuild a file whose writer died")
+    q.add_argument("input")
+    q.add_argument("output")
+    q.set_defaults(func=_recover)
+    q = msub.add_parser("info", help="topics, counts, duration, schemas")
+    q.add_argument("files", nargs="+")
+    q.add_argument("--json", action="store_true")
+    q.set_defaults(func=_info)
+    q = msub.add_parser("synth", help="write a synthetic recording")
+    _add_cfg(q)
+    q.add_argument("output")
+    q.add_argument("--kind", choices=("complete", "partial", "noisy_partial"), default="partial")
+    q.add_argument("--object", default="mug")
+    q.add_argument("--frames", type=int, default=None)
+    q.add_argument("--width", type=int, default=160)
+    q.add_argument("--height", type=int, default=120)
+    q.add_argument("--seed", type=int, default=0)
+    q.set_defaults(func=_synth)

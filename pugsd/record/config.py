@@ -10,10 +10,26 @@ from pugsd.configbase import opt
 
 @dataclass(frozen=True, slots=True)
 class RecordConfig:
-    """MCAP recording of the daemon's own inputs and outputs."""
+    """MCAP recording of the daemon's inputs and outputs (also the defaults of `pugsd record`)."""
 
     enabled: bool = opt(False, "record the daemon's inputs and outputs")
     directory: str = opt("/var/lib/pugsd/recordings", "where recordings go")
+    name_prefix: str = opt("pugsd", "file names are PREFIX_<UTC time>_<index>.mcap")
+    keys: tuple[str, ...] = opt((), "zenoh key expressions to record; empty: every [topics] input and output")
+    compression: str = opt("zstd", "MCAP chunk compression", choices=("zstd", "lz4", "none"))
     chunk_size_bytes: int = opt(1048576, "MCAP chunk size (ZSTD)", unit="B", ge=4096)
+    flush_interval_s: float = opt(
+        2.0,
+        "close the open chunk at least this often (bounds what a crash loses)",
+        unit="s",
+        gt=0.0,
+    )
     rotate_size_bytes: int = opt(1073741824, "start a new file beyond this size", unit="B", ge=1048576)
     rotate_duration_s: float = opt(600.0, "start a new file after this long", unit="s", gt=0.0)
+    queue_max_bytes: int = opt(
+        268435456,
+        "payload bytes waiting for the writer thread before the oldest are dropped "
+        "(the message count bound is [queues] record)",
+        unit="B",
+        ge=1048576,
+    )

@@ -14,3 +14,4 @@ def default_zenoh_config() -> dict[str, Any]:
         "connect": {"endpoints": []},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
     }
+

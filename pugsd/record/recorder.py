@@ -1,0 +1,461 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The MCAP recorder: zenoh samples (or in-process messages) -> rotating ``ros2`` MCAP files.
+
+Threading: :meth:`Recorder.put` and the zenoh callback only append to a bounded in-memory queue
+(count and byte bounds; the oldest message is dropped and counted when full), so recording never
+blocks the caller. One writer thread owns the MCAP writer: it writes ZSTD chunks, closes the open
+chunk every ``flush_interval_s``, rotates files by size and duration, writes each file as
+``NAME.mcap.part`` and renames it to ``NAME.mcap`` when finished. An ``OSError`` from the disk
+(``ENOSPC`` included) is logged and reported in :attr:`Recorder.stats`; the recorder then drops
+(and counts) everything instead of crashing its host.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import errno
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import IO, Any
+
+from mcap.writer import Writer
+
+from pugsd.configbase import to_dict
+from pugsd.errors import DecodeError
+from pugsd.record.config import RecordConfig
+from pugsd.record.mcapio import ChannelTable, metadata_json, new_writer, versions
+from pugsd.wire.attachment import decode_attachment
+from pugsd.wire.keys import parse_key
+from pugsd.wire.types import known_type
+
+log = logging.getLogger(__name__)
+
+Opener = Callable[[Path], IO[bytes]]
+
+
+def _default_opener(path: Path) -> IO[bytes]:
+    # unbuffered: every record the mcap writer emits reaches the OS at once (crash safety)
+    return open(path, "wb", buffering=0)
+
+
+class _Passthrough:
+    """Hands writes straight to the opened file. (mcap's Writer would wrap a raw file in its own
+    BufferedWriter, which it never flushes on ``finish()`` and which a crash would lose.)"""
+
+    def __init__(self, f: IO[bytes]) -> None:
+        self._f = f
+        self._pos = 0
+
+    def write(self, b: Any) -> int:
+        view = memoryview(b).cast("B")
+        total = len(view)
+        while len(view):
+            n = self._f.write(view)
+            if n is None or n <= 0:
+                raise OSError("short write")
+            self._pos += n
+            view = view[n:]
+        return total
+
+    def tell(self) -> int:
+        return self._pos
+
+    def flush(self) -> None:
+        self._f.flush()
+
+    def close(self) -> None:
+        self._f.close()
+
+
+@dataclass(slots=True)
+class _Item:
+    topic: str
+    typename: str
+    key: str
+    data: bytes
+    log_time: int
+    publish_time: int
+    sequence: int
+
+
+@dataclass
+class RecorderStats:
+    """Counters (read them from any thread; they are updated without locks, monotonically)."""
+
+    received: int = 0
+    written: int = 0
+    dropped_queue: int = 0  # oldest dropped because the writer fell behind
+    dropped_error: int = 0  # dropped because the disk failed
+    unknown_type: int = 0  # samples whose ROS type could not be determined
+    bad_attachment: int = 0  # samples without a valid rmw_zenoh attachment (publish_time = log)
+    files_finished: int = 0
+    bytes_written: int = 0  # finished files plus the current file so far
+    disk_full: bool = False
+    error: str = ""
+    current_file: str = ""
+    files: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+def default_record_keys(cfg: Any) -> list[str]:
+    """``[record] keys``, or one key expression per ``[topics]`` input and output (any type)."""
+    from pugsd.wire.keys import subscription_key
+    from pugsd.wire.topics import INPUT_ROLES, OUTPUT_ROLES
+
+    if cfg.record.keys:
+        return list(cfg.record.keys)
+    t = cfg.topics
+    return sorted(
+        {
+            subscription_key(getattr(t, r), domain_id=t.domain_id, key_style=t.key_style)
+            for r in INPUT_ROLES + OUTPUT_ROLES
+        }
+    )
+
+
+class Recorder:
+    """Records ROS 2 CDR messages to MCAP on a writer thread.
+
+    ``topic_types`` maps ROS topic names to types for keys that do not carry the type
+    (``ros2dds`` style); rmw_zenoh keys carry it. ``metadata`` (name -> str map) is written into
+    every file next to the versions and the record config.
+    """
+
+    def __init__(
+        self,
+        cfg: RecordConfig,
+        *,
+        directory: str | Path | None = None,
+        queue_size: int = 256,
+        topic_types: Mapping[str, str] | None = None,
+        metadata: Mapping[str, Mapping[str, str]] | None = None,
+        opener: Opener | None = None,
+        clock: Callable[[], int] = time.time_ns,
+    ) -> None:
+        self.cfg = cfg
+        self.directory = Path(directory if directory is not None else cfg.directory)
+        self.queue_size = int(queue_size)
+        self.topic_types = dict(topic_types or {})
+        self.metadata = {k: dict(v) for k, v in (metadata or {}).items()}
+        self._open = opener or _default_opener
+        self._clock = clock
+        self.stats = RecorderStats()
+        self._q: collections.deque[_Item] = collections.deque()
+        self._q_bytes = 0
+        self._cv = threading.Condition()
+        self._stop = False
+        self._thread: threading.Thread | None = None
+        self._file_index = 0
+        self._session_stamp = ""
+        self._writer: Writer | None = None
+        self._fh: _Passthrough | None = None
+        self._table: ChannelTable | None = None
+        self._part: Path | None = None
+        self._file_t0 = 0.0
+        self._last_flush = 0.0
+        self._failed = False
+        self._subs: list[Any] = []
+        self._finished_bytes = 0
+
+    @classmethod
+    def from_config(cls, cfg: Any, *, directory: str | Path | None = None) -> Recorder:
+        """A recorder for the daemon: ``[record]`` settings, ``[queues] record`` bound, the
+        ``[topics]`` types, and the full effective config (TOML) in every file's metadata."""
+        from pugsd.config import dump_config
+        from pugsd.wire.topics import topic_types
+
+        return cls(
+            cfg.record,
+            directory=directory,
+            queue_size=cfg.queues.record,
+            topic_types=topic_types(cfg.topics),
+            metadata={"pugsd.config": {"toml": dump_config(cfg)}},
+        )
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> Recorder:
+        if self._thread is not None:
+            return self
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:  # reported, not raised: the host keeps running
+            self._fail(exc, f"cannot create {self.directory}")
+        self._session_stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+        self._thread = threading.Thread(target=self._run, name="pugsd-recorder", daemon=True)
+        self._thread.start()
+        return self
+
+    def __enter__(self) -> Recorder:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def stop(self, timeout: float = 10.0) -> list[Path]:
+        """Write what is queued (within ``timeout``), finish the file and rename it; returns the
+        finished files of this recorder. Undeclares zenoh subscribers it declared."""
+        self.unsubscribe()
+        with self._cv:
+            self._stop = True
+            self._cv.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            if self._thread.is_alive():
+                log.error("recorder writer thread did not finish within %.1f s", timeout)
+        return [Path(p) for p in self.stats.files]
+
+    # ------------------------------------------------------------------ intake (any thread)
+    def put(
+        self,
+        topic: str,
+        typename: str,
+        data: bytes,
+        *,
+        key: str = "",
+        log_time_ns: int | None = None,
+        publish_time_ns: int | None = None,
+        sequence: int = 0,
+    ) -> bool:
+        """Queue one message; never blocks. Returns False if it (or an older one) was dropped."""
+        now = self._clock() if log_time_ns is None else int(log_time_ns)
+        pub = now if publish_time_ns is None else int(publish_time_ns)
+        item = _Item(topic, typename, key, bytes(data), now, pub, int(sequence))
+        ok = True
+        with self._cv:
+            self.stats.received += 1
+            if self._failed or self._stop:
+                self.stats.dropped_error += 1
+                return False
+            self._q.append(item)
+            self._q_bytes += len(item.data)
+            while len(self._q) > self.queue_size or (
+                self._q_bytes > self.cfg.queue_max_bytes and len(self._q) > 1
+            ):
+                old = self._q.popleft()
+                self._q_bytes -= len(old.data)
+                self.stats.dropped_queue += 1
+                ok = False
+            self._cv.notify()
+        return ok
+
+    def put_sample(
+        self,
+        key: str,
+        data: bytes,
+        attachment: bytes | None = None,
+        log_time_ns: int | None = None,
+    ) -> bool:
+        """Queue a zenoh sample: topic and type from the key (rmw_zenoh) or ``topic_types``
+        (ros2dds); publish time and sequence from the rmw_zenoh attachment when present."""
+        now = self._clock() if log_time_ns is None else int(log_time_ns)
+        try:
+            info = parse_key(key)
+            topic, typename = info.topic, info.typename
+        except DecodeError:
+            topic = "/" + key.strip("/")
+            typename = self.topic_types.get(topic, "")
+        if not typename or not known_type(typename):
+            with self._cv:
+                self.stats.unknown_type += 1
+                self.stats.received += 1
+            log.debug("recorder: no known ROS type for key %s", key)
+            return False
+        pub, seq = now, 0
+        att = None
+        if attachment is not None:
+            try:
+                att = decode_attachment(attachment)
+                pub, seq = att.source_timestamp_ns, att.sequence_number
+            except DecodeError:
+                att = None
+        if att is None:
+            with self._cv:
+                self.stats.bad_attachment += 1
+        # mcap's sequence field is uint32; the rmw_zenoh sequence number is int64
+        return self.put(topic, typename, data, key=key, log_time_ns=now, publish_time_ns=pub,
+                        sequence=seq & 0xFFFFFFFF)  # fmt: skip
+
+    def on_sample(self, sample: Any) -> None:
+        """zenoh subscriber callback: copies key, payload and attachment, queues; never blocks."""
+        try:
+            now = self._clock()
+            att = sample.attachment
+            self.put_sample(
+                str(sample.key_expr),
+                sample.payload.to_bytes(),
+                None if att is None else att.to_bytes(),
+                now,
+            )
+        except Exception as exc:  # never let an exception into zenoh's thread
+            log.warning("recorder: dropped a sample: %s", exc)
+
+    def subscribe(self, session: Any, key_exprs: Iterable[str]) -> list[Any]:
+        """Declare one subscriber per key expression feeding :meth:`on_sample`."""
+        for k in key_exprs:
+            self._subs.append(session.declare_subscriber(k, self.on_sample))
+        return list(self._subs)
+
+    def unsubscribe(self) -> None:
+        while self._subs:
+            sub = self._subs.pop()
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+
+    @property
+    def queued(self) -> int:
+        return len(self._q)
+
+    # ------------------------------------------------------------------ writer thread
+    def _run(self) -> None:
+        try:
+            while True:
+                with self._cv:
+                    while not self._q and not self._stop:
+                        self._cv.wait(timeout=self._wait_s())
+                        if not self._q:
+                            break
+                    batch = list(self._q)
+                    self._q.clear()
+                    self._q_bytes = 0
+                    stopping = self._stop
+                for item in batch:
+                    self._write(item)
+                self._maybe_flush()
+                if stopping and not self._q:
+                    break
+        finally:
+            self._close_file(finish=not self._failed)
+
+    def _wait_s(self) -> float:
+        if self._writer is None:
+            return 1.0
+        return max(0.01, self.cfg.flush_interval_s - (time.monotonic() - self._last_flush))
+
+    def _fail(self, exc: OSError, what: str) -> None:
+        self._failed = True
+        self.stats.disk_full = exc.errno == errno.ENOSPC
+        self.stats.error = f"{what}: {exc}"
+        log.error(
+            "recorder stopped writing (%s): %s; messages are now dropped and counted",
+            "disk full" if self.stats.disk_full else "disk error",
+            exc,
+        )
+        with self._cv:
+            self.stats.dropped_error += len(self._q)
+            self._q.clear()
+            self._q_bytes = 0
+
+    def _write(self, item: _Item) -> None:
+        if self._failed:
+            self.stats.dropped_error += 1
+            return
+        try:
+            self._maybe_rotate()
+            assert self._table is not None and self._writer is not None
+            cid = self._table.channel_id(item.topic, item.typename, item.key)
+            self._writer.add_message(cid, item.log_time, item.data, item.publish_time, item.sequence)
+            self.stats.written += 1
+        except OSError as exc:
+            self.stats.dropped_error += 1
+            self._fail(exc, "write")
+            self._close_file(finish=False)
+        except Exception as exc:  # a bad message must not kill the writer thread
+            self.stats.dropped_error += 1
+            self.stats.error = f"write {item.topic}: {type(exc).__name__}: {exc}"
+            log.exception("recorder: dropped a %s message", item.topic)
+
+    def _maybe_flush(self) -> None:
+        if self._writer is None or self._failed:
+            return
+        if time.monotonic() - self._last_flush >= self.cfg.flush_interval_s:
+            try:
+                self._writer.flush()
+            except OSError as exc:
+                self._fail(exc, "flush")
+                self._close_file(finish=False)
+                return
+            self._last_flush = time.monotonic()
+            self._update_size()
+
+    def _update_size(self) -> None:
+        if self._fh is not None:
+            with contextlib.suppress(OSError, ValueError):
+                self.stats.bytes_written = self._finished_bytes + self._fh.tell()
+
+    def _maybe_rotate(self) -> None:
+        if self._writer is not None:
+            self._update_size()
+            size = self._fh.tell() if self._fh is not None else 0
+            age = time.monotonic() - self._file_t0
+            if size < self.cfg.rotate_size_bytes and age < self.cfg.rotate_duration_s:
+                return
+            log.info("recorder: rotating %s (%d B, %.0f s)", self._part, size, age)
+            self._close_file(finish=True)
+        self._open_file()
+
+    def _open_file(self) -> None:
+        self._file_index += 1
+        name = f"{self.cfg.name_prefix}_{self._session_stamp}_{self._file_index:03d}.mcap"
+        self._part = self.directory / (name + ".part")
+        self._fh = _Passthrough(self._open(self._part))
+        self._writer = new_writer(self._fh, self.cfg.chunk_size_bytes, self.cfg.compression)
+        self._table = ChannelTable(self._writer)
+        v = versions()
+        self._writer.add_metadata("pugsd.versions", v)
+        self._writer.add_metadata(
+            "pugsd.record",
+            {
+                "config": metadata_json(to_dict(self.cfg)),
+                "file_index": str(self._file_index),
+                "started_utc": datetime.now(UTC).isoformat(),
+            },
+        )
+        for name_md, md in self.metadata.items():
+            self._writer.add_metadata(name_md, md)
+        self._file_t0 = self._last_flush = time.monotonic()
+        self.stats.current_file = str(self._part)
+        log.info("recorder: writing %s", self._part)
+
+    def _close_file(self, *, finish: bool) -> None:
+        w, fh, part = self._writer, self._fh, self._part
+        self._writer = self._fh = self._table = self._part = None
+        self.stats.current_file = ""
+        if fh is None or part is None:
+            return
+        ok = False
+        if finish and w is not None:
+            try:
+                w.finish()
+                ok = True
+            except OSError as exc:
+                self._fail(exc, "finish")
+        with contextlib.suppress(OSError, ValueError):
+            self._finished_bytes += fh.tell()
+        try:
+            if ok:
+                fh.flush()
+            fh.close()
+        except OSError as exc:
+            if ok:
+                self._fail(exc, "close")
+            ok = False
+        if ok:
+            final = part.with_name(part.name[: -len(".part")])
+            try:
+                part.replace(final)
+            except OSError as exc:
+                self._fail(exc, "rename")
+                return
+            self.stats.files.append(str(final))
+            self.stats.files_finished += 1
+            log.info("recorder: finished %s", final)
+        else:
+            log.error("recorder: left %s unfinished (use `pugsd mcap recover`)", part)

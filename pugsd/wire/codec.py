@@ -1,0 +1,737 @@
+# SPDX-License-Identifier: Apache-2.0
+"""ROS 2 CDR encoders and decoders for pugsd's wire messages (rosbags, Jazzy type store).
+
+Every ``decode_*`` validates what it reads and raises :class:`pugsd.errors.DecodeError` with a
+reason (truncated CDR, unsupported encoding, size mismatch, non-finite pose, ...); no other
+exception escapes. Encoders take numpy arrays / pugsd types and return ``bytes``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from pugsd.core.camera import PinholeCamera, StereoRig
+from pugsd.core.types import ScoredGrasps
+from pugsd.errors import DecodeError, PugsdError
+from pugsd.wire.types import (
+    CAMERA_INFO,
+    GRASP,
+    GRASP_ARRAY,
+    IMAGE,
+    MARKER_ARRAY,
+    POINT_CLOUD2,
+    POINT_FIELD,
+    POSE_COV_STAMPED,
+    POSE_STAMPED,
+    STRING,
+    msg_class,
+    typestore,
+)
+
+# ---------------------------------------------------------------------------------------------
+# generic helpers
+
+#: encoding -> (numpy dtype, channels)
+IMAGE_ENCODINGS: dict[str, tuple[np.dtype[Any], int]] = {
+    "mono8": (np.dtype(np.uint8), 1),
+    "rgb8": (np.dtype(np.uint8), 3),
+    "bgr8": (np.dtype(np.uint8), 3),
+    "32FC1": (np.dtype(np.float32), 1),
+    "16UC1": (np.dtype(np.uint16), 1),
+}
+
+_CDR_LE = b"\x00\x01\x00\x00"
+_CDR_BE = b"\x00\x00\x00\x00"
+
+
+def serialize(msg: Any, typename: str) -> bytes:
+    """CDR bytes (little endian, 4-byte encapsulation header) of a rosbags message object."""
+    return bytes(typestore().serialize_cdr(msg, typename))
+
+
+def deserialize(data: bytes | bytearray | memoryview, typename: str) -> Any:
+    """Decode CDR into a rosbags message object; any failure is a DecodeError."""
+    try:
+        b = bytes(data)
+    except Exception as exc:
+        raise DecodeError(f"{typename}: payload is not bytes ({type(data).__name__})") from exc
+    if len(b) < 4:
+        raise DecodeError(f"{typename}: truncated CDR ({len(b)} bytes)")
+    if b[:4] not in (_CDR_LE, _CDR_BE) and b[:2] not in (_CDR_LE[:2], _CDR_BE[:2]):
+        raise DecodeError(f"{typename}: unsupported CDR encapsulation {b[:4].hex()}")
+    try:
+        return typestore().deserialize_cdr(b, typename)
+    except Exception as exc:  # rosbags SerdeError, struct.error, UnicodeDecodeError, ...
+        raise DecodeError(f"{typename}: malformed CDR ({len(b)} bytes): {exc}") from None
+
+
+def _time(stamp_ns: int) -> Any:
+    stamp_ns = int(stamp_ns)
+    if stamp_ns < 0:
+        raise ValueError(f"negative stamp {stamp_ns}")
+    return msg_class("builtin_interfaces/msg/Time")(
+        sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000
+    )
+
+
+def _header(stamp_ns: int, frame_id: str) -> Any:
+    return msg_class("std_msgs/msg/Header")(stamp=_time(stamp_ns), frame_id=str(frame_id))
+
+
+def _stamp_ns(header: Any, typename: str) -> int:
+    sec, nsec = int(header.stamp.sec), int(header.stamp.nanosec)
+    if nsec >= 1_000_000_000 or sec < 0:
+        raise DecodeError(f"{typename}: invalid stamp sec={sec} nanosec={nsec}")
+    return sec * 1_000_000_000 + nsec
+
+
+def stamp_of(data: bytes, typename: str) -> int:
+    """The header stamp (ns) of any message whose first field is a ``std_msgs/Header``."""
+    return _stamp_ns(deserialize(data, typename).header, typename)
+
+
+# ---------------------------------------------------------------------------------------------
+# rotations
+
+
+def quat_to_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
+    """Rotation matrix of a unit quaternion (normalised here)."""
+    q = np.array([x, y, z, w], dtype=np.float64)
+    q /= np.linalg.norm(q)
+    x, y, z, w = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def matrix_to_quat(R: np.ndarray) -> tuple[float, float, float, float]:
+    """(x, y, z, w) with w >= 0 of a rotation matrix (Shepperd's method)."""
+    R = np.asarray(R, dtype=np.float64)
+    t = np.trace(R)
+    if t > 0:
+        s = math.sqrt(t + 1.0) * 2
+        w, x, y, z = (
+            0.25 * s,
+            (R[2, 1] - R[1, 2]) / s,
+            (R[0, 2] - R[2, 0]) / s,
+            (R[1, 0] - R[0, 1]) / s,
+        )
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2]) * 2
+        w, x, y, z = (
+            (R[2, 1] - R[1, 2]) / s,
+            0.25 * s,
+            (R[0, 1] + R[1, 0]) / s,
+            (R[0, 2] + R[2, 0]) / s,
+        )
+    elif R[1, 1] > R[2, 2]:
+        s = math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2]) * 2
+        w, x, y, z = (
+            (R[0, 2] - R[2, 0]) / s,
+            (R[0, 1] + R[1, 0]) / s,
+            0.25 * s,
+            (R[1, 2] + R[2, 1]) / s,
+        )
+    else:
+        s = math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1]) * 2
+        w, x, y, z = (
+            (R[1, 0] - R[0, 1]) / s,
+            (R[0, 2] + R[2, 0]) / s,
+            (R[1, 2] + R[2, 1]) / s,
+            0.25 * s,
+        )
+    q = np.array([x, y, z, w])
+    q /= np.linalg.norm(q)
+    if q[3] < 0:
+        q = -q
+    return float(q[0]), float(q[1]), float(q[2]), float(q[3])
+
+
+def _pose_msg(T: np.ndarray) -> Any:
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError("pose must be a finite 4x4 matrix")
+    qx, qy, qz, qw = matrix_to_quat(T[:3, :3])
+    Point = msg_class("geometry_msgs/msg/Point")
+    Quat = msg_class("geometry_msgs/msg/Quaternion")
+    return msg_class("geometry_msgs/msg/Pose")(
+        position=Point(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
+        orientation=Quat(x=qx, y=qy, z=qz, w=qw),
+    )
+
+
+def _pose_matrix(pose: Any, typename: str, *, quat_tol: float = 1e-3) -> np.ndarray:
+    p, o = pose.position, pose.orientation
+    vals = np.array([p.x, p.y, p.z, o.x, o.y, o.z, o.w], dtype=np.float64)
+    if not np.all(np.isfinite(vals)):
+        raise DecodeError(f"{typename}: non-finite pose")
+    with np.errstate(all="ignore"):
+        n = float(np.linalg.norm(vals[3:]))
+    if abs(n - 1.0) > quat_tol:
+        raise DecodeError(f"{typename}: quaternion norm {n:.6g} is not 1")
+    T = np.eye(4)
+    T[:3, :3] = quat_to_matrix(*vals[3:])
+    T[:3, 3] = vals[:3]
+    return T
+
+
+# ---------------------------------------------------------------------------------------------
+# sensor_msgs/Image
+
+
+@dataclass(frozen=True, slots=True)
+class ImageMsg:
+    """A decoded image: ``array`` is (H, W) or (H, W, 3) in the wire's channel order."""
+
+    stamp_ns: int
+    frame_id: str
+    encoding: str
+    array: np.ndarray
+
+    def rgb_or_mono(self) -> np.ndarray:
+        """mono8 as (H, W), rgb8/bgr8 as RGB (H, W, 3); depth encodings unchanged."""
+        if self.encoding == "bgr8":
+            return np.ascontiguousarray(self.array[:, :, ::-1])
+        return self.array
+
+    def depth_m(self) -> np.ndarray:
+        """32FC1 (metres) or 16UC1 (millimetres) as float32 metres, NaN where invalid (0, inf)."""
+        if self.encoding == "32FC1":
+            d = self.array.astype(np.float32, copy=True)
+        elif self.encoding == "16UC1":
+            d = self.array.astype(np.float32) * np.float32(0.001)
+        else:
+            raise DecodeError(f"image encoding {self.encoding!r} is not a depth encoding")
+        d[~np.isfinite(d) | (d <= 0)] = np.nan
+        return d
+
+
+def encode_image(
+    array: np.ndarray, stamp_ns: int, frame_id: str = "camera", encoding: str | None = None
+) -> bytes:
+    """sensor_msgs/Image from an array. ``encoding`` defaults from dtype/shape: uint8 (H,W) mono8,
+    uint8 (H,W,3) rgb8, float32 32FC1, uint16 16UC1."""
+    a = np.asarray(array)
+    if encoding is None:
+        if a.dtype == np.uint8:
+            encoding = "mono8" if a.ndim == 2 else "rgb8"
+        elif a.dtype == np.float32:
+            encoding = "32FC1"
+        elif a.dtype == np.uint16:
+            encoding = "16UC1"
+        else:
+            raise ValueError(f"no default image encoding for dtype {a.dtype}")
+    if encoding not in IMAGE_ENCODINGS:
+        raise ValueError(f"unsupported image encoding {encoding!r}")
+    dtype, ch = IMAGE_ENCODINGS[encoding]
+    want_ndim = 2 if ch == 1 else 3
+    if a.ndim != want_ndim or (ch > 1 and a.shape[2] != ch):
+        raise ValueError(f"{encoding} needs shape (H, W{', 3' if ch > 1 else ''}), got {a.shape}")
+    a = np.ascontiguousarray(a, dtype=dtype.newbyteorder("<"))
+    h, w = a.shape[:2]
+    msg = msg_class(IMAGE)(
+        header=_header(stamp_ns, frame_id),
+        height=h,
+        width=w,
+        encoding=encoding,
+        is_bigendian=0,
+        step=w * ch * dtype.itemsize,
+        data=np.frombuffer(a.tobytes(), dtype=np.uint8),
+    )
+    return serialize(msg, IMAGE)
+
+
+def decode_image(data: bytes, encodings: Sequence[str] | None = None) -> ImageMsg:
+    """Decode and validate a sensor_msgs/Image (encoding, step, data size); copies the pixels."""
+    m = deserialize(data, IMAGE)
+    enc = str(m.encoding)
+    allowed = IMAGE_ENCODINGS if encodings is None else encodings
+    if enc not in IMAGE_ENCODINGS or enc not in allowed:
+        raise DecodeError(f"{IMAGE}: unsupported encoding {enc!r} (accepted: {list(allowed)})")
+    dtype, ch = IMAGE_ENCODINGS[enc]
+    h, w, step = int(m.height), int(m.width), int(m.step)
+    if h <= 0 or w <= 0:
+        raise DecodeError(f"{IMAGE}: empty image {w}x{h}")
+    row = w * ch * dtype.itemsize
+    if step < row:
+        raise DecodeError(f"{IMAGE}: step {step} < width*channels*bytes {row}")
+    raw = np.asarray(m.data, dtype=np.uint8)
+    if raw.size != step * h:
+        raise DecodeError(
+            f"{IMAGE}: data has {raw.size} bytes, expected step*height = {step}*{h} = {step * h}"
+        )
+    if m.is_bigendian not in (0, 1):
+        raise DecodeError(f"{IMAGE}: is_bigendian={m.is_bigendian}")
+    rows = raw.reshape(h, step)[:, :row]
+    dt = dtype.newbyteorder(">" if m.is_bigendian else "<")
+    arr = np.frombuffer(np.ascontiguousarray(rows).tobytes(), dtype=dt).astype(dtype, copy=False)
+    arr = arr.reshape((h, w) if ch == 1 else (h, w, ch))
+    return ImageMsg(_stamp_ns(m.header, IMAGE), str(m.header.frame_id), enc, arr)
+
+
+# ---------------------------------------------------------------------------------------------
+# sensor_msgs/CameraInfo
+
+
+@dataclass(frozen=True, slots=True)
+class CameraInfoMsg:
+    """A decoded CameraInfo: rectified intrinsics (from P) and the baseline from P's Tx."""
+
+    stamp_ns: int
+    frame_id: str
+    camera: PinholeCamera
+    baseline_m: float  # -Tx / fx; 0 for the left (reference) camera
+    distortion_model: str
+    D: np.ndarray
+
+
+def encode_camera_info(
+    camera: PinholeCamera, stamp_ns: int, frame_id: str = "camera", baseline_m: float = 0.0
+) -> bytes:
+    """Rectified CameraInfo (no distortion). For the right camera of a rig pass ``baseline_m``:
+    ``P[0, 3] = Tx = -fx * B``."""
+    K = camera.K
+    P = np.zeros((3, 4))
+    P[:, :3] = K
+    P[0, 3] = -camera.fx * float(baseline_m)
+    RoI = msg_class("sensor_msgs/msg/RegionOfInterest")
+    msg = msg_class(CAMERA_INFO)(
+        header=_header(stamp_ns, frame_id),
+        height=int(camera.height),
+        width=int(camera.width),
+        distortion_model="plumb_bob",
+        d=np.zeros(5, dtype=np.float64),
+        k=K.reshape(-1).astype(np.float64),
+        r=np.eye(3).reshape(-1),
+        p=P.reshape(-1),
+        binning_x=0,
+        binning_y=0,
+        roi=RoI(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+    )
+    return serialize(msg, CAMERA_INFO)
+
+
+def encode_stereo_infos(
+    rig: StereoRig, stamp_ns: int, left_frame: str = "left", right_frame: str = "right"
+) -> tuple[bytes, bytes]:
+    """(left, right) CameraInfo of a rectified rig."""
+    return (
+        encode_camera_info(rig.left, stamp_ns, left_frame, 0.0),
+        encode_camera_info(rig.left, stamp_ns, right_frame, rig.baseline_m),
+    )
+
+
+def decode_camera_info(data: bytes) -> CameraInfoMsg:
+    m = deserialize(data, CAMERA_INFO)
+    K = np.asarray(m.k, dtype=np.float64)
+    P = np.asarray(m.p, dtype=np.float64)
+    if K.size != 9 or P.size != 12:
+        raise DecodeError(f"{CAMERA_INFO}: K has {K.size} values, P has {P.size}")
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(P))):
+        raise DecodeError(f"{CAMERA_INFO}: non-finite K or P")
+    P = P.reshape(3, 4)
+    src = P[:, :3] if P[0, 0] > 0 else K.reshape(3, 3)
+    try:
+        cam = PinholeCamera(
+            fx=float(src[0, 0]),
+            fy=float(src[1, 1]),
+            cx=float(src[0, 2]),
+            cy=float(src[1, 2]),
+            width=int(m.width),
+            height=int(m.height),
+            skew=float(src[0, 1]),
+        )
+    except PugsdError as exc:
+        raise DecodeError(f"{CAMERA_INFO}: {exc}") from None
+    baseline = -float(P[0, 3]) / cam.fx if P[0, 0] > 0 else 0.0
+    return CameraInfoMsg(
+        _stamp_ns(m.header, CAMERA_INFO),
+        str(m.header.frame_id),
+        cam,
+        baseline,
+        str(m.distortion_model),
+        np.asarray(m.d, dtype=np.float64).copy(),
+    )
+
+
+def stereo_rig_from_infos(
+    left: CameraInfoMsg, right: CameraInfoMsg, *, tol: float = 1e-6
+) -> StereoRig:
+    """The rectified rig of a left/right CameraInfo pair (baseline from the right P)."""
+    a, b = left.camera, right.camera
+    if (a.width, a.height) != (b.width, b.height):
+        raise DecodeError("stereo CameraInfo: left and right image sizes differ")
+    for name in ("fx", "fy", "cx", "cy"):
+        va, vb = getattr(a, name), getattr(b, name)
+        if abs(va - vb) > tol * max(1.0, abs(va)):
+            raise DecodeError(f"stereo CameraInfo: {name} differs ({va} vs {vb}); not rectified")
+    B = right.baseline_m - left.baseline_m
+    if not (math.isfinite(B) and B > 0):
+        raise DecodeError(f"stereo CameraInfo: baseline {B} m from the right P matrix is not > 0")
+    return StereoRig(a, B)
+
+
+# ---------------------------------------------------------------------------------------------
+# poses
+
+
+@dataclass(frozen=True, slots=True)
+class PoseMsg:
+    """A decoded camera pose: ``T`` (4x4, child -> frame_id) and 6x6 covariance (x,y,z,rx,ry,rz),
+    or None when the message carries none (PoseStamped without a configured covariance)."""
+
+    stamp_ns: int
+    frame_id: str
+    T: np.ndarray
+    cov: np.ndarray | None
+
+
+def _check_cov(C: np.ndarray, typename: str) -> np.ndarray:
+    if not np.all(np.isfinite(C)):
+        raise DecodeError(f"{typename}: non-finite covariance")
+    scale = max(float(np.abs(C).max()), 1e-30)
+    if np.abs(C - C.T).max() > 1e-6 * scale:
+        raise DecodeError(f"{typename}: covariance is not symmetric")
+    if float(np.linalg.eigvalsh(0.5 * (C + C.T)).min()) < -1e-9 * scale:
+        raise DecodeError(f"{typename}: covariance is not positive semi-definite")
+    return 0.5 * (C + C.T)
+
+
+def encode_pose_with_covariance(
+    stamp_ns: int, T: np.ndarray, cov: np.ndarray, frame_id: str = "world"
+) -> bytes:
+    C = np.asarray(cov, dtype=np.float64)
+    if C.shape != (6, 6):
+        raise ValueError(f"covariance must be 6x6, got {C.shape}")
+    PwC = msg_class("geometry_msgs/msg/PoseWithCovariance")
+    msg = msg_class(POSE_COV_STAMPED)(
+        header=_header(stamp_ns, frame_id),
+        pose=PwC(pose=_pose_msg(T), covariance=C.reshape(-1).copy()),
+    )
+    return serialize(msg, POSE_COV_STAMPED)
+
+
+def decode_pose_with_covariance(data: bytes) -> PoseMsg:
+    m = deserialize(data, POSE_COV_STAMPED)
+    T = _pose_matrix(m.pose.pose, POSE_COV_STAMPED)
+    C = np.asarray(m.pose.covariance, dtype=np.float64)
+    if C.size != 36:
+        raise DecodeError(f"{POSE_COV_STAMPED}: covariance has {C.size} values, expected 36")
+    C = _check_cov(C.reshape(6, 6), POSE_COV_STAMPED)
+    return PoseMsg(_stamp_ns(m.header, POSE_COV_STAMPED), str(m.header.frame_id), T, C)
+
+
+def encode_pose_stamped(stamp_ns: int, T: np.ndarray, frame_id: str = "world") -> bytes:
+    msg = msg_class(POSE_STAMPED)(header=_header(stamp_ns, frame_id), pose=_pose_msg(T))
+    return serialize(msg, POSE_STAMPED)
+
+
+def decode_pose_stamped(data: bytes, cov: np.ndarray | None = None) -> PoseMsg:
+    """PoseStamped; ``cov`` (6x6, e.g. from the config) is attached as its covariance."""
+    m = deserialize(data, POSE_STAMPED)
+    T = _pose_matrix(m.pose, POSE_STAMPED)
+    C = None
+    if cov is not None:
+        C = np.asarray(cov, dtype=np.float64)
+        if C.shape != (6, 6):
+            raise DecodeError(f"{POSE_STAMPED}: configured covariance must be 6x6, got {C.shape}")
+        C = _check_cov(C, POSE_STAMPED)
+    return PoseMsg(_stamp_ns(m.header, POSE_STAMPED), str(m.header.frame_id), T, C)
+
+
+def decode_pose(data: bytes, typename: str, cov: np.ndarray | None = None) -> PoseMsg:
+    """Either pose type by name (``typename`` from the key / recording)."""
+    if typename == POSE_COV_STAMPED:
+        return decode_pose_with_covariance(data)
+    if typename == POSE_STAMPED:
+        return decode_pose_stamped(data, cov)
+    raise DecodeError(f"unsupported pose type {typename!r}")
+
+
+# ---------------------------------------------------------------------------------------------
+# pugs_msgs/GraspArray
+
+
+def encode_grasp_array(
+    grasps: ScoredGrasps, frame_id: str = "world", stamp_ns: int | None = None
+) -> bytes:
+    """GraspArray (best first, as in ``grasps``); ``stamp_ns`` defaults to ``grasps.stamp_ns``."""
+    st = int(grasps.stamp_ns if stamp_ns is None else stamp_ns)
+    hdr = _header(st, frame_id)
+    Point = msg_class("geometry_msgs/msg/Point")
+    G = msg_class(GRASP)
+    items = []
+    for i in range(len(grasps)):
+        c = np.asarray(grasps.contact_W[i], dtype=np.float64)
+        items.append(
+            G(
+                header=hdr,
+                pose=_pose_msg(grasps.pose_W[i]),
+                contact=Point(x=float(c[0]), y=float(c[1]), z=float(c[2])),
+                width=float(grasps.width_m[i]),
+                baseline_confidence=float(grasps.baseline_confidence[i]),
+                sigma2_occ=float(grasps.sigma2_occ[i]),
+                pugs_confidence=float(grasps.pugs_confidence[i]),
+                id=int(grasps.grasp_id[i]),
+            )
+        )
+    return serialize(msg_class(GRASP_ARRAY)(header=hdr, grasps=items), GRASP_ARRAY)
+
+
+def decode_grasp_array(data: bytes) -> ScoredGrasps:
+    """ScoredGrasps from GraspArray CDR bytes (order kept); DecodeError on any invalid field."""
+    m = deserialize(data, GRASP_ARRAY)
+    n = len(m.grasps)
+    poses = np.zeros((n, 4, 4))
+    contact = np.zeros((n, 3))
+    scal = np.zeros((n, 4))
+    ids = np.zeros(n, dtype=np.int64)
+    for i, g in enumerate(m.grasps):
+        poses[i] = _pose_matrix(g.pose, GRASP_ARRAY)
+        contact[i] = (g.contact.x, g.contact.y, g.contact.z)
+        scal[i] = (g.width, g.baseline_confidence, g.sigma2_occ, g.pugs_confidence)
+        ids[i] = g.id
+    if not (np.all(np.isfinite(contact)) and np.all(np.isfinite(scal))):
+        raise DecodeError(f"{GRASP_ARRAY}: non-finite contact, width or score")
+    return ScoredGrasps(
+        pose_W=poses,
+        contact_W=contact,
+        width_m=scal[:, 0].copy(),
+        baseline_confidence=scal[:, 1].copy(),
+        sigma2_occ=scal[:, 2].copy(),
+        pugs_confidence=scal[:, 3].copy(),
+        grasp_id=ids,
+        stamp_ns=_stamp_ns(m.header, GRASP_ARRAY),
+    )
+
+
+def grasp_array_frame_id(data: bytes) -> str:
+    return str(deserialize(data, GRASP_ARRAY).header.frame_id)
+
+
+# ---------------------------------------------------------------------------------------------
+# visualization_msgs/MarkerArray
+
+_MARKER_LINE_LIST = 5
+_MARKER_ADD = 0
+_MARKER_DELETEALL = 3
+
+
+def confidence_color(c: float) -> tuple[float, float, float]:
+    """Red (0) -> yellow (0.5) -> green (1)."""
+    c = float(np.clip(c if math.isfinite(c) else 0.0, 0.0, 1.0))
+    return (min(1.0, 2.0 * (1.0 - c)), min(1.0, 2.0 * c), 0.0)
+
+
+def gripper_lines(pose: np.ndarray, width: float, depth: float = 0.1) -> np.ndarray:
+    """LINE_LIST segments (2k, 3) of a parallel gripper at ``pose`` (Contact-GraspNet convention:
+    columns (b, a x b, a), origin at the wrist): a stem, the palm and two fingers reaching
+    ``depth`` along the approach, fingertips at the contact plane."""
+    T = np.asarray(pose, dtype=np.float64)
+    o, b, a = T[:3, 3], T[:3, 0], T[:3, 2]
+    half = 0.5 * float(width)
+    palm = o + 0.5 * depth * a
+    tip = o + depth * a
+    pts = [
+        o,
+        palm,
+        palm - half * b,
+        palm + half * b,
+        palm - half * b,
+        tip - half * b,
+        palm + half * b,
+        tip + half * b,
+    ]
+    return np.asarray(pts)
+
+
+def encode_grasp_markers(
+    grasps: ScoredGrasps,
+    frame_id: str = "world",
+    stamp_ns: int | None = None,
+    *,
+    top_k: int = 10,
+    depth: float = 0.1,
+    line_width: float = 0.003,
+    ns: str = "pugs_grasps",
+    use_pugs_confidence: bool = True,
+) -> bytes:
+    """MarkerArray: a DELETEALL, then one LINE_LIST gripper per top grasp coloured by confidence
+    (PUGS confidence, or the baseline one)."""
+    st = int(grasps.stamp_ns if stamp_ns is None else stamp_ns)
+    hdr = _header(st, frame_id)
+    Marker = msg_class("visualization_msgs/msg/Marker")
+    Point = msg_class("geometry_msgs/msg/Point")
+    Vec3 = msg_class("geometry_msgs/msg/Vector3")
+    Color = msg_class("std_msgs/msg/ColorRGBA")
+    Duration = msg_class("builtin_interfaces/msg/Duration")
+    ident = _pose_msg(np.eye(4))
+
+    def marker(mid: int, action: int, points: list[Any], color: Any) -> Any:
+        return Marker(
+            header=hdr,
+            ns=ns,
+            id=mid,
+            type=_MARKER_LINE_LIST,
+            action=action,
+            pose=ident,
+            scale=Vec3(x=line_width, y=0.0, z=0.0),
+            color=color,
+            lifetime=Duration(sec=0, nanosec=0),
+            frame_locked=False,
+            points=points,
+            colors=[],
+            texture_resource="",
+            texture=msg_class("sensor_msgs/msg/CompressedImage")(
+                header=hdr, format="", data=np.zeros(0, dtype=np.uint8)
+            ),
+            uv_coordinates=[],
+            text="",
+            mesh_resource="",
+            mesh_file=msg_class("visualization_msgs/msg/MeshFile")(
+                filename="", data=np.zeros(0, dtype=np.uint8)
+            ),
+            mesh_use_embedded_materials=False,
+        )
+
+    out = [marker(0, _MARKER_DELETEALL, [], Color(r=0.0, g=0.0, b=0.0, a=0.0))]
+    conf = grasps.pugs_confidence if use_pugs_confidence else grasps.baseline_confidence
+    for i in range(min(int(top_k), len(grasps))):
+        seg = gripper_lines(grasps.pose_W[i], float(grasps.width_m[i]), depth)
+        r, g, b = confidence_color(float(conf[i]))
+        pts = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in seg]
+        out.append(marker(i + 1, _MARKER_ADD, pts, Color(r=r, g=g, b=b, a=1.0)))
+    return serialize(msg_class(MARKER_ARRAY)(markers=out), MARKER_ARRAY)
+
+
+# ---------------------------------------------------------------------------------------------
+# sensor_msgs/PointCloud2
+
+CLOUD_FIELDS = ("x", "y", "z", "sigma2_occ", "pugs_confidence")
+_FLOAT32 = 7
+
+
+@dataclass(frozen=True, slots=True)
+class CloudMsg:
+    stamp_ns: int
+    frame_id: str
+    fields: dict[str, np.ndarray]  # name -> (N,) float32
+
+    @property
+    def points(self) -> np.ndarray:
+        return np.stack([self.fields["x"], self.fields["y"], self.fields["z"]], axis=1)
+
+
+def encode_cloud(
+    points: np.ndarray,
+    stamp_ns: int,
+    frame_id: str = "world",
+    *,
+    sigma2_occ: np.ndarray | None = None,
+    pugs_confidence: np.ndarray | None = None,
+    extra: Mapping[str, np.ndarray] | None = None,
+) -> bytes:
+    """Unorganised PointCloud2 (height 1) with float32 fields x, y, z, sigma2_occ,
+    pugs_confidence (NaN when not given) and any ``extra`` float32 fields."""
+    P = np.asarray(points, dtype=np.float64)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {P.shape}")
+    n = P.shape[0]
+    cols: dict[str, np.ndarray] = {"x": P[:, 0], "y": P[:, 1], "z": P[:, 2]}
+    for name, v in (("sigma2_occ", sigma2_occ), ("pugs_confidence", pugs_confidence)):
+        cols[name] = (
+            np.full(n, np.nan) if v is None else np.asarray(v, dtype=np.float64).reshape(-1)
+        )
+    for name, v in (extra or {}).items():
+        cols[name] = np.asarray(v, dtype=np.float64).reshape(-1)
+    for name, v in cols.items():
+        if v.shape != (n,):
+            raise ValueError(f"field {name} has {v.shape[0]} values for {n} points")
+    names = list(cols)
+    rec = np.empty(n, dtype=np.dtype([(k, "<f4") for k in names]))
+    for k in names:
+        rec[k] = cols[k]
+    PF = msg_class(POINT_FIELD)
+    fields = [PF(name=k, offset=4 * i, datatype=_FLOAT32, count=1) for i, k in enumerate(names)]
+    step = 4 * len(names)
+    msg = msg_class(POINT_CLOUD2)(
+        header=_header(stamp_ns, frame_id),
+        height=1,
+        width=n,
+        fields=fields,
+        is_bigendian=False,
+        point_step=step,
+        row_step=step * n,
+        data=np.frombuffer(rec.tobytes(), dtype=np.uint8),
+        is_dense=bool(np.all(np.isfinite(P))),
+    )
+    return serialize(msg, POINT_CLOUD2)
+
+
+def decode_cloud(data: bytes) -> CloudMsg:
+    """PointCloud2 with float32 fields only (as written by :func:`encode_cloud`)."""
+    m = deserialize(data, POINT_CLOUD2)
+    if m.is_bigendian:
+        raise DecodeError(f"{POINT_CLOUD2}: big-endian clouds are not supported")
+    n = int(m.height) * int(m.width)
+    step = int(m.point_step)
+    raw = np.asarray(m.data, dtype=np.uint8)
+    if int(m.row_step) != step * int(m.width) or raw.size != step * n:
+        raise DecodeError(
+            f"{POINT_CLOUD2}: data has {raw.size} bytes, expected point_step*n = {step * n}"
+        )
+    out: dict[str, np.ndarray] = {}
+    for f in m.fields:
+        if int(f.datatype) != _FLOAT32 or int(f.count) != 1:
+            raise DecodeError(f"{POINT_CLOUD2}: field {f.name} is not a single float32")
+        if int(f.offset) + 4 > step:
+            raise DecodeError(f"{POINT_CLOUD2}: field {f.name} offset {f.offset} beyond point_step")
+        if n == 0:
+            out[str(f.name)] = np.zeros(0, dtype=np.float32)
+            continue
+        view = np.lib.stride_tricks.as_strided(
+            raw[int(f.offset) :], shape=(n, 4), strides=(step, 1)
+        )
+        out[str(f.name)] = np.ascontiguousarray(view).view("<f4").reshape(n).astype(np.float32)
+    for k in ("x", "y", "z"):
+        if k not in out:
+            raise DecodeError(f"{POINT_CLOUD2}: missing field {k}")
+    return CloudMsg(_stamp_ns(m.header, POINT_CLOUD2), str(m.header.frame_id), out)
+
+
+# ---------------------------------------------------------------------------------------------
+# status (std_msgs/String holding JSON)
+
+
+def encode_status(status: Mapping[str, Any]) -> bytes:
+    text = json.dumps(dict(status), sort_keys=True, allow_nan=False, default=_json_default)
+    return serialize(msg_class(STRING)(data=text), STRING)
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def decode_status(data: bytes) -> dict[str, Any]:
+    m = deserialize(data, STRING)
+    try:
+        obj = json.loads(m.data)
+    except ValueError as exc:
+        raise DecodeError(f"status: not JSON: {exc}") from None
+    if not isinstance(obj, dict):
+        raise DecodeError("status: JSON is not an object")
+    return obj

@@ -1,0 +1,75 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Fixtures: pairs of loopback-only zenoh peer sessions on fresh 127.0.0.1 ports."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from pugsd.wire.session import close_session, free_tcp_port, loopback_config, open_session
+
+
+@pytest.fixture
+def zenoh_pair() -> Iterator[tuple[Any, Any]]:
+    """(listener, connector) peer sessions: the first listens on a free 127.0.0.1 port, the second
+    connects to it. Both go through the loopback check."""
+    port = free_tcp_port()
+    a = open_session(loopback_config(listen_port=port), require_loopback=True)
+    b = open_session(loopback_config(connect_ports=[port]), require_loopback=True)
+    deadline = time.monotonic() + 5.0
+    while not list(b.info.peers_zid()) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    try:
+        yield a, b
+    finally:
+        close_session(b)
+        close_session(a)
+
+
+@pytest.fixture(scope="session")
+def synth_recording(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    """A small synthetic recording (4 random-texture frames of 64x48): path and the frames."""
+    from pugsd.record.synth import write_recording
+
+    frames = make_frames(4)
+    path = tmp_path_factory.mktemp("synth") / "synth.mcap"
+    write_recording(path, frames)
+    return path, frames
+
+
+@pytest.fixture(scope="session")
+def frames_factory() -> Any:
+    """``make_frames(n, width=64, height=48, seed=0)``: random-texture stereo frames."""
+    return make_frames
+
+
+def make_frames(n: int, width: int = 64, height: int = 48, seed: int = 0) -> list[Any]:
+    """Simple random-texture stereo frames (independent of the synthetic world)."""
+    import numpy as np
+
+    from pugsd.core.camera import PinholeCamera, StereoRig
+    from pugsd.core.types import StereoFrame
+
+    rng = np.random.default_rng(seed)
+    cam = PinholeCamera(60.0, 60.0, width / 2 - 0.5, height / 2 - 0.5, width, height)
+    rig = StereoRig(cam, 0.05)
+    frames = []
+    for i in range(n):
+        T = np.eye(4)
+        T[:3, 3] = (0.01 * i, 0.0, -0.5)
+        cov = np.diag([1e-6] * 3 + [1e-5] * 3)
+        frames.append(
+            StereoFrame(
+                stamp_ns=(i + 1) * 100_000_000,
+                left=rng.integers(0, 255, (height, width, 3), dtype=np.uint8),
+                right=rng.integers(0, 255, (height, width, 3), dtype=np.uint8),
+                rig=rig,
+                T_W_C=T,
+                pose_cov=cov,
+                mask=rng.random((height, width)) > 0.5,
+            )
+        )
+    return frames

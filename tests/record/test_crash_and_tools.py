@@ -1,0 +1,220 @@
+# SPDX-License-Identifier: Apache-2.0
+"""`pugsd record` as a process: SIGKILL then `mcap recover`; SIGTERM finishes cleanly. Tools."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+
+from pugsd.cli import main
+from pugsd.record.mcapio import iter_recording, recover, scan
+from pugsd.wire import codec
+from pugsd.wire.keys import topic_key
+from pugsd.wire.publisher import Publisher
+from pugsd.wire.session import close_session, free_tcp_port, loopback_config, open_session
+from pugsd.wire.types import IMAGE
+
+N_MSGS = 80
+CHUNK = 65536
+IMG = (64, 64)  # 4 kB + header per message: about 16 messages per chunk
+
+
+@pytest.fixture
+def daemon_side() -> Iterator[tuple[Any, int]]:
+    port = free_tcp_port()
+    s = open_session(loopback_config(listen_port=port), require_loopback=True)
+    try:
+        yield s, port
+    finally:
+        close_session(s)
+
+
+def _spawn_recorder(out: Path, port: int) -> subprocess.Popen[bytes]:
+    cmd = [
+        sys.executable, "-m", "pugsd", "record",
+        "--connect", f"tcp/127.0.0.1:{port}",
+        "--out", str(out),
+        "--key", "0/crash/**",
+        "--set", f"record.chunk_size_bytes={CHUNK}",
+        "--set", "record.flush_interval_s=100.0",
+        "--status-interval", "0.05",
+    ]  # fmt: skip
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+class _Lines:
+    """Collects a pipe's lines on a thread (so the test never blocks on the child)."""
+
+    def __init__(self, pipe: Any) -> None:
+        self.lines: list[str] = []
+        self.t = threading.Thread(target=self._read, args=(pipe,), daemon=True)
+        self.t.start()
+
+    def _read(self, pipe: Any) -> None:
+        for raw in iter(pipe.readline, b""):
+            self.lines.append(raw.decode(errors="replace"))
+
+    def wait_for(self, text: str, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if any(text in ln for ln in list(self.lines)):
+                return True
+            time.sleep(0.02)
+        return False
+
+
+def _publish(session: Any, proc: subprocess.Popen[bytes]) -> list[bytes]:
+    pub = Publisher(session, topic_key("/crash", IMAGE))
+    try:
+        deadline = time.monotonic() + 30
+        while not pub.matching:
+            assert proc.poll() is None, proc.stderr.read().decode() if proc.stderr else ""
+            assert time.monotonic() < deadline, "recorder process never subscribed"
+            time.sleep(0.05)
+        rng = np.random.default_rng(0)
+        sent = []
+        for i in range(N_MSGS):
+            img = rng.integers(0, 255, IMG, dtype=np.uint8)
+            img[0, 0] = i
+            data = codec.encode_image(img, i + 1, "crash")
+            pub.put(data)
+            sent.append(data)
+            time.sleep(0.01)
+    finally:
+        pub.undeclare()
+    return sent
+
+
+@pytest.mark.timeout(90)
+def test_sigkill_then_recover_loses_at_most_the_open_chunk(
+    daemon_side: tuple[Any, int], tmp_path: Path
+) -> None:
+    session, port = daemon_side
+    proc = _spawn_recorder(tmp_path, port)
+    err = _Lines(proc.stderr)
+    try:
+        sent = _publish(session, proc)
+        # kill only once the recorder has received everything (its status lines say so)
+        assert err.wait_for(f"received={N_MSGS} written={N_MSGS}", 30), err.lines[-3:]
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)  # the recorder we started, by its pid
+        proc.wait(10)
+    assert proc.returncode == -signal.SIGKILL
+    (part,) = list(tmp_path.glob("*.mcap.part"))
+    assert not list(tmp_path.glob("*.mcap"))
+    info = scan(part)
+    assert not info.complete and info.error
+    out = tmp_path / "recovered.mcap"
+    res = recover(part, out)
+    assert res.error  # stopped at the torn end
+    got = [m.data for m in iter_recording([out])]
+    assert got == sent[: len(got)]  # a prefix, in order, byte-identical
+    per_chunk = CHUNK // len(sent[0]) + 1
+    assert N_MSGS - per_chunk <= len(got) <= N_MSGS, (len(got), per_chunk)
+    with open(out, "rb") as f:  # a complete, indexed file again
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        assert summary.statistics.message_count == len(got)
+        decoded = [d for *_, d in reader.iter_decoded_messages()]
+    assert [d.data[0] for d in decoded] == list(range(len(got)))
+    assert {m.name for m in reader_metadata(out)} >= {"pugsd.versions", "pugsd.record"}
+
+
+def reader_metadata(path: Path) -> list[Any]:
+    with open(path, "rb") as f:
+        return list(make_reader(f).iter_metadata())
+
+
+@pytest.mark.timeout(90)
+def test_sigterm_finishes_the_file(daemon_side: tuple[Any, int], tmp_path: Path) -> None:
+    session, port = daemon_side
+    proc = _spawn_recorder(tmp_path, port)
+    err = _Lines(proc.stderr)
+    try:
+        sent = _publish(session, proc)
+        assert err.wait_for(f"received={N_MSGS}", 30), err.lines[-3:]  # SIGTERM stops intake
+        os.kill(proc.pid, signal.SIGTERM)
+        proc.wait(15)
+    finally:
+        if proc.poll() is None:
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait(5)
+    assert proc.returncode == 0, "".join(err.lines)
+    assert not list(tmp_path.glob("*.part"))
+    (final,) = list(tmp_path.glob("*.mcap"))
+    assert [m.data for m in iter_recording([final])] == sent
+    info = scan(final)
+    assert info.complete and info.message_count == N_MSGS
+    assert "pugsd.config" in info.metadata and "toml" in info.metadata["pugsd.config"]
+
+
+def test_recover_truncated_files_in_process(synth_recording: Any, tmp_path: Path) -> None:
+    src, _ = synth_recording
+    data = Path(src).read_bytes()
+    full = [m.data for m in iter_recording([src])]
+    for cut in (len(data) - 1, len(data) // 2, 200):
+        p = tmp_path / f"cut{cut}.mcap.part"
+        p.write_bytes(data[:cut])
+        out = tmp_path / f"cut{cut}.mcap"
+        try:
+            recover(p, out)
+        except Exception as exc:  # only when not even the header survived
+            assert cut <= 200, exc
+            continue
+        got = [m.data for m in iter_recording([out])]
+        assert got == full[: len(got)]
+    # recovering a complete file keeps everything
+    res = recover(src, tmp_path / "same.mcap")
+    assert res.messages == len(full) and res.error == ""
+
+
+def test_cli_info_and_recover(synth_recording: Any, tmp_path: Path,
+                              capsys: pytest.CaptureFixture[str]) -> None:  # fmt: skip
+    src, _ = synth_recording
+    assert main(["mcap", "info", str(src)]) == 0
+    out = capsys.readouterr().out
+    assert "24 messages" in out and "/stereo/left/image_raw  [sensor_msgs/msg/Image]" in out
+    assert "schema sensor_msgs/msg/CameraInfo (ros2msg)" in out
+    part = tmp_path / "x.mcap.part"
+    part.write_bytes(Path(src).read_bytes()[:-100])
+    assert main(["mcap", "recover", str(part), str(tmp_path / "x.mcap")]) == 0
+    assert "recovered 24 messages" in capsys.readouterr().out
+    assert main(["mcap", "info", "--json", str(part)]) == 0
+    assert '"complete": false' in capsys.readouterr().out
+
+
+def test_cli_play_and_synth(daemon_side: tuple[Any, int], synth_recording: Any, tmp_path: Path,
+                            capsys: pytest.CaptureFixture[str]) -> None:  # fmt: skip
+    session, port = daemon_side
+    src, _ = synth_recording
+    got: list[bytes] = []
+    sub = session.declare_subscriber("0/**", lambda s: got.append(s.payload.to_bytes()))
+    handlers = (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT))
+    try:
+        rc = main(["play", str(src), "--connect", f"tcp/127.0.0.1:{port}", "--rate", "0",
+                   "--quiet", "--wait-subscribers", "3"])  # fmt: skip
+        deadline = time.monotonic() + 5
+        while len(got) < 24 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        sub.undeclare()
+        signal.signal(signal.SIGTERM, handlers[0])
+        signal.signal(signal.SIGINT, handlers[1])
+    assert rc == 0 and "24 messages published" in capsys.readouterr().err
+    assert got == [m.data for m in iter_recording([src])]
+    with pytest.raises(SystemExit):
+        main(["play"])  # missing FILE
+    assert main(["play", str(tmp_path / "missing.mcap")]) == 1

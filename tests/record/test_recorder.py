@@ -1,0 +1,201 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Recorder in-process: file format, metadata, rotation, slow disk, full disk."""
+
+from __future__ import annotations
+
+import errno
+import io
+import json
+import time
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+
+from pugsd.record.config import RecordConfig
+from pugsd.record.recorder import Recorder
+from pugsd.wire import codec
+from pugsd.wire.attachment import encode_attachment
+from pugsd.wire.keys import topic_key
+from pugsd.wire.types import IMAGE, POSE_COV_STAMPED
+
+
+def _cfg(tmp: Path, **kw: Any) -> RecordConfig:
+    return RecordConfig(enabled=True, directory=str(tmp), **kw)
+
+
+def _img(i: int, shape: tuple[int, int] = (16, 16)) -> bytes:
+    return codec.encode_image(np.full(shape, i % 256, np.uint8), 1000 + i, "left")
+
+
+def test_record_put_sample_format_and_metadata(tmp_path: Path) -> None:
+    key = topic_key("/stereo/left/image_raw", IMAGE)
+    gid = bytes(range(16))
+    payloads = [_img(i) for i in range(5)]
+    rec = Recorder(_cfg(tmp_path), metadata={"pugsd.config": {"toml": "x = 1"}})
+    with rec:
+        for i, p in enumerate(payloads):
+            assert rec.put_sample(key, p, encode_attachment(i + 1, 5_000 + i, gid), 9_000 + i)
+        # ros2dds key with a type from topic_types; and an unknown key
+        rec.topic_types["/camera_pose"] = POSE_COV_STAMPED
+        pose = codec.encode_pose_with_covariance(1, np.eye(4), np.eye(6))
+        assert rec.put_sample("camera_pose", pose, None, 20_000)
+        assert not rec.put_sample("unknown/topic", b"\x00\x01\x00\x00", None)
+    files = rec.stats.files
+    assert len(files) == 1 and files[0].endswith(".mcap") and Path(files[0]).exists()
+    assert not list(tmp_path.glob("*.part"))
+    assert rec.stats.written == 6 and rec.stats.unknown_type == 1 and rec.stats.bad_attachment == 1
+    with open(files[0], "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        header = reader.get_header()
+        assert header.profile == "ros2"
+        msgs = list(reader.iter_decoded_messages())
+        summary = reader.get_summary()
+        md = {m.name: m.metadata for m in reader.iter_metadata()}
+    assert summary is not None
+    assert {s.name for s in summary.schemas.values()} == {IMAGE, POSE_COV_STAMPED}
+    assert all(s.encoding == "ros2msg" for s in summary.schemas.values())
+    assert all(c.message_encoding == "cdr" for c in summary.channels.values())
+    assert [m[1].topic for m in msgs] == ["/stereo/left/image_raw"] * 5 + ["/camera_pose"]
+    assert [m[2].data for m in msgs[:5]] == payloads  # verbatim
+    assert [m[2].log_time for m in msgs[:5]] == [9_000 + i for i in range(5)]
+    assert [m[2].publish_time for m in msgs[:5]] == [5_000 + i for i in range(5)]
+    assert [m[2].sequence for m in msgs[:5]] == [1, 2, 3, 4, 5]
+    assert msgs[0][1].metadata["zenoh_key"] == key
+    assert msgs[2][3].data[0] == 2  # decoded by mcap_ros2
+    assert json.loads(md["pugsd.record"]["config"])["enabled"] is True
+    assert md["pugsd.versions"]["pugsd"] and md["pugsd.versions"]["eclipse-zenoh"]
+    assert md["pugsd.config"] == {"toml": "x = 1"}
+
+
+def test_rotation_by_size_and_duration(tmp_path: Path) -> None:
+    a = tmp_path / "size"
+    rec = Recorder(_cfg(a, chunk_size_bytes=65536, rotate_size_bytes=300_000), queue_size=10_000)
+    with rec:
+        for i in range(60):  # 60 x ~40 kB, nearly incompressible
+            data = codec.encode_image(np.random.default_rng(i).integers(0, 255, (200, 200), np.uint8), i)
+            rec.put("/img", IMAGE, data, log_time_ns=i)
+    files = [Path(f) for f in rec.stats.files]
+    assert len(files) >= 5 and all(f.exists() for f in files)
+    assert all(f.stat().st_size < 300_000 + 2 * 65536 + 100_000 for f in files)
+    total = 0
+    for f in files:
+        with open(f, "rb") as fh:
+            total += sum(1 for _ in make_reader(fh).iter_messages())
+    assert total == 60
+
+    b = tmp_path / "dur"
+    rec = Recorder(_cfg(b, rotate_duration_s=0.15, flush_interval_s=0.05))
+    with rec:
+        for i in range(8):
+            rec.put("/img", IMAGE, _img(i))
+            time.sleep(0.06)
+    assert len(rec.stats.files) >= 2
+    assert len({Path(f).name for f in rec.stats.files}) == len(rec.stats.files)
+
+
+class _SlowFile(io.RawIOBase):
+    def __init__(self, path: Path, delay: float) -> None:
+        self.f = open(path, "wb", buffering=0)  # noqa: SIM115
+        self.delay = delay
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, b: Any) -> int:
+        time.sleep(self.delay)
+        return int(self.f.write(b) or 0)
+
+    def tell(self) -> int:
+        return int(self.f.tell())
+
+    def close(self) -> None:
+        self.f.close()
+        super().close()
+
+
+def test_slow_disk_drops_and_counts_but_never_blocks(tmp_path: Path) -> None:
+    def opener(p: Path) -> IO[bytes]:
+        return _SlowFile(p, 0.02)  # type: ignore[return-value]
+
+    rec = Recorder(_cfg(tmp_path, chunk_size_bytes=4096, flush_interval_s=0.01),
+                   queue_size=16, opener=opener)  # fmt: skip
+    times = []
+    with rec:
+        for i in range(400):
+            t0 = time.perf_counter()
+            rec.put("/img", IMAGE, _img(i, (32, 32)))
+            times.append(time.perf_counter() - t0)
+    s = rec.stats
+    # a put that waited for the disk would take >= 20 ms each (8 s in all); allow scheduler noise
+    assert sum(times) < 1.0 and float(np.percentile(times, 90)) < 0.005, max(times)
+    assert s.dropped_queue > 0
+    assert s.written + s.dropped_queue == s.received == 400
+    with open(s.files[0], "rb") as f:
+        seen = [codec.decode_image(m.data).array[0, 0] for _, _, m in make_reader(f).iter_messages()]
+    assert len(seen) == s.written and seen == sorted(seen)  # kept in order; the oldest dropped
+
+
+class _FullDisk(io.RawIOBase):
+    def __init__(self, path: Path, limit: int) -> None:
+        self.f = open(path, "wb", buffering=0)  # noqa: SIM115
+        self.n = 0
+        self.limit = limit
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, b: Any) -> int:
+        if self.n + len(b) > self.limit:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        self.n += len(b)
+        return int(self.f.write(b) or 0)
+
+    def tell(self) -> int:
+        return self.n
+
+    def close(self) -> None:
+        self.f.close()
+        super().close()
+
+
+def test_full_disk_is_reported_not_a_crash(tmp_path: Path) -> None:
+    def opener(p: Path) -> IO[bytes]:
+        return _FullDisk(p, 50_000)  # type: ignore[return-value]
+
+    rec = Recorder(_cfg(tmp_path, chunk_size_bytes=8192, flush_interval_s=0.01), opener=opener)
+    with rec:
+        for i in range(100):
+            rec.put("/img", IMAGE, codec.encode_image(
+                np.random.default_rng(i).integers(0, 255, (40, 40), np.uint8), i))  # fmt: skip
+            time.sleep(0.001)
+        deadline = time.monotonic() + 10
+        while not rec.stats.disk_full and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert rec.stats.disk_full
+        assert not rec.put("/img", IMAGE, _img(0))  # refused and counted; no exception
+    s = rec.stats
+    assert s.disk_full and "No space left" in s.error
+    assert s.written + s.dropped_error + s.dropped_queue == s.received
+    assert s.files == [] and list(tmp_path.glob("*.mcap.part"))  # left for `mcap recover`
+
+
+def test_unusable_directory_is_reported(tmp_path: Path) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    rec = Recorder(_cfg(blocker / "sub"))
+    with rec:
+        assert rec.stats.error and "cannot create" in rec.stats.error
+        assert not rec.put("/img", IMAGE, _img(0))
+    assert rec.stats.dropped_error == 1 and rec.stats.files == []
+
+
+def test_a_bad_message_does_not_stop_the_writer(tmp_path: Path) -> None:
+    rec = Recorder(_cfg(tmp_path))
+    with rec:
+        rec.put("/x", "no_pkg/msg/Nope", b"\x00\x01\x00\x00")  # no schema for this type
+        rec.put("/img", IMAGE, _img(1))
+    assert rec.stats.dropped_error == 1 and rec.stats.written == 1 and "/x" in rec.stats.error
+    assert len(rec.stats.files) == 1

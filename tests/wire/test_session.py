@@ -1,0 +1,140 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The loopback safety check and real pub/sub over zenoh on 127.0.0.1."""
+
+from __future__ import annotations
+
+import asyncio
+import copy
+import threading
+import time
+from typing import Any
+
+import numpy as np
+import pytest
+
+from pugsd.errors import ConfigError
+from pugsd.wire.attachment import decode_attachment
+from pugsd.wire.codec import decode_image, encode_image
+from pugsd.wire.config import default_zenoh_config
+from pugsd.wire.keys import parse_key, subscription_key, topic_key
+from pugsd.wire.publisher import Publisher
+from pugsd.wire.session import (
+    asyncio_bridge_map,
+    check_loopback_safe,
+    loopback_config,
+    open_session,
+    zenoh_config,
+)
+from pugsd.wire.types import IMAGE
+
+
+def test_loopback_check_accepts_safe_configs() -> None:
+    check_loopback_safe(loopback_config(listen_port=17447))
+    check_loopback_safe(loopback_config(connect_ports=[17447, 17448]))
+    check_loopback_safe(default_zenoh_config())
+
+
+@pytest.mark.parametrize(
+    "mutate",
+    [
+        lambda d: d["scouting"]["multicast"].update(enabled=True),
+        lambda d: d["scouting"]["multicast"].pop("enabled"),
+        lambda d: d["scouting"]["gossip"].update(enabled=True),
+        lambda d: d.pop("scouting"),
+        lambda d: d.pop("listen"),  # zenoh's default listens on every interface
+        lambda d: d["listen"].update(endpoints=["tcp/0.0.0.0:7447"]),
+        lambda d: d["listen"].update(endpoints=["tcp/[::]:7447"]),
+        lambda d: d["listen"].update(endpoints=["udp/127.0.0.1:7447"]),
+        lambda d: d["listen"].update(endpoints=["tcp/localhost:7447"]),
+        lambda d: d["listen"].update(endpoints=["tcp/127.0.0.1:7447#iface=eth0"]),
+        lambda d: d["connect"].update(endpoints=["tcp/192.168.1.2:7447"]),
+        lambda d: d["listen"].update(endpoints={"peer": ["tcp/10.0.0.1:1"], "router": []}),
+        lambda d: d["listen"].update(endpoints=[]),  # and connect is empty: nothing to talk to
+    ],
+)
+def test_loopback_check_rejects(mutate: Any) -> None:
+    d = copy.deepcopy(loopback_config(listen_port=17447))
+    mutate(d)
+    with pytest.raises(ConfigError):
+        check_loopback_safe(d)
+    with pytest.raises(ConfigError):
+        open_session(d, require_loopback=True)
+
+
+def test_zenoh_rejects_unknown_keys() -> None:
+    d = loopback_config(listen_port=17447)
+    d["scouting"]["multicast"]["enabeld"] = False
+    with pytest.raises(ConfigError):
+        zenoh_config(d)
+
+
+def test_pub_sub_image_with_attachment(zenoh_pair: tuple[Any, Any]) -> None:
+    listener, connector = zenoh_pair
+    key = topic_key("/stereo/left/image_raw", IMAGE)
+    got: list[tuple[str, bytes, bytes]] = []
+    done = threading.Event()
+
+    def cb(sample: Any) -> None:  # only copies and appends; never blocks
+        got.append((str(sample.key_expr), sample.payload.to_bytes(), sample.attachment.to_bytes()))
+        if len(got) >= 3:
+            done.set()
+
+    sub = listener.declare_subscriber(subscription_key("/stereo/left/image_raw"), cb)
+    pub = Publisher(connector, key)
+    try:
+        deadline = time.monotonic() + 5
+        while not pub.matching and time.monotonic() < deadline:
+            time.sleep(0.01)
+        imgs = [np.full((48, 64), i, np.uint8) for i in range(3)]
+        payloads = [encode_image(im, 1000 + i, "left") for i, im in enumerate(imgs)]
+        for i, p in enumerate(payloads):
+            assert pub.put(p, source_timestamp_ns=5000 + i) == i + 1
+        assert done.wait(5.0)
+    finally:
+        pub.undeclare()
+        sub.undeclare()
+    assert [g[1] for g in got] == payloads
+    assert all(parse_key(g[0]).typename == IMAGE for g in got)
+    atts = [decode_attachment(g[2]) for g in got]
+    assert [a.sequence_number for a in atts] == [1, 2, 3]
+    assert [a.source_timestamp_ns for a in atts] == [5000, 5001, 5002]
+    assert len({a.gid for a in atts}) == 1 and atts[0].gid == pub.gid
+    assert decode_image(got[2][1]).array[0, 0] == 2
+
+
+def test_asyncio_bridge(zenoh_pair: tuple[Any, Any]) -> None:
+    listener, connector = zenoh_pair
+
+    async def main() -> list[bytes]:
+        loop = asyncio.get_running_loop()
+        q: asyncio.Queue[bytes] = asyncio.Queue()
+        cb = asyncio_bridge_map(loop, lambda s: s.payload.to_bytes(), q.put_nowait)
+        sub = listener.declare_subscriber("t/bridge", cb)
+        pub = Publisher(connector, "t/bridge")
+        try:
+            deadline = time.monotonic() + 5
+            while not pub.matching and time.monotonic() < deadline:  # noqa: ASYNC110
+                await asyncio.sleep(0.01)
+            for i in range(3):
+                pub.put(bytes([i]))
+            return [await asyncio.wait_for(q.get(), 5.0) for _ in range(3)]
+        finally:
+            pub.undeclare()
+            sub.undeclare()
+
+    assert asyncio.run(main()) == [b"\x00", b"\x01", b"\x02"]
+
+
+def test_tool_config_connects_to_the_daemon_and_stays_safe() -> None:
+    from pugsd.wire.session import tool_config
+
+    c = tool_config(default_zenoh_config())
+    assert c["connect"]["endpoints"] == ["tcp/127.0.0.1:7447"] and c["listen"]["endpoints"] == []
+    check_loopback_safe(c)
+    lan = {"mode": "router", "listen": {"endpoints": ["tcp/0.0.0.0:7447"]},
+           "scouting": {"multicast": {"enabled": True}}}  # fmt: skip
+    c = tool_config(lan, connect=["tcp/127.0.0.1:7000"])
+    assert c["mode"] == "peer" and c["scouting"]["multicast"]["enabled"] is False
+    check_loopback_safe(c)
+    with pytest.raises(ConfigError):
+        check_loopback_safe(tool_config(lan))  # would connect to 0.0.0.0
