@@ -1,10 +1,418 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Subcommands of this subsystem."""
+"""``pugsd arm sim|status|execute|stop`` and ``pugsd bpl encode|decode``."""
 
 from __future__ import annotations
 
 import argparse
+import asyncio
+import contextlib
+import json
+import logging
+import signal
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+from pugsd.errors import ArmError
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------- shared
+
+
+def _add_config_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", default=None, help="TOML config file (default: built-in defaults)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a key")
+
+
+def _load(args: argparse.Namespace) -> Any:
+    from pugsd.config import load_config
+
+    return load_config(args.config, args.set or ())
+
+
+def _out(text: str) -> None:
+    sys.stdout.write(text + "\n")
+    sys.stdout.flush()
+
+
+def _run(coro: Any) -> Any:
+    return asyncio.run(coro)
+
+
+# ---------------------------------------------------------------- bpl encode / decode
+
+
+def _parse_value(text: str, kind: str, packet_id: int) -> float | int:
+    from pugsd.arm.protocol import PacketID, parse_mode, parse_packet_id
+
+    if kind == "f32":
+        try:
+            return float(text)
+        except ValueError:
+            raise ArmError(f"{text!r} is not a number") from None
+    if packet_id == PacketID.MODE:
+        return parse_mode(text)
+    if packet_id in (PacketID.REQUEST, PacketID.HEARTBEAT_SET):
+        return parse_packet_id(text)
+    try:
+        return int(text, 0)
+    except ValueError:
+        raise ArmError(f"{text!r} is not a byte value") from None
+
+
+def _bpl_encode(args: argparse.Namespace) -> int:
+    from pugsd.arm.protocol import (
+        PACKET_SPECS,
+        Packet,
+        encode_frame,
+        make_packet,
+        parse_device_id,
+        parse_packet_id,
+    )
+
+    dev = parse_device_id(args.device)
+    pid = parse_packet_id(args.packet)
+    spec = PACKET_SPECS.get(pid)
+    if spec is None:
+        data = bytes(int(v, 0) for v in args.values)
+        pk = Packet(dev, pid, data)
+    elif spec.kind == "ascii":
+        pk = make_packet(dev, pid, " ".join(args.values))
+    else:
+        pk = make_packet(dev, pid, [_parse_value(v, spec.kind, pid) for v in args.values])
+    _out(encode_frame(pk).hex(" ").upper())
+    return 0
+
+
+def _bpl_decode(args: argparse.Namespace) -> int:
+    from pugsd.arm.protocol import StreamDecoder, packet_to_json
+
+    text = "".join(args.hex).replace(":", "").replace(",", "").replace(" ", "")
+    text = text.removeprefix("0x")
+    try:
+        data = bytes.fromhex(text)
+    except ValueError as exc:
+        raise ArmError(f"not hex: {exc}") from None
+    dec = StreamDecoder()
+    pk = dec.feed(data)
+    if data and not data.endswith(b"\x00"):
+        pk += dec.feed(b"\x00")  # accept a single frame given without its terminator
+    out = {"packets": [packet_to_json(p) for p in pk], "decoder": dec.stats.as_dict()}
+    _out(json.dumps(out, indent=2))
+    return 0 if pk else 1
+
+
+# ---------------------------------------------------------------- arm sim
+
+
+async def _sim_main(cfg: Any, transport: str, duration: float | None, port: int | None) -> None:
+    from pugsd.arm.sim import close_pty, make_pty_pair, sim_from_config
+    from pugsd.arm.transport import CanTransport, FdStreamTransport, UdpTransport, can_mapping
+
+    master: int | None = None
+    if transport == "serial":
+        master, path = make_pty_pair()
+        tr: Any = FdStreamTransport(master)
+        where = f"serial pty {path}  (use --set arm.serial.port={path})"
+    elif transport == "udp":
+        tr = UdpTransport(None, (cfg.sim.udp_host, cfg.sim.udp_port if port is None else port))
+        await tr.open()
+        host, p = tr.local_address
+        where = f"udp {host}:{p}  (use --set arm.udp.host={host} --set arm.udp.port={p})"
+    else:
+        c = cfg.can
+        if c.interface == "virtual":
+            log.warning("the virtual CAN interface only reaches buses in the same process")
+        tr = CanTransport(
+            interface=c.interface,
+            channel=c.channel,
+            bitrate=c.bitrate,
+            mapping=can_mapping(c),
+            role="arm",
+            reassembly_timeout_s=c.reassembly_timeout_s,
+        )
+        where = f"can {c.interface}:{c.channel}"
+    sim = sim_from_config(cfg, tr)
+    await sim.start()
+    _out(f"simulated Bravo 7 listening on {where}")
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError):
+            loop.add_signal_handler(sig, stop.set)
+    try:
+        if duration is None:
+            await stop.wait()
+        else:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), duration)
+    finally:
+        await sim.close()
+        if master is not None:
+            close_pty(master)
+
+
+def _arm_sim(args: argparse.Namespace) -> int:
+    cfg = _load(args).arm
+    _run(_sim_main(cfg, args.transport or cfg.transport, args.duration, args.port))
+    return 0
+
+
+# ---------------------------------------------------------------- arm status / stop / execute
+
+
+async def _status_main(cfg: Any, wait: float) -> dict[str, Any]:
+    from pugsd.arm.controller import ArmController
+
+    ctl = ArmController(cfg)
+    await ctl.link.start()  # no watchdog: status only listens and polls, it never commands
+    try:
+        t_end = time.monotonic() + wait
+        while time.monotonic() < t_end and not ctl.link.have_feedback():  # noqa: ASYNC110
+            await asyncio.sleep(0.02)
+        from pugsd.arm.protocol import JOINT_DEVICES, PacketID
+
+        for d in JOINT_DEVICES:  # one device at a time (RS-485 safe)
+            await ctl.link.request(d, [PacketID.POSITION_LIMITS], within_s=0.1)
+        # the first poll also requested HARDWARE_STATUS_FLAGS (per device on RS-485)
+        await asyncio.sleep(min(0.2, wait))
+        return ctl.status()
+    finally:
+        await ctl.link.close()
+
+
+def _format_status(st: dict[str, Any]) -> str:
+    lines = [
+        f"arm: {'enabled' if st['enabled'] else 'DISABLED'} over {st['transport']}, state {st['state']}",
+    ]
+    lk = st["link"]
+    age = lk["feedback_age_s"]
+    lines.append(
+        f"link: rx {lk['rx_packets']} packets, {lk['rx_crc_errors']} CRC errors, "
+        f"{lk['rx_framing_errors']} framing errors, tx {lk['tx_packets']}, "
+        f"oldest feedback {age * 1000:.0f} ms" + (f", error: {lk['error']}" if lk["error"] else "")
+    )
+    for j in st["joints"]:
+        pos = "   --   " if j["position"] is None else f"{j['position']:8.4f} {j['unit']}"
+        flags = ",".join(j["flags"]) or "-"
+        lim = j.get("device_limits")
+        lims = f"  limits [{lim[0]:.3f}, {lim[1]:.3f}]" if lim else ""
+        lines.append(f"  0x{j['device_id']:02X} {j['name']:<15} {pos}  mode {j['mode']}  flags {flags}{lims}")
+    if st["tcp_base"]:
+        x, y, z = st["tcp_base"]["xyz_m"]
+        lines.append(f"TCP (base frame, our FK): {x:.4f} {y:.4f} {z:.4f} m")
+    if st["watchdog"]["tripped"]:
+        lines.append(f"watchdog: TRIPPED ({st['watchdog']['tripped']})")
+    return "\n".join(lines)
+
+
+def _arm_status(args: argparse.Namespace) -> int:
+    cfg = _load(args).arm
+    st = _run(_status_main(cfg, args.wait))
+    _out(json.dumps(st, indent=2, default=float) if args.json else _format_status(st))
+    return 0 if st["link"]["rx_packets"] else 1
+
+
+async def _stop_main(cfg: Any) -> None:
+    from pugsd.arm.controller import ArmController
+
+    ctl = ArmController(cfg)
+    await ctl.link.start()
+    try:
+        await ctl.stop(reason="pugsd arm stop")
+        await asyncio.sleep(0.05)
+        await ctl.stop(reason="pugsd arm stop (repeat)")
+        with contextlib.suppress(Exception):
+            flush = getattr(ctl.link.transport, "flush", None)
+            if flush is not None:
+                await flush(0.5)
+    finally:
+        await ctl.link.close()
+
+
+def _arm_stop(args: argparse.Namespace) -> int:
+    cfg = _load(args).arm
+    _run(_stop_main(cfg))  # stopping is always allowed, even with arm.enabled = false
+    _out(f"sent zero velocity and {cfg.safety.safe_mode} to all devices")
+    return 0
+
+
+def _grasp_decoder() -> Any:
+    """``decode_grasp_array`` from the wire module (``messages``, else ``codec``)."""
+    import importlib
+
+    for mod in ("pugsd.wire.messages", "pugsd.wire.codec"):
+        try:
+            return importlib.import_module(mod).decode_grasp_array
+        except (ImportError, AttributeError):
+            continue
+    raise ArmError("the daemon wire API (decode_grasp_array) is not available")
+
+
+def fetch_latest_grasps(full_cfg: Any, timeout: float = 2.0) -> Any:
+    """The daemon's latest grasps from its zenoh queryable ``<prefix>/grasps/latest``."""
+    decode = _grasp_decoder()
+    try:
+        from pugsd.wire.session import close_session, open_session, tool_config
+    except ImportError as exc:
+        raise ArmError(f"the daemon wire API is not available: {exc}") from None
+    key = f"{full_cfg.daemon.prefix}/grasps/latest"
+    # a peer that connects to the daemon's listen endpoints (multicast scouting and gossip off)
+    session = open_session(tool_config(full_cfg.zenoh), require_loopback=False)
+    try:
+        t_end = time.monotonic() + timeout
+        while time.monotonic() < t_end:  # let the connection to the daemon come up first
+            with contextlib.suppress(Exception):
+                if list(session.info.peers_zid()) or list(session.info.routers_zid()):
+                    break
+            time.sleep(0.01)
+        errors: list[str] = []
+        for reply in session.get(key, timeout=max(0.1, t_end - time.monotonic())):
+            if reply.ok is not None:
+                return decode(reply.ok.payload.to_bytes())
+            err = reply.err
+            if err is not None:
+                with contextlib.suppress(Exception):
+                    errors.append(err.payload.to_string())
+        detail = f": {'; '.join(errors)}" if errors else " (is the daemon running?)"
+        raise ArmError(f"no grasps from {key}{detail}")
+    finally:
+        close_session(session)
+
+
+def _pose_matrix(vals: list[float]) -> np.ndarray:
+    from pugsd.arm.kinematics import pose_from_xyz_quat
+
+    q = np.asarray(vals[3:7], dtype=float)
+    n = float(np.linalg.norm(q))
+    if not np.isfinite(n) or abs(n - 1.0) > 1e-3:
+        raise ArmError(f"--pose quaternion must be unit length (norm {n:.4f})")
+    return pose_from_xyz_quat(vals[:3], q / n)
+
+
+async def _execute_main(cfg: Any, T: np.ndarray, frame: str, width: float, grasp_id: int) -> dict[str, Any]:
+    from pugsd.arm.controller import ArmController
+
+    ctl = ArmController(cfg)
+    await ctl.start()
+    try:
+        await ctl.wait_for_feedback(3.0)
+        if frame == "world":
+            rep = await ctl.execute_grasp(T_W_G=T, width_m=width, grasp_id=grasp_id)
+        else:
+            rep = await ctl.execute_grasp(T_B_G=T, width_m=width, grasp_id=grasp_id)
+        return rep.to_dict()
+    finally:
+        await ctl.close()
+
+
+def _arm_execute(args: argparse.Namespace) -> int:
+    full = _load(args)
+    cfg = full.arm
+    if not cfg.enabled:
+        raise ArmError("the arm is disabled in the config (arm.enabled = false); nothing was sent")
+    if args.pose is not None:
+        T = _pose_matrix(args.pose)
+        width = args.width if args.width is not None else 0.05
+        gid = -1
+    else:
+        grasps = fetch_latest_grasps(full, args.timeout)
+        ids = [int(g) for g in np.asarray(grasps.grasp_id)]
+        if args.grasp_id not in ids:
+            raise ArmError(f"grasp id {args.grasp_id} is not among the latest grasps {ids}")
+        k = ids.index(args.grasp_id)
+        T = np.asarray(grasps.pose_W[k], dtype=float)
+        width = float(grasps.width_m[k]) if args.width is None else args.width
+        gid = args.grasp_id
+        if args.frame != "world":
+            raise ArmError("--grasp-id poses are in the world frame; --frame base applies to --pose")
+    rep = _run(_execute_main(cfg, T, args.frame, width, gid))
+    if args.json:
+        _out(json.dumps(rep, indent=2, default=float))
+    else:
+        _out(
+            f"grasp {gid}: {'OK' if rep['ok'] else 'FAILED'} in {rep['duration_s']:.2f} s"
+            + (f" ({rep['reason']})" if rep["reason"] else "")
+        )
+        for ph in rep["phases"]:
+            _out(f"  {ph['name']:<9} {ph['duration_s']:.2f} s  converged={ph['converged']}")
+        if rep["grasp_pose_error_mm"] is not None:
+            _out(
+                f"  grasp pose error {rep['grasp_pose_error_mm']:.2f} mm / "
+                f"{rep['grasp_pose_error_deg']:.2f} deg"
+            )
+    return 0 if rep["ok"] else 2
+
+
+# ---------------------------------------------------------------- registration
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    """No subcommands yet."""
+    arm = sub.add_parser("arm", help="Reach Bravo 7 arm: sim, status, execute, stop")
+    arm_sub = arm.add_subparsers(dest="arm_command", required=True, metavar="ARM_COMMAND")
+
+    p = arm_sub.add_parser("sim", help="run the simulated Bravo 7 (pty, UDP or CAN)")
+    _add_config_args(p)
+    p.add_argument(
+        "--transport",
+        choices=("serial", "udp", "can"),
+        default=None,
+        help="default: arm.transport (serial creates a pseudo-terminal)",
+    )
+    p.add_argument("--port", type=int, default=None, help="UDP port (default arm.sim.udp_port)")
+    p.add_argument("--duration", type=float, default=None, help="exit after this many seconds")
+    p.set_defaults(func=_arm_sim)
+
+    p = arm_sub.add_parser("status", help="joint positions, modes, flags and link health")
+    _add_config_args(p)
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--wait", type=float, default=1.0, help="seconds to wait for feedback")
+    p.set_defaults(func=_arm_status)
+
+    p = arm_sub.add_parser("execute", help="execute one grasp (needs arm.enabled = true)")
+    _add_config_args(p)
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--grasp-id", type=int, help="a grasp id from the daemon's latest grasps")
+    g.add_argument(
+        "--pose",
+        type=float,
+        nargs=7,
+        metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
+        help="grasp pose (Contact-GraspNet convention: z approach, x baseline)",
+    )
+    p.add_argument("--width", type=float, default=None, help="grasp width in m (default 0.05)")
+    p.add_argument(
+        "--frame",
+        choices=("world", "base"),
+        default="world",
+        help="frame of --pose (world is mapped with arm.kinematics.T_B_W)",
+    )
+    p.add_argument("--timeout", type=float, default=2.0, help="daemon query timeout (s)")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=_arm_execute)
+
+    p = arm_sub.add_parser("stop", help="zero velocity and the safe mode to all devices")
+    _add_config_args(p)
+    p.set_defaults(func=_arm_stop)
+
+    bpl = sub.add_parser("bpl", help="Reach BPL packet tools: encode, decode")
+    bpl_sub = bpl.add_subparsers(dest="bpl_command", required=True, metavar="BPL_COMMAND")
+    p = bpl_sub.add_parser("encode", help="print the wire bytes of one packet in hex")
+    p.add_argument("device", help="device id or name (0x01, jaw, G, broadcast, compute)")
+    p.add_argument("packet", help="packet id or name (0x03, position, request)")
+    p.add_argument(
+        "values",
+        nargs="*",
+        help="floats for float packets; bytes (or mode/packet names) for byte packets",
+    )
+    p.set_defaults(func=_bpl_encode)
+    p = bpl_sub.add_parser("decode", help="decode wire bytes (hex) to JSON")
+    p.add_argument("hex", nargs="+", help="hex bytes, spaces allowed")
+    p.set_defaults(func=_bpl_decode)
+
+
+__all__ = ["fetch_latest_grasps", "register"]

@@ -3,9 +3,259 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
 
 from pugsd.configbase import opt
+from pugsd.errors import ConfigError
+
+
+def _check(cond: bool, msg: str) -> None:
+    if not cond:
+        raise ConfigError(msg)
+
+
+@dataclass(frozen=True, slots=True)
+class ArmSerialConfig:
+    """Reach serial link (RS-232 or RS-485), 8N1, no flow control."""
+
+    port: str = opt("/dev/ttyUSB0", "serial device of the arm")
+    baudrate: int = opt(115200, "baud rate (the arm uses 115200)", unit="baud", ge=1200)
+    rs485: bool = opt(False, "RS-485 half duplex: pace writes and never broadcast REQUEST packets")
+    rs485_request_gap_s: float = opt(
+        0.01,
+        "RS-485: quiet time after a REQUEST so the reply can come back (SDK: 0.05)",
+        unit="s",
+        ge=0.0,
+        le=1.0,
+    )
+    rs485_command_gap_s: float = opt(0.002, "RS-485: gap after any other packet", unit="s", ge=0.0, le=1.0)
+
+
+@dataclass(frozen=True, slots=True)
+class ArmUdpConfig:
+    """The same packets in UDP datagrams over Ethernet."""
+
+    host: str = opt("192.168.2.3", "arm IP address")
+    port: int = opt(6789, "arm UDP port", ge=1, le=65535)
+    local_host: str = opt("0.0.0.0", "local address to bind")
+    local_port: int = opt(0, "local UDP port (0: any)", ge=0, le=65535)
+
+
+@dataclass(frozen=True, slots=True)
+class ArmCanConfig:
+    """CAN tunnel of BPL packets: OUR PROPOSAL ("BPL-CAN tunnel v0"), not a Reach specification."""
+
+    interface: str = opt("socketcan", "python-can interface (tests use virtual)")
+    channel: str = opt("can0", "python-can channel")
+    bitrate: int = opt(500000, "bus bitrate", unit="bit/s", choices=(125000, 250000, 500000, 1000000))
+    tx_base: int = opt(0x300, "host -> arm arbitration id base (id = base | device id)", ge=0)
+    rx_base: int = opt(0x400, "arm -> host arbitration id base (id = base | device id)", ge=0)
+    fixed_ids: bool = opt(False, "one id per direction (tx_id, rx_id) for CAN<->serial gateways")
+    tx_id: int = opt(0x300, "host -> arm id when fixed_ids", ge=0)
+    rx_id: int = opt(0x400, "arm -> host id when fixed_ids", ge=0)
+    extended_ids: bool = opt(False, "29-bit arbitration ids")
+    reassembly_timeout_s: float = opt(
+        0.02, "drop a partial packet after this long without a frame", unit="s", gt=0.0
+    )
+
+    def __post_init__(self) -> None:
+        top = (1 << 29) if self.extended_ids else (1 << 11)
+        for name in ("tx_base", "rx_base", "tx_id", "rx_id"):
+            v = getattr(self, name)
+            _check(v < top, f"{name}: 0x{v:X} does not fit the {'29' if top > 2048 else '11'}-bit id")
+        if not self.fixed_ids:
+            _check(
+                self.tx_base & 0xFF == 0 and self.rx_base & 0xFF == 0,
+                "tx_base/rx_base: the low 8 bits carry the device id and must be 0",
+            )
+            _check(self.tx_base != self.rx_base, "tx_base and rx_base must differ")
+            _check(
+                self.tx_base | 0xFF < top and self.rx_base | 0xFF < top,
+                "tx_base/rx_base: base | 0xFF must fit the id width",
+            )
+        else:
+            _check(self.tx_id != self.rx_id, "tx_id and rx_id must differ")
+
+
+@dataclass(frozen=True, slots=True)
+class ArmKinematicsConfig:
+    """Bravo 7 kinematic model, joint limits and frames."""
+
+    joint_min_rad: tuple[float, ...] = opt(
+        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+        "lower joint limits, DH joints 1..6 (devices G, F, E, D, C, B)",
+        unit="rad",
+    )
+    joint_max_rad: tuple[float, ...] = opt(
+        (6.3, 3.2, 3.2, 6.2, 3.2, 6.283185307179586),
+        "upper joint limits, DH joints 1..6 (mk1 URDF; B continuous, kept in [0, 2pi])",
+        unit="rad",
+    )
+    joint_offsets_rad: tuple[float, ...] = opt(
+        (0.0,) * 6,
+        "DH theta minus raw device position (per joint; unverified, see docs)",
+        unit="rad",
+    )
+    joint_signs: tuple[float, ...] = opt((1.0,) * 6, "sign of each raw device position")
+    ft_sensor: bool = opt(False, "force-torque sensor fitted (DH d6 = -284.16 mm)")
+    has_km_end_pos: bool = opt(
+        False,
+        "the arm has the (paid) built-in kinematics: stream KM_END_POS to 0x0E instead "
+        "of joint positions (our IK still checks every target)",
+    )
+    T_B_W: tuple[float, ...] = opt(
+        (), "world/camera frame -> arm base, 16 floats row-major; empty: use T_B_W_xyz/rpy"
+    )
+    T_B_W_xyz: tuple[float, ...] = opt((0.0, 0.0, 0.0), "world origin in the base frame", unit="m")
+    T_B_W_rpy_deg: tuple[float, ...] = opt(
+        (0.0, 0.0, 0.0),
+        "world rotation in the base frame, roll pitch yaw (R = Rz Ry Rx)",
+        unit="deg",
+    )
+    T_tool_grasp: tuple[float, ...] = opt(
+        (0.0, 0.0, 1.0, -0.09, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0),
+        "grasp frame (Contact-GraspNet: x baseline, z approach, origin at the wrist) in the DH "
+        "tool frame (x along the roll axis), 16 floats row-major; default puts the DH tool point "
+        "0.09 m along the approach from the grasp origin",
+    )
+    ik_seeds: int = opt(16, "IK seeds: the measured position plus random ones", ge=1, le=256)
+    ik_max_iter: int = opt(150, "IK iterations per seed", ge=10)
+    ik_damping: float = opt(0.02, "initial DLS damping", gt=0.0)
+    ik_tol_m: float = opt(1e-4, "IK position tolerance", unit="m", gt=0.0)
+    ik_tol_deg: float = opt(0.05, "IK orientation tolerance", unit="deg", gt=0.0)
+    ik_random_seed: int = opt(0, "random generator seed for the IK seeds", ge=0)
+
+    def __post_init__(self) -> None:
+        for name in ("joint_min_rad", "joint_max_rad", "joint_offsets_rad", "joint_signs"):
+            _check(len(getattr(self, name)) == 6, f"{name}: expected 6 values")
+        _check(
+            all(lo < hi for lo, hi in zip(self.joint_min_rad, self.joint_max_rad)),
+            "joint_min_rad must be below joint_max_rad",
+        )
+        _check(all(s in (-1.0, 1.0) for s in self.joint_signs), "joint_signs: each must be 1 or -1")
+        _check(len(self.T_B_W) in (0, 16), "T_B_W: expected 0 or 16 values")
+        _check(
+            len(self.T_B_W_xyz) == 3 and len(self.T_B_W_rpy_deg) == 3,
+            "T_B_W_xyz and T_B_W_rpy_deg: expected 3 values each",
+        )
+        _check(len(self.T_tool_grasp) == 16, "T_tool_grasp: expected 16 values")
+
+
+@dataclass(frozen=True, slots=True)
+class ArmMotionConfig:
+    """Grasp execution: phases, streaming and convergence."""
+
+    pregrasp_distance_m: float = opt(0.2, "pre-grasp stand-off back along the approach", unit="m", ge=0.0)
+    lift_distance_m: float = opt(0.1, "lift after closing", unit="m", ge=0.0)
+    lift_axis_W: tuple[float, ...] = opt((0.0, 0.0, 1.0), "lift direction in the world frame")
+    setpoint_rate_hz: float = opt(50.0, "joint setpoint streaming rate", unit="Hz", ge=1.0, le=500.0)
+    max_joint_speed_rad_s: float = opt(
+        0.5, "speed of the streamed joint setpoints", unit="rad/s", gt=0.0, le=3.0
+    )
+    cartesian_step_m: float = opt(
+        0.01, "waypoint spacing of the straight approach and lift", unit="m", gt=0.0
+    )
+    convergence_tol_rad: float = opt(0.003, "a joint has converged within this", unit="rad", gt=0.0)
+    settle_velocity_rad_s: float = opt(
+        0.05,
+        "and every joint's reported speed is below this (the arm has come to rest)",
+        unit="rad/s",
+        gt=0.0,
+    )
+    convergence_timeout_s: float = opt(
+        5.0,
+        "a phase fails if the arm has not converged this long after its last setpoint",
+        unit="s",
+        gt=0.0,
+    )
+    jaw_open_mm: float = opt(30.0, "jaw device position fully open", unit="mm")
+    jaw_closed_mm: float = opt(0.0, "jaw device position fully closed", unit="mm")
+    jaw_max_width_m: float = opt(0.10, "grasp width that maps to jaw_open_mm", unit="m", gt=0.0)
+    jaw_open_margin_m: float = opt(0.01, "open this much wider than the grasp width", unit="m", ge=0.0)
+    jaw_speed_mm_s: float = opt(20.0, "speed of the streamed jaw setpoint", unit="mm/s", gt=0.0)
+    jaw_tol_mm: float = opt(0.5, "jaw convergence tolerance", unit="mm", gt=0.0)
+    jaw_stall_s: float = opt(0.3, "closing: jaw not moving this long counts as gripped", unit="s", gt=0.0)
+
+
+@dataclass(frozen=True, slots=True)
+class ArmSafetyConfig:
+    """Safety limits checked before and during every motion."""
+
+    workspace_min_m: tuple[float, ...] = opt(
+        (-0.9, -0.9, -0.9),
+        "workspace box lower corner (base frame) for every TCP waypoint",
+        unit="m",
+    )
+    workspace_max_m: tuple[float, ...] = opt(
+        (0.9, 0.9, 0.9), "workspace box upper corner (base frame)", unit="m"
+    )
+    joint_limit_margin_rad: float = opt(
+        0.02, "targets must stay this far inside the joint limits", unit="rad", ge=0.0
+    )
+    max_target_distance_rad: float = opt(
+        3.2,
+        "refuse a plan whose joint targets are farther than this from the measured position",
+        unit="rad",
+        gt=0.0,
+    )
+    max_setpoint_lead_rad: float = opt(
+        0.35,
+        "abort when a streamed setpoint leads the measured position by more than this",
+        unit="rad",
+        gt=0.0,
+    )
+    watchdog_s: float = opt(0.25, "joint feedback older than this trips the watchdog", unit="s", gt=0.0)
+    watchdog_period_s: float = opt(0.01, "watchdog check period", unit="s", gt=0.0)
+    safe_mode: str = opt(
+        "disable",
+        "mode sent after zero velocity when tripped or on shutdown",
+        choices=("disable", "position_hold"),
+    )
+    max_link_errors_per_s: int = opt(
+        50, "CRC/framing errors within one second that count as a link failure", ge=1
+    )
+    trip_flags: tuple[int, ...] = opt(
+        (0xFF, 0xFF, 0x00, 0x11),
+        "hardware status flag bits (bytes A, B, C, D) that trip the watchdog",
+    )
+
+    def __post_init__(self) -> None:
+        _check(
+            len(self.workspace_min_m) == 3 and len(self.workspace_max_m) == 3,
+            "workspace_min_m/workspace_max_m: expected 3 values",
+        )
+        _check(
+            all(a < b for a, b in zip(self.workspace_min_m, self.workspace_max_m)),
+            "workspace_min_m must be below workspace_max_m",
+        )
+        _check(
+            len(self.trip_flags) == 4 and all(0 <= f <= 255 for f in self.trip_flags),
+            "trip_flags: expected 4 bytes",
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class ArmTelemetryConfig:
+    """Joint feedback: polling with REQUEST, or device heartbeats."""
+
+    mode: str = opt("poll", "how joint feedback is obtained", choices=("poll", "heartbeat"))
+    rate_hz: float = opt(50.0, "poll or heartbeat rate", unit="Hz", ge=1.0, le=255.0)
+    status_every: int = opt(25, "poll: request HARDWARE_STATUS_FLAGS every this many polls", ge=1)
+
+
+@dataclass(frozen=True, slots=True)
+class ArmSimConfig:
+    """Simulated Bravo 7 (``pugsd arm sim``)."""
+
+    udp_host: str = opt("127.0.0.1", "sim UDP bind address")
+    udp_port: int = opt(6789, "sim UDP port", ge=0, le=65535)
+    joint_speed_rad_s: float = opt(1.0, "sim joint velocity limit", unit="rad/s", gt=0.0)
+    jaw_speed_mm_s: float = opt(40.0, "sim jaw velocity limit", unit="mm/s", gt=0.0)
+    tick_hz: float = opt(200.0, "sim physics rate", unit="Hz", gt=0.0)
+    initial_q_rad: tuple[float, ...] = opt(
+        (3.14, 1.2, 1.6, 3.14, 1.6, 3.14), "initial DH joint angles", unit="rad"
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -14,3 +264,20 @@ class ArmConfig:
 
     enabled: bool = opt(False, "allow arm commands at all")
     transport: str = opt("serial", "link to the arm", choices=("serial", "udp", "can"))
+    serial: ArmSerialConfig = field(default_factory=ArmSerialConfig, metadata={"doc": "serial link"})
+    udp: ArmUdpConfig = field(default_factory=ArmUdpConfig, metadata={"doc": "UDP link"})
+    can: ArmCanConfig = field(default_factory=ArmCanConfig, metadata={"doc": "CAN link (proposal)"})
+    kinematics: ArmKinematicsConfig = field(
+        default_factory=ArmKinematicsConfig, metadata={"doc": "kinematics"}
+    )
+    motion: ArmMotionConfig = field(default_factory=ArmMotionConfig, metadata={"doc": "motion"})
+    safety: ArmSafetyConfig = field(default_factory=ArmSafetyConfig, metadata={"doc": "safety"})
+    telemetry: ArmTelemetryConfig = field(default_factory=ArmTelemetryConfig, metadata={"doc": "telemetry"})
+    sim: ArmSimConfig = field(default_factory=ArmSimConfig, metadata={"doc": "simulator"})
+
+    def __post_init__(self) -> None:
+        _check(
+            self.safety.watchdog_s > 1.0 / self.telemetry.rate_hz,
+            "safety.watchdog_s must exceed the telemetry period",
+        )
+        _check(math.isfinite(self.motion.jaw_open_mm), "motion.jaw_open_mm must be finite")

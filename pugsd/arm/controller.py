@@ -1,0 +1,879 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Host side of the Bravo 7: telemetry link, safety checks, watchdog and grasp execution.
+
+:class:`ArmLink` keeps the latest joint feedback (by REQUEST polling or device heartbeats).
+:class:`ArmController` is the API the daemon and the CLI use::
+
+    ctl = ArmController(cfg.arm)            # or ArmController(cfg.arm, transport=...)
+    await ctl.start()
+    report = await ctl.execute_grasp(T_W_G=pose_W, width_m=0.04, grasp_id=3)
+    await ctl.stop()                        # zero velocity + safe mode, cancels a motion
+    ctl.status()                            # joints, modes, flags, link health, watchdog
+    await ctl.close()                       # same stop as stop(), then closes the link
+
+Nothing moves unless ``arm.enabled`` is true, and only on an explicit call.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pugsd.arm.config import ArmConfig
+from pugsd.arm.kinematics import Bravo7Model, pose_error, pose_from_xyz_rpy, pose_to_km_end_pos
+from pugsd.arm.protocol import (
+    ALL_AXES,
+    FORBIDDEN_TX,
+    JAW_DEVICE,
+    JOINT_DEVICES,
+    DeviceID,
+    HardwareStatus,
+    Mode,
+    Packet,
+    PacketID,
+    make_packet,
+)
+from pugsd.arm.transport import Transport, make_transport
+from pugsd.errors import ArmError, SafetyError
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------- helpers
+
+
+def model_from_config(cfg: ArmConfig) -> Bravo7Model:
+    k = cfg.kinematics
+    return Bravo7Model(
+        k.joint_min_rad,
+        k.joint_max_rad,
+        ft_sensor=k.ft_sensor,
+        offsets=k.joint_offsets_rad,
+        signs=k.joint_signs,
+    )
+
+
+def T_B_W_from_config(cfg: ArmConfig) -> np.ndarray:
+    """World/camera frame -> arm base transform from the config."""
+    k = cfg.kinematics
+    if k.T_B_W:
+        T = np.asarray(k.T_B_W, dtype=float).reshape(4, 4)
+    else:
+        T = pose_from_xyz_rpy(k.T_B_W_xyz, np.radians(k.T_B_W_rpy_deg))
+    _check_rigid(T, "arm.kinematics.T_B_W")
+    return T
+
+
+def T_tool_grasp_from_config(cfg: ArmConfig) -> np.ndarray:
+    T = np.asarray(cfg.kinematics.T_tool_grasp, dtype=float).reshape(4, 4)
+    _check_rigid(T, "arm.kinematics.T_tool_grasp")
+    return T
+
+
+def _check_rigid(T: np.ndarray, what: str) -> None:
+    R = T[:3, :3]
+    if (
+        not np.all(np.isfinite(T))
+        or np.abs(R @ R.T - np.eye(3)).max() > 1e-4
+        or abs(np.linalg.det(R) - 1.0) > 1e-4
+        or np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-9
+    ):
+        raise ArmError(f"{what}: not a rigid transform")
+
+
+def _yield_gil() -> None:
+    """Planning runs in a worker thread: let the event loop (telemetry, watchdog) run often."""
+    time.sleep(0)
+
+
+def _mode_name(m: int | None) -> str | None:
+    if m is None:
+        return None
+    try:
+        return Mode(m).name
+    except ValueError:
+        return f"0x{m:02X}"
+
+
+# ---------------------------------------------------------------- link
+
+
+@dataclass(slots=True)
+class AxisState:
+    """Latest feedback of one device (raw device units)."""
+
+    device_id: int
+    position: float | None = None
+    velocity: float | None = None
+    mode: int | None = None
+    t_position: float = 0.0
+    flags: HardwareStatus = field(default_factory=HardwareStatus)
+    t_flags: float = 0.0
+    #: POSITION_LIMITS reported by the device as (low, high); the PDF says the floats are
+    #: [max, min] and libreach sends [min, max], so the order is taken from the values
+    limits: tuple[float, float] | None = None
+
+
+class ArmLink:
+    """Telemetry and commands over one transport (host side)."""
+
+    def __init__(
+        self,
+        transport: Transport,
+        *,
+        rs485: bool = False,
+        telemetry_mode: str = "poll",
+        rate_hz: float = 50.0,
+        status_every: int = 25,
+    ) -> None:
+        self.transport = transport
+        self.rs485 = rs485
+        self.telemetry_mode = telemetry_mode
+        self.rate_hz = rate_hz
+        self.status_every = status_every
+        self.axes: dict[int, AxisState] = {d: AxisState(d) for d in ALL_AXES}
+        self.km_end_pos: tuple[float, ...] | None = None
+        self.other: dict[tuple[int, int], tuple[float, Packet]] = {}
+        self._tasks: list[asyncio.Task[None]] = []
+        self._waiters: list[tuple[int, set[int], asyncio.Future[None]]] = []
+        self.t_start = time.monotonic()
+
+    async def start(self) -> None:
+        await self.transport.open()
+        self.t_start = time.monotonic()
+        for a in self.axes.values():
+            a.t_position = self.t_start  # grace period: the watchdog bound runs from here
+        self._tasks.append(asyncio.create_task(self._reader(), name="arm-reader"))
+        if self.telemetry_mode == "heartbeat":
+            await self.configure_heartbeat()
+        self._tasks.append(asyncio.create_task(self._poller(), name="arm-poller"))
+
+    async def close(self) -> None:
+        for t in self._tasks:
+            t.cancel()
+        for t in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError):
+                await t
+        self._tasks.clear()
+        await self.transport.close()
+
+    async def send(self, packets: Sequence[Packet], *, urgent: bool = False) -> None:
+        for p in packets:
+            if p.packet_id in FORBIDDEN_TX:
+                raise SafetyError(f"pugsd never sends {p.name}")
+            if self.rs485 and p.packet_id == PacketID.REQUEST and p.device_id == 0xFF:
+                raise SafetyError("RS-485: REQUEST to the broadcast id is not allowed")
+        if urgent:
+            await self.transport.send_urgent(packets)
+        else:
+            await self.transport.send_many(packets)
+
+    async def configure_heartbeat(self) -> None:
+        """HEARTBEAT_SET [POSITION, VELOCITY, MODE] and HEARTBEAT_FREQUENCY on every axis."""
+        hz = max(1, min(255, round(self.rate_hz)))
+        ids = [PacketID.POSITION, PacketID.VELOCITY, PacketID.MODE] + [0] * 7
+        pk: list[Packet] = []
+        for d in ALL_AXES:  # per device: heartbeats are not saved and must be set after power-up
+            pk.append(make_packet(d, PacketID.HEARTBEAT_SET, ids))
+            pk.append(make_packet(d, PacketID.HEARTBEAT_FREQUENCY, [hz]))
+        await self.send(pk)
+
+    async def _poller(self) -> None:
+        period = 1.0 / self.rate_hz
+        n = 0
+        while True:
+            ids: list[int] = []
+            if self.telemetry_mode == "poll":
+                ids = [PacketID.POSITION, PacketID.VELOCITY, PacketID.MODE]
+            if n % self.status_every == 0:
+                ids.append(PacketID.HARDWARE_STATUS_FLAGS)
+            n += 1
+            if ids and self.transport.backlog() < 16:
+                if self.rs485:
+                    pk = [make_packet(d, PacketID.REQUEST, ids) for d in ALL_AXES]
+                else:
+                    pk = [make_packet(0xFF, PacketID.REQUEST, ids)]
+                with contextlib.suppress(ArmError):
+                    await self.send(pk)
+            await asyncio.sleep(period)
+
+    async def _reader(self) -> None:
+        while True:
+            p = await self.transport.rx.get()
+            self._ingest(p)
+
+    def _ingest(self, p: Packet) -> None:
+        now = time.monotonic()
+        ax = self.axes.get(p.device_id)
+        try:
+            if ax is not None and p.packet_id == PacketID.POSITION:
+                ax.position = p.floats()[0]
+                ax.t_position = now
+            elif ax is not None and p.packet_id == PacketID.VELOCITY:
+                ax.velocity = p.floats()[0]
+            elif ax is not None and p.packet_id == PacketID.MODE and p.data:
+                ax.mode = p.data[0]
+            elif ax is not None and p.packet_id == PacketID.HARDWARE_STATUS_FLAGS:
+                ax.flags = HardwareStatus.from_bytes(p.data)
+                ax.t_flags = now
+                if ax.flags.any():
+                    log.warning("device 0x%02X hardware flags: %s", p.device_id, ax.flags.names)
+            elif ax is not None and p.packet_id == PacketID.POSITION_LIMITS:
+                a, b = p.floats()
+                ax.limits = (min(a, b), max(a, b))
+            elif p.device_id == DeviceID.COMPUTE and p.packet_id == PacketID.KM_END_POS:
+                self.km_end_pos = p.floats()
+            else:
+                self.other[(p.device_id, p.packet_id)] = (now, p)
+        except Exception as exc:  # a malformed payload must not kill the reader
+            log.debug("bad payload %s: %s", p, exc)
+        for dev, pids, fut in list(self._waiters):
+            if dev in (p.device_id, 0xFF) and p.packet_id in pids:
+                pids.discard(p.packet_id)
+                if not pids and not fut.done():
+                    fut.set_result(None)
+
+    async def request(self, device_id: int, packet_ids: Sequence[int], within_s: float = 0.5) -> bool:
+        """Send a REQUEST and wait until every id has been answered (True) or timeout (False)."""
+        fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        entry = (device_id, {int(x) for x in packet_ids}, fut)
+        self._waiters.append(entry)
+        try:
+            await self.send([make_packet(device_id, PacketID.REQUEST, list(packet_ids))])
+            await asyncio.wait_for(fut, within_s)
+            return True
+        except TimeoutError:
+            return False
+        finally:
+            self._waiters.remove(entry)
+
+    def feedback_age(self, devices: Sequence[int] = ALL_AXES) -> float:
+        now = time.monotonic()
+        return max(now - self.axes[d].t_position for d in devices)
+
+    def have_feedback(self) -> bool:
+        return all(self.axes[d].position is not None for d in ALL_AXES)
+
+    def raw_positions(self) -> np.ndarray:
+        vals = [self.axes[d].position for d in JOINT_DEVICES]
+        if any(v is None for v in vals):
+            raise ArmError("no joint feedback yet")
+        return np.array(vals, dtype=float)
+
+    def jaw_mm(self) -> float | None:
+        return self.axes[JAW_DEVICE].position
+
+
+# ---------------------------------------------------------------- execution
+
+
+@dataclass(slots=True)
+class PhaseReport:
+    name: str
+    duration_s: float
+    converged: bool
+    max_joint_error_rad: float
+
+
+@dataclass(slots=True)
+class ExecutionReport:
+    """The outcome of one grasp execution."""
+
+    ok: bool
+    grasp_id: int
+    width_m: float
+    state: str
+    reason: str = ""
+    phases: list[PhaseReport] = field(default_factory=list)
+    grasp_pose_error_mm: float | None = None
+    grasp_pose_error_deg: float | None = None
+    duration_s: float = 0.0
+    q_pregrasp: list[float] = field(default_factory=list)
+    q_grasp: list[float] = field(default_factory=list)
+    q_lift: list[float] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(slots=True)
+class GraspPlan:
+    """Checked joint paths (DH angles) of a grasp."""
+
+    T_B_G: np.ndarray
+    width_m: float
+    q_start: np.ndarray
+    pregrasp: list[np.ndarray]
+    approach: list[np.ndarray]
+    lift: list[np.ndarray]
+    jaw_open_mm: float
+    jaw_closed_mm: float
+
+
+class ArmController:
+    """Safe grasp execution on a Bravo 7 (real or simulated) over any transport."""
+
+    def __init__(
+        self,
+        cfg: ArmConfig,
+        transport: Transport | None = None,
+        *,
+        model: Bravo7Model | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.model = model or model_from_config(cfg)
+        self.T_B_W = T_B_W_from_config(cfg)
+        self.T_tool_grasp = T_tool_grasp_from_config(cfg)
+        self.T_grasp_tool = np.linalg.inv(self.T_tool_grasp)
+        tr = transport or make_transport(cfg)
+        self.link = ArmLink(
+            tr,
+            rs485=cfg.transport == "serial" and cfg.serial.rs485,
+            telemetry_mode=cfg.telemetry.mode,
+            rate_hz=cfg.telemetry.rate_hz,
+            status_every=cfg.telemetry.status_every,
+        )
+        self._rng = np.random.default_rng(cfg.kinematics.ik_random_seed)
+        self.state = "idle"
+        self.trip_reason: str | None = None
+        self.trips: list[dict[str, Any]] = []
+        self.last_report: ExecutionReport | None = None
+        self._abort: str | None = None
+        self._exec_lock = asyncio.Lock()
+        self._wd_task: asyncio.Task[None] | None = None
+        self._err_hist: list[tuple[float, int]] = []
+        self._started = False
+        self._stop_sent_at: float | None = None
+
+    # ---------------------------------------------------------------- lifecycle
+
+    async def start(self) -> None:
+        await self.link.start()
+        self._started = True
+        self._wd_task = asyncio.create_task(self._watchdog(), name="arm-watchdog")
+        # the device's own position limits (one device at a time: RS-485 safe); missing
+        # replies are not fatal, the configured limits still apply
+        for d in JOINT_DEVICES:
+            await self.link.request(d, [PacketID.POSITION_LIMITS], within_s=0.1)
+
+    async def close(self) -> None:
+        """Shutdown: zero velocity + safe mode (if the arm may be commanded), then close."""
+        if self._started:
+            with contextlib.suppress(Exception):
+                await self.stop(reason="shutdown")
+        if self._wd_task is not None:
+            self._wd_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._wd_task
+            self._wd_task = None
+        await self.link.close()
+        self._started = False
+
+    async def __aenter__(self) -> ArmController:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+    async def wait_for_feedback(self, within_s: float = 2.0) -> None:
+        t_end = time.monotonic() + within_s
+        while time.monotonic() < t_end:
+            if self.link.have_feedback() and self.link.feedback_age() < self.cfg.safety.watchdog_s:
+                return
+            await asyncio.sleep(0.01)
+        raise ArmError(f"no joint feedback from the arm within {within_s} s")
+
+    # ---------------------------------------------------------------- stop and watchdog
+
+    def _stop_packets(self) -> list[Packet]:
+        """VELOCITY 0, then the safe mode: to the broadcast id and, in case a device misses the
+        broadcast, to every axis individually (commands only; no replies are requested)."""
+        safe = Mode.DISABLE if self.cfg.safety.safe_mode == "disable" else Mode.POSITION_HOLD
+        devs = (0xFF, *ALL_AXES)
+        return [make_packet(d, PacketID.VELOCITY, [0.0]) for d in devs] + [
+            make_packet(d, PacketID.MODE, [int(safe)]) for d in devs
+        ]
+
+    async def stop(self, reason: str = "requested") -> None:
+        """Abort any motion; send zero velocity to all devices, then the configured safe mode."""
+        self._abort = self._abort or f"stopped: {reason}"
+        await self.link.send(self._stop_packets(), urgent=True)
+        self._stop_sent_at = time.monotonic()
+        log.warning("arm stop (%s): zero velocity + %s sent", reason, self.cfg.safety.safe_mode)
+
+    def _link_errors(self) -> int:
+        return self.link.transport.stats.rx_errors
+
+    def _check_health(self) -> str | None:
+        s = self.cfg.safety
+        tr = self.link.transport
+        if tr.failed.is_set():
+            return f"link failed: {tr.error}"
+        age = self.link.feedback_age()
+        if age > s.watchdog_s:
+            return f"joint feedback is {age * 1000:.0f} ms old (bound {s.watchdog_s * 1000:.0f} ms)"
+        now = time.monotonic()
+        self._err_hist.append((now, self._link_errors()))
+        while self._err_hist and now - self._err_hist[0][0] > 1.0:
+            self._err_hist.pop(0)
+        if self._err_hist:
+            n = self._err_hist[-1][1] - self._err_hist[0][1]
+            if n > s.max_link_errors_per_s:
+                return f"{n} link errors in the last second"
+        for d, ax in self.link.axes.items():
+            if ax.flags.masked(s.trip_flags):
+                return f"device 0x{d:02X} hardware flags {ax.flags.names}"
+        return None
+
+    async def _watchdog(self) -> None:
+        period = self.cfg.safety.watchdog_period_s
+        resends = 0
+        while True:
+            await asyncio.sleep(period)
+            try:
+                reason = self._check_health()
+                if reason is not None and self.trip_reason is None:
+                    await self._trip(reason)
+                    resends = 0
+                elif reason is not None and resends < 3 and self._stop_sent_at is not None:
+                    if time.monotonic() - self._stop_sent_at > 0.1:
+                        resends += 1
+                        await self.link.send(self._stop_packets(), urgent=True)
+                        self._stop_sent_at = time.monotonic()
+                elif reason is None and self.trip_reason is not None:
+                    log.warning("arm watchdog re-armed (was: %s)", self.trip_reason)
+                    self.trip_reason = None
+            except Exception:
+                log.exception("arm watchdog")
+
+    async def _trip(self, reason: str) -> None:
+        self.trip_reason = reason
+        t = time.monotonic()
+        self.trips.append({"t_monotonic": t, "reason": reason, "state": self.state})
+        log.error("arm watchdog tripped: %s", reason)
+        self._abort = f"watchdog: {reason}"
+        await self.link.send(self._stop_packets(), urgent=True)
+        self._stop_sent_at = time.monotonic()
+
+    # ---------------------------------------------------------------- status
+
+    def status(self) -> dict[str, Any]:
+        link = self.link
+        joints = []
+        q = None
+        with contextlib.suppress(ArmError):
+            q = self.model.from_device(link.raw_positions())
+        for i, d in enumerate(ALL_AXES):
+            ax = link.axes[d]
+            joints.append(
+                {
+                    "device_id": d,
+                    "name": DeviceID(d).name,
+                    "position": ax.position,
+                    "unit": "mm" if d == JAW_DEVICE else "rad",
+                    "dh_angle_rad": float(q[i]) if q is not None and i < 6 else None,
+                    "velocity": ax.velocity,
+                    "mode": _mode_name(ax.mode),
+                    "feedback_age_s": time.monotonic() - ax.t_position if ax.position is not None else None,
+                    "flags": ax.flags.names,
+                    "device_limits": list(ax.limits) if ax.limits else None,
+                    "flags_raw": list(ax.flags.to_bytes()),
+                }
+            )
+        tcp = None
+        if q is not None:
+            T = self.model.fk(q)
+            tcp = {"xyz_m": [float(v) for v in T[:3, 3]], "km_end_pos": list(pose_to_km_end_pos(T))}
+        return {
+            "enabled": self.cfg.enabled,
+            "transport": self.link.transport.name,
+            "state": self.state,
+            "joints": joints,
+            "tcp_base": tcp,
+            "link": {
+                **self.link.transport.stats.as_dict(),
+                "error": self.link.transport.error,
+                "feedback_age_s": self.link.feedback_age(),
+            },
+            "watchdog": {
+                "bound_s": self.cfg.safety.watchdog_s,
+                "tripped": self.trip_reason,
+                "trips": self.trips[-10:],
+            },
+            "last_report": self.last_report.to_dict() if self.last_report else None,
+        }
+
+    # ---------------------------------------------------------------- planning
+
+    def _jaw_for_width(self, width_m: float) -> float:
+        m = self.cfg.motion
+        f = min(max(width_m / m.jaw_max_width_m, 0.0), 1.0)
+        return m.jaw_closed_mm + f * (m.jaw_open_mm - m.jaw_closed_mm)
+
+    def _check_q(self, q: np.ndarray, what: str) -> None:
+        s = self.cfg.safety
+        if not self.model.within_limits(q):
+            raise SafetyError(f"{what}: outside the joint limits")
+        margin = s.joint_limit_margin_rad
+        inner_lo = self.model.q_min + margin
+        inner_hi = self.model.q_max - margin
+        if np.any(q < inner_lo) or np.any(q > inner_hi):
+            raise SafetyError(f"{what}: within {margin} rad of a joint limit")
+        raw = self.model.to_device(q)
+        for i, d in enumerate(JOINT_DEVICES):
+            lim = self.link.axes[d].limits
+            if lim is not None and not lim[0] + margin <= raw[i] <= lim[1] - margin:
+                raise SafetyError(
+                    f"{what}: device 0x{d:02X} position {raw[i]:.3f} rad outside the limits "
+                    f"[{lim[0]:.3f}, {lim[1]:.3f}] the device reports"
+                )
+        p = self.model.fk(q)[:3, 3]
+        lo, hi = np.asarray(s.workspace_min_m), np.asarray(s.workspace_max_m)
+        if np.any(p < lo) or np.any(p > hi):
+            raise SafetyError(f"{what}: TCP {np.round(p, 3).tolist()} m outside the workspace box")
+
+    def _solve(self, T_tool: np.ndarray, q_ref: np.ndarray, what: str, many: bool) -> np.ndarray:
+        k = self.cfg.kinematics
+        m = self.model
+        margin = self.cfg.safety.joint_limit_margin_rad
+        seeds = [q_ref]
+        if many:
+            seeds += list(m.random_q(self._rng, k.ik_seeds - 1, margin=margin))
+        res = m.ik(
+            T_tool,
+            seeds,
+            q_ref=q_ref,
+            tol_m=k.ik_tol_m,
+            tol_rad=math.radians(k.ik_tol_deg),
+            max_iter=k.ik_max_iter,
+            damping=k.ik_damping,
+            pause=_yield_gil,
+        )
+        if res is None and not many:
+            return self._solve(T_tool, q_ref, what, True)
+        if res is None:
+            raise SafetyError(f"{what}: unreachable (IK found no solution within the limits)")
+        return res.q
+
+    def _line(self, T_from: np.ndarray, T_to: np.ndarray, q_from: np.ndarray, what: str) -> list[np.ndarray]:
+        """Joint waypoints of a straight TCP line (constant orientation) from T_from to T_to."""
+        dist = float(np.linalg.norm(T_to[:3, 3] - T_from[:3, 3]))
+        n = max(1, math.ceil(dist / self.cfg.motion.cartesian_step_m))
+        out: list[np.ndarray] = []
+        q = q_from
+        for i in range(1, n + 1):
+            T = T_to.copy()
+            T[:3, 3] = T_from[:3, 3] + (T_to[:3, 3] - T_from[:3, 3]) * (i / n)
+            qn = self._solve(T, q, f"{what} waypoint {i}/{n}", many=False)
+            if float(np.abs(qn - q).max()) > self.cfg.safety.max_setpoint_lead_rad:
+                raise SafetyError(f"{what}: the straight path needs a joint jump (singularity?)")
+            self._check_q(qn, f"{what} waypoint {i}/{n}")
+            out.append(qn)
+            q = qn
+        return out
+
+    def plan_grasp(self, T_B_G: np.ndarray, width_m: float, q_now: np.ndarray) -> GraspPlan:
+        """All safety checks and IK for a grasp; SafetyError when anything is refused."""
+        m, mo, s = self.model, self.cfg.motion, self.cfg.safety
+        T_B_G = np.asarray(T_B_G, dtype=float)
+        _check_rigid(T_B_G, "grasp pose")
+        if not 0.0 <= width_m <= mo.jaw_max_width_m:
+            raise SafetyError(f"grasp width {width_m} m outside [0, {mo.jaw_max_width_m}] m")
+        a = T_B_G[:3, 2]
+        T_pre_G = T_B_G.copy()
+        T_pre_G[:3, 3] -= mo.pregrasp_distance_m * a
+        lift_B = self.T_B_W[:3, :3] @ np.asarray(mo.lift_axis_W, dtype=float)
+        nrm = float(np.linalg.norm(lift_B))
+        if nrm < 1e-9:
+            raise ArmError("arm.motion.lift_axis_W is zero")
+        T_lift_G = T_B_G.copy()
+        T_lift_G[:3, 3] += mo.lift_distance_m * lift_B / nrm
+        to_tool = self.T_grasp_tool
+        T_pre, T_g, T_lift = T_pre_G @ to_tool, T_B_G @ to_tool, T_lift_G @ to_tool
+        for T, what in ((T_pre, "pre-grasp"), (T_g, "grasp"), (T_lift, "lift")):
+            p = T[:3, 3]
+            if np.any(p < np.asarray(s.workspace_min_m)) or np.any(p > np.asarray(s.workspace_max_m)):
+                raise SafetyError(f"{what}: TCP {np.round(p, 3).tolist()} m outside the workspace box")
+        q_now = m.wrap_into_limits(q_now)
+        # the measured position as the only seed first; all seeds if that fails or its solution
+        # is refused (another branch may be fine)
+        try:
+            q_pre = self._solve(T_pre, q_now, "pre-grasp", many=False)
+            self._check_q(q_pre, "pre-grasp")
+        except SafetyError:
+            q_pre = self._solve(T_pre, q_now, "pre-grasp", many=True)
+            self._check_q(q_pre, "pre-grasp")
+        d = float(np.abs(q_pre - q_now).max())
+        if d > s.max_target_distance_rad:
+            raise SafetyError(
+                f"pre-grasp: joint target {d:.2f} rad from the measured position "
+                f"(limit {s.max_target_distance_rad} rad)"
+            )
+        # joint-space move to the pre-grasp: check the TCP stays in the box along the way
+        nseg = max(2, math.ceil(d / 0.05))
+        pre_path = [q_now + (q_pre - q_now) * (i / nseg) for i in range(1, nseg + 1)]
+        for i, q in enumerate(pre_path):
+            p = m.fk(q)[:3, 3]
+            if np.any(p < np.asarray(s.workspace_min_m)) or np.any(p > np.asarray(s.workspace_max_m)):
+                raise SafetyError(f"pre-grasp move leaves the workspace box at step {i}")
+        approach = self._line(T_pre, T_g, q_pre, "approach")
+        lift = self._line(T_g, T_lift, approach[-1], "lift")
+        return GraspPlan(
+            T_B_G=T_B_G,
+            width_m=width_m,
+            q_start=q_now,
+            pregrasp=[q_pre],
+            approach=approach,
+            lift=lift,
+            jaw_open_mm=self._jaw_for_width(width_m + mo.jaw_open_margin_m),
+            jaw_closed_mm=mo.jaw_closed_mm,
+        )
+
+    # ---------------------------------------------------------------- motion
+
+    def _check_abort(self) -> None:
+        if self._abort is not None:
+            raise ArmError(self._abort)
+
+    async def _send_setpoint(self, q: np.ndarray, jaw_mm: float) -> None:
+        self._check_abort()
+        pk: list[Packet] = []
+        if self.cfg.kinematics.has_km_end_pos:
+            pk.append(make_packet(0x0E, PacketID.KM_END_POS, pose_to_km_end_pos(self.model.fk(q))))
+        else:
+            raw = self.model.to_device(q)
+            pk += [make_packet(d, PacketID.POSITION, [float(raw[i])]) for i, d in enumerate(JOINT_DEVICES)]
+        pk.append(make_packet(JAW_DEVICE, PacketID.POSITION, [jaw_mm]))
+        await self.link.send(pk)
+
+    async def _activate(self, within_s: float = 1.0) -> None:
+        """Leave DISABLE/PASSIVE (where control packets are ignored): zero velocity, then
+        POSITION mode (STANDBY with the built-in kinematics), and wait for every axis to report
+        the new mode."""
+        self.state = "activate"
+        mode = Mode.STANDBY if self.cfg.kinematics.has_km_end_pos else Mode.POSITION
+        self._check_abort()
+        await self.link.send(
+            [
+                make_packet(0xFF, PacketID.VELOCITY, [0.0]),
+                make_packet(0xFF, PacketID.MODE, [int(mode)]),
+            ]
+        )
+        t0 = time.monotonic()
+        t_sent = t0
+        inactive = (Mode.DISABLE, Mode.PASSIVE)
+        while True:
+            await asyncio.sleep(0.01)
+            self._check_abort()
+            axes = self.link.axes
+            if all(axes[d].mode is not None and axes[d].mode not in inactive for d in ALL_AXES):
+                return
+            if time.monotonic() - t0 > within_s:
+                raise ArmError("the arm did not leave DISABLE/PASSIVE mode")
+            if time.monotonic() - t_sent > 0.2:  # lost packet: send again
+                await self.link.send([make_packet(0xFF, PacketID.MODE, [int(mode)])])
+                t_sent = time.monotonic()
+
+    def _measured_q(self) -> np.ndarray:
+        return self.model.from_device(self.link.raw_positions())
+
+    async def _follow(
+        self,
+        name: str,
+        path: Sequence[np.ndarray],
+        jaw_from: float,
+        jaw_to: float,
+        *,
+        jaw_stall_ok: bool = False,
+    ) -> PhaseReport:
+        """Stream setpoints along ``path`` at the configured speed, then wait for convergence."""
+        mo, s = self.cfg.motion, self.cfg.safety
+        self.state = name
+        t0 = time.monotonic()
+        period = 1.0 / mo.setpoint_rate_hz
+        q0 = self._measured_q()
+        pts = [q0, *path]
+        # time at each waypoint: limited by joint speed and jaw speed
+        times = [0.0]
+        for a, b in itertools.pairwise(pts):
+            times.append(times[-1] + float(np.abs(b - a).max()) / mo.max_joint_speed_rad_s)
+        t_jaw = abs(jaw_to - jaw_from) / mo.jaw_speed_mm_s
+        t_total = max(times[-1], t_jaw)
+        k = 0
+        while True:
+            el = time.monotonic() - t0
+            u = min(el, t_total)
+            while k < len(times) - 2 and times[k + 1] < u:
+                k += 1
+            seg = times[k + 1] - times[k]
+            f = 1.0 if seg <= 0 else min(max((u - times[k]) / seg, 0.0), 1.0)
+            q_sp = pts[k] + (pts[k + 1] - pts[k]) * f if len(pts) > 1 else pts[0]
+            jaw_sp = jaw_from + (jaw_to - jaw_from) * (min(u / t_jaw, 1.0) if t_jaw > 0 else 1.0)
+            qm = self._measured_q()
+            lead = float(np.abs(q_sp - qm).max())
+            if lead > s.max_setpoint_lead_rad:
+                raise SafetyError(f"{name}: setpoint leads the measured position by {lead:.2f} rad")
+            await self._send_setpoint(q_sp, jaw_sp)
+            if el >= t_total:
+                err = float(np.abs(pts[-1] - qm).max())
+                jaw = self.link.jaw_mm()
+                jaw_ok = jaw is not None and abs(jaw - jaw_to) <= mo.jaw_tol_mm
+                if jaw_stall_ok and not jaw_ok and jaw is not None:
+                    jv = self.link.axes[JAW_DEVICE].velocity
+                    jaw_ok = el - t_total > mo.jaw_stall_s and jv is not None and abs(jv) < 0.5
+                vel = [self.link.axes[d].velocity for d in JOINT_DEVICES]
+                at_rest = all(v is None or abs(v) <= mo.settle_velocity_rad_s for v in vel)
+                if err <= mo.convergence_tol_rad and jaw_ok and at_rest:
+                    return PhaseReport(name, time.monotonic() - t0, True, err)
+                if el - t_total > mo.convergence_timeout_s:
+                    raise ArmError(
+                        f"{name}: no convergence within {mo.convergence_timeout_s} s "
+                        f"(joint error {err:.3f} rad, jaw {jaw} mm)"
+                    )
+            await asyncio.sleep(period)
+
+    async def execute_grasp(
+        self,
+        T_W_G: np.ndarray | None = None,
+        width_m: float = 0.0,
+        *,
+        T_B_G: np.ndarray | None = None,
+        grasp_id: int = -1,
+    ) -> ExecutionReport:
+        """Pre-grasp, approach, close, lift, report. Refusals raise SafetyError before any motion;
+        failures during the motion stop the arm and come back as ``ok=False`` reports."""
+        if not self.cfg.enabled:
+            raise SafetyError("the arm is disabled (set arm.enabled = true to allow motion)")
+        if (T_W_G is None) == (T_B_G is None):
+            raise ArmError("give exactly one of T_W_G and T_B_G")
+        if T_B_G is None:
+            assert T_W_G is not None
+            T_B_G = self.T_B_W @ np.asarray(T_W_G, dtype=float)
+        if self._exec_lock.locked():
+            raise ArmError("a grasp is already executing")
+        async with self._exec_lock:
+            if self.trip_reason is not None:
+                raise SafetyError(f"watchdog tripped: {self.trip_reason}")
+            health = self._check_health()
+            if health is not None:
+                raise SafetyError(f"link not healthy: {health}")
+            if not self.link.have_feedback():
+                raise SafetyError("no joint feedback from the arm")
+            q_now = self._measured_q()
+            self._abort = None  # from here on, stop() and the watchdog abort this execution
+            self.state = "planning"
+            try:
+                # IK with many seeds takes up to ~0.5 s: run it off the event loop so that the
+                # watchdog and telemetry keep running meanwhile
+                plan = await asyncio.to_thread(self.plan_grasp, T_B_G, width_m, q_now)
+            finally:
+                self.state = "idle"
+            if self._abort is not None:  # stopped while planning: nothing was sent
+                rep = ExecutionReport(False, grasp_id, width_m, "planning", reason=self._abort)
+                self.last_report = rep
+                return rep
+            rep = ExecutionReport(
+                ok=False,
+                grasp_id=grasp_id,
+                width_m=width_m,
+                state="pregrasp",
+                q_pregrasp=plan.pregrasp[-1].tolist(),
+                q_grasp=plan.approach[-1].tolist(),
+                q_lift=plan.lift[-1].tolist(),
+            )
+            t0 = time.monotonic()
+            jaw_now = self.link.jaw_mm()
+            jaw_now = plan.jaw_open_mm if jaw_now is None else jaw_now
+            try:
+                await self._activate()
+                rep.phases.append(await self._follow("pregrasp", plan.pregrasp, jaw_now, plan.jaw_open_mm))
+                rep.state = "approach"
+                rep.phases.append(
+                    await self._follow("approach", plan.approach, plan.jaw_open_mm, plan.jaw_open_mm)
+                )
+                T_meas = self.model.fk(self._measured_q())
+                T_goal = plan.T_B_G @ self.T_grasp_tool
+                dp, dr = pose_error(T_goal, T_meas)
+                rep.grasp_pose_error_mm = dp * 1000.0
+                rep.grasp_pose_error_deg = math.degrees(dr)
+                rep.state = "close"
+                rep.phases.append(
+                    await self._follow(
+                        "close",
+                        [plan.approach[-1]],
+                        plan.jaw_open_mm,
+                        plan.jaw_closed_mm,
+                        jaw_stall_ok=True,
+                    )
+                )
+                rep.state = "lift"
+                rep.phases.append(
+                    await self._follow(
+                        "lift", plan.lift, plan.jaw_closed_mm, plan.jaw_closed_mm, jaw_stall_ok=True
+                    )
+                )
+                rep.state = "done"
+                rep.ok = True
+            except (ArmError, SafetyError) as exc:
+                rep.reason = str(exc)
+                log.error("grasp %d aborted in %s: %s", grasp_id, rep.state, exc)
+                if self.trip_reason is None:
+                    with contextlib.suppress(Exception):
+                        await self.stop(reason=f"execution failed: {exc}")
+            except asyncio.CancelledError:
+                with contextlib.suppress(Exception):
+                    await self.stop(reason="execution cancelled")
+                raise
+            finally:
+                rep.duration_s = time.monotonic() - t0
+                self.state = "idle"
+                self.last_report = rep
+            return rep
+
+    async def execute_grasp_id(
+        self, grasps: Any, grasp_id: int, width_m: float | None = None
+    ) -> ExecutionReport:
+        """Execute grasp ``grasp_id`` of a :class:`pugsd.core.types.ScoredGrasps` (world frame).
+
+        This is what the daemon's ``<prefix>/arm/execute`` queryable calls with its latest
+        grasps and the id parsed by :func:`parse_execute_request`.
+        """
+        ids = [int(g) for g in np.asarray(grasps.grasp_id)]
+        if grasp_id not in ids:
+            raise ArmError(f"grasp id {grasp_id} is not among the latest grasps {ids}")
+        k = ids.index(grasp_id)
+        w = float(np.asarray(grasps.width_m)[k]) if width_m is None else float(width_m)
+        T_W_G = np.asarray(grasps.pose_W[k], dtype=float)
+        return await self.execute_grasp(T_W_G=T_W_G, width_m=w, grasp_id=grasp_id)
+
+
+def parse_execute_request(payload: bytes | str) -> tuple[int, float | None]:
+    """``<prefix>/arm/execute`` request body: ``{"grasp_id": 3, "width_m": 0.04}`` or ``3``."""
+    import json
+
+    text = payload.decode("utf-8", errors="replace") if isinstance(payload, bytes) else payload
+    text = text.strip()
+    try:
+        obj = json.loads(text) if text else None
+    except json.JSONDecodeError:
+        obj = None
+    if isinstance(obj, bool) or obj is None:
+        raise ArmError(f"arm/execute: expected a grasp id, got {text!r}")
+    if isinstance(obj, int):
+        return obj, None
+    if isinstance(obj, dict) and isinstance(obj.get("grasp_id"), int):
+        w = obj.get("width_m")
+        if w is not None and not isinstance(w, (int, float)):
+            raise ArmError("arm/execute: width_m must be a number")
+        return int(obj["grasp_id"]), None if w is None else float(w)
+    raise ArmError(f"arm/execute: expected a grasp id, got {text!r}")

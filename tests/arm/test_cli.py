@@ -1,0 +1,261 @@
+# SPDX-License-Identifier: Apache-2.0
+"""``pugsd bpl encode|decode`` and ``pugsd arm sim|status|execute|stop`` (sim in a subprocess)."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from pugsd.arm import cli as arm_cli
+from pugsd.arm.config import ArmConfig
+from pugsd.arm.controller import T_tool_grasp_from_config, model_from_config
+from pugsd.cli import main
+from pugsd.core.types import ScoredGrasps
+
+
+def _cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str]:
+    rc = main(list(argv))
+    return rc, capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("argv", "wire"),
+    [
+        (["0x01", "POSITION", "4.123"], "09 9E EF 83 40 03 01 08 B8 00"),
+        (["2", "position", "1.0"], "01 01 07 80 3F 03 02 08 74 00"),
+        (["broadcast", "request", "position"], "06 03 60 FF 05 1B 00"),
+        (["3", "0x60", "velocity", "3", "current"], "08 02 03 05 60 03 07 74 00"),
+        (["jaw", "mode", "position"], "06 02 01 01 05 33 00"),
+        (["0xFF", "MODE", "0"], "01 05 01 FF 05 5B 00"),
+        (["G", "VELOCITY", "0.5"], "01 01 01 06 3F 02 07 08 A1 00"),
+        (
+            ["compute", "KM_END_POS", "400", "0", "200", "0", "0", "0"],
+            "01 01 03 C8 43 01 01 01 01 01 03 48 43 01 01 01 01 01 01 01 01 01 01 01 05 A1 0E 1C 2B 00",
+        ),
+        (
+            ["0xff", "HEARTBEAT_SET", "3", "2", "5", "0", "0", "0", "0", "0", "0", "0"],
+            "04 03 02 05 01 01 01 01 01 01 05 91 FF 0E E8 00",
+        ),
+        (["0xff", "heartbeat_frequency", "10"], "06 0A 92 FF 05 CA 00"),
+    ],
+)
+def test_bpl_encode(capsys: pytest.CaptureFixture[str], argv: list[str], wire: str) -> None:
+    rc, out = _cli(capsys, "bpl", "encode", *argv)
+    assert rc == 0 and out.strip() == wire
+
+
+def test_bpl_decode(capsys: pytest.CaptureFixture[str]) -> None:
+    rc, out = _cli(
+        capsys, "bpl", "decode", "09 9E EF 83 40 03 01 08 B8 00", "06 03 60 FF 05 1B 00", "AA BB 00"
+    )
+    assert rc == 0
+    d = json.loads(out)
+    p0, p1 = d["packets"]
+    assert (p0["device"], p0["packet"], p0["values"]) == ("JAW", "POSITION", [4.123])
+    assert (p1["packet"], p1["packets"]) == ("REQUEST", ["POSITION"])
+    assert d["decoder"]["framing_errors"] == 1
+    rc, out = _cli(capsys, "bpl", "decode", "04030205010101010101059 1FF0EE8".replace(" ", ""))
+    assert rc == 0 and json.loads(out)["packets"][0]["packets"] == [
+        "POSITION",
+        "VELOCITY",
+        "CURRENT",
+    ]
+    assert main(["bpl", "decode", "zz"]) == 1
+    assert main(["bpl", "encode", "0x01", "POSITION", "1", "2"]) == 1  # wrong count
+
+
+def test_execute_refused_when_disabled(capsys: pytest.CaptureFixture[str]) -> None:
+    rc = main(["arm", "execute", "--pose", "0.5", "0", "0", "0", "0", "0", "1"])
+    assert rc == 1
+    assert "disabled" in capsys.readouterr().err
+
+
+@pytest.fixture
+def sim_process() -> Iterator[int]:
+    """``pugsd arm sim`` over UDP on 127.0.0.1 in a subprocess (killed by pid)."""
+    cmd = [
+        sys.executable,
+        "-m",
+        "pugsd",
+        "arm",
+        "sim",
+        "--transport",
+        "udp",
+        "--port",
+        "0",
+        "--duration",
+        "40",
+        "--set",
+        "arm.sim.joint_speed_rad_s=4.0",
+        "--set",
+        "arm.sim.jaw_speed_mm_s=300.0",
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=os.getcwd())
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+        m = re.search(r"udp 127\.0\.0\.1:(\d+)", line)
+        assert m, line
+        yield int(m.group(1))
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+
+
+def _link_args(port: int) -> list[str]:
+    return [
+        "--set",
+        "arm.transport=udp",
+        "--set",
+        "arm.udp.host=127.0.0.1",
+        "--set",
+        f"arm.udp.port={port}",
+        "--set",
+        "arm.udp.local_host=127.0.0.1",
+    ]
+
+
+def _pose_near_start(dq: list[float]) -> np.ndarray:
+    cfg = ArmConfig()
+    m = model_from_config(cfg)
+    q0 = np.asarray(cfg.sim.initial_q_rad)
+    return m.fk(q0 + np.asarray(dq)) @ T_tool_grasp_from_config(cfg)
+
+
+def test_cli_sim_status_execute_stop(
+    capsys: pytest.CaptureFixture[str], sim_process: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    link = _link_args(sim_process)
+    fast = [
+        "--set",
+        "arm.enabled=true",
+        "--set",
+        "arm.motion.max_joint_speed_rad_s=2.0",
+        "--set",
+        "arm.motion.jaw_speed_mm_s=150.0",
+        # the simulator is another process here: on a loaded machine its replies can lag, and
+        # this test is not about the watchdog (test_e2e.py is)
+        "--set",
+        "arm.safety.watchdog_s=1.0",
+    ]
+    rc, out = _cli(capsys, "arm", "status", "--json", *link)
+    assert rc == 0
+    st = json.loads(out)
+    assert [j["device_id"] for j in st["joints"]] == [7, 6, 5, 4, 3, 2, 1]
+    assert st["joints"][0]["position"] == pytest.approx(3.14, abs=1e-4)
+    assert st["enabled"] is False and st["link"]["rx_crc_errors"] == 0
+    # --pose (world = base with the default T_B_W)
+    T = _pose_near_start([0.2, 0.1, -0.1, 0.1, 0.1, 0.1])
+    quat = Rotation.from_matrix(T[:3, :3]).as_quat()
+    pose = [str(v) for v in (*T[:3, 3], *quat)]
+    rc, out = _cli(capsys, "arm", "execute", "--json", "--pose", *pose, "--width", "0.03", *link, *fast)
+    rep = json.loads(out)
+    assert rc == 0 and rep["ok"], rep
+    assert rep["grasp_pose_error_mm"] < 1.0
+    # --grasp-id, with the daemon query replaced by a stub returning ScoredGrasps
+    T2 = _pose_near_start([0.1, 0.15, -0.1, 0.1, 0.1, 0.1])
+
+    def fake_fetch(full_cfg: object, timeout: float) -> ScoredGrasps:
+        return ScoredGrasps(
+            pose_W=np.stack([np.eye(4), T2]),
+            contact_W=np.zeros((2, 3)),
+            width_m=np.array([0.02, 0.035]),
+            baseline_confidence=np.ones(2),
+            sigma2_occ=np.zeros(2),
+            pugs_confidence=np.ones(2),
+            grasp_id=np.array([4, 9]),
+        )
+
+    monkeypatch.setattr(arm_cli, "fetch_latest_grasps", fake_fetch)
+    rc, out = _cli(capsys, "arm", "execute", "--grasp-id", "9", *link, *fast)
+    assert rc == 0 and "grasp 9: OK" in out
+    assert main(["arm", "execute", "--grasp-id", "5", *link, *fast]) == 1  # not in the list
+    # stop: safe mode on every device
+    rc, out = _cli(capsys, "arm", "stop", *link)
+    assert rc == 0
+    time.sleep(0.05)
+    rc, out = _cli(capsys, "arm", "status", "--json", *link)
+    assert {j["mode"] for j in json.loads(out)["joints"]} == {"DISABLE"}
+
+
+def test_cli_sim_over_pty(capsys: pytest.CaptureFixture[str]) -> None:
+    """``pugsd arm sim --transport serial`` creates a pty; ``arm status`` reads it via pyserial."""
+    cmd = [sys.executable, "-m", "pugsd", "arm", "sim", "--transport", "serial", "--duration", "20"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+        m = re.search(r"serial pty (\S+)", line)
+        assert m, line
+        rc, out = _cli(capsys, "arm", "status", "--json", "--set", f"arm.serial.port={m.group(1)}")
+        assert rc == 0
+        st = json.loads(out)
+        assert st["transport"] == "serial" and st["joints"][1]["position"] == pytest.approx(1.2)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+
+
+def test_fetch_latest_grasps_over_loopback_zenoh() -> None:
+    """``--grasp-id`` path: query ``<prefix>/grasps/latest`` from a stand-in daemon session
+    (loopback-only zenoh, checked before any session is opened)."""
+    import dataclasses
+
+    from pugsd.config import PugsdConfig
+    from pugsd.wire.codec import encode_grasp_array
+    from pugsd.wire.session import (
+        check_loopback_safe,
+        close_session,
+        free_tcp_port,
+        loopback_config,
+        open_session,
+        tool_config,
+    )
+
+    port = free_tcp_port()
+    daemon_cfg = loopback_config(listen_port=port)
+    full = dataclasses.replace(PugsdConfig(), zenoh=daemon_cfg)
+    check_loopback_safe(daemon_cfg)
+    check_loopback_safe(tool_config(daemon_cfg))  # what fetch_latest_grasps opens
+    T = np.eye(4)
+    T[:3, 3] = [0.4, 0.1, -0.2]
+    g = ScoredGrasps(
+        pose_W=np.stack([np.eye(4), T]),
+        contact_W=np.zeros((2, 3)),
+        width_m=np.array([0.02, 0.035]),
+        baseline_confidence=np.ones(2),
+        sigma2_occ=np.zeros(2),
+        pugs_confidence=np.ones(2),
+        grasp_id=np.array([4, 9]),
+    )
+    payload = encode_grasp_array(g)
+    daemon = open_session(daemon_cfg, require_loopback=True)
+
+    def on_query(q: object) -> None:
+        q.reply("pugs/grasps/latest", payload)  # type: ignore[attr-defined]
+
+    qable = daemon.declare_queryable("pugs/grasps/latest", on_query)
+    try:
+        got = arm_cli.fetch_latest_grasps(full, 3.0)
+        assert [int(i) for i in got.grasp_id] == [4, 9]
+        assert np.allclose(got.pose_W[1], T) and got.width_m[1] == pytest.approx(0.035)
+    finally:
+        close_session(daemon, [qable])

@@ -1,0 +1,305 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Refusals before any motion, stop, jaw stall, frames, config validation."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from pugsd.arm.config import ArmCanConfig, ArmConfig, ArmKinematicsConfig, ArmSafetyConfig
+from pugsd.arm.controller import ArmController, T_B_W_from_config
+from pugsd.arm.kinematics import pose_from_xyz_rpy
+from pugsd.arm.protocol import JOINT_DEVICES, Mode, PacketID, make_packet
+from pugsd.errors import ArmError, ConfigError, SafetyError
+from tests.arm.helpers import (
+    fast_config,
+    reachable_grasp,
+    run,
+    sim_and_controller,
+    wait_state,
+    wait_until,
+)
+
+
+def _no_motion(sim: object) -> bool:
+    return not any(e[2] in ("POSITION", "KM_END_POS") for e in sim.events)  # type: ignore[attr-defined]
+
+
+def test_disabled_arm_refuses() -> None:
+    async def main() -> None:
+        async with sim_and_controller("udp", fast_config(enabled=False)) as (sim, ctl):
+            with pytest.raises(SafetyError, match="disabled"):
+                await ctl.execute_grasp(T_B_G=reachable_grasp(ctl, ctl._measured_q()), width_m=0.02)
+            assert _no_motion(sim)
+
+    run(main(), 20)
+
+
+def test_refusals_before_motion() -> None:
+    async def main() -> None:
+        async with sim_and_controller("udp") as (sim, ctl):
+            q0 = ctl._measured_q()
+            good = reachable_grasp(ctl, q0)
+            # unreachable: 1.5 m away
+            far = good.copy()
+            far[:3, 3] = [1.5, 0.0, 0.0]
+            ctl.cfg = dataclasses.replace(
+                ctl.cfg,
+                safety=dataclasses.replace(
+                    ctl.cfg.safety, workspace_min_m=(-2.0, -2.0, -2.0), workspace_max_m=(2, 2, 2)
+                ),
+            )
+            with pytest.raises(SafetyError, match="unreachable"):
+                await ctl.execute_grasp(T_B_G=far, width_m=0.02)
+            # outside the workspace box
+            ctl.cfg = dataclasses.replace(
+                ctl.cfg,
+                safety=dataclasses.replace(
+                    ctl.cfg.safety,
+                    workspace_min_m=(-0.2, -0.2, -0.2),
+                    workspace_max_m=(0.2, 0.2, 0.2),
+                ),
+            )
+            with pytest.raises(SafetyError, match="workspace"):
+                await ctl.execute_grasp(T_B_G=good, width_m=0.02)
+            ctl.cfg = fast_config()
+            # too far from the measured joint position
+            ctl.cfg = dataclasses.replace(
+                ctl.cfg, safety=dataclasses.replace(ctl.cfg.safety, max_target_distance_rad=0.2)
+            )
+            with pytest.raises(SafetyError, match="from the measured position"):
+                await ctl.execute_grasp(T_B_G=good, width_m=0.02)
+            ctl.cfg = fast_config()
+            # too wide
+            with pytest.raises(SafetyError, match="width"):
+                await ctl.execute_grasp(T_B_G=good, width_m=0.5)
+            # not a rigid transform
+            bad = good.copy()
+            bad[:3, :3] *= 2.0
+            with pytest.raises(ArmError, match="rigid"):
+                await ctl.execute_grasp(T_B_G=bad, width_m=0.02)
+            assert _no_motion(sim)
+            # forbidden packets are never sent
+            with pytest.raises(SafetyError):
+                await ctl.link.send([make_packet(0xFF, PacketID.RESET, [])])
+            assert sim.forbidden_received == 0
+
+    run(main(), 30)
+
+
+def test_joint_limit_checks() -> None:
+    cfg = fast_config()
+
+    async def main() -> None:
+        async with sim_and_controller("udp", cfg) as (sim, ctl):
+            m = ctl.model
+            with pytest.raises(SafetyError, match="joint limits"):
+                ctl._check_q(np.array([1.0, 3.3, 1.0, 1.0, 1.0, 1.0]), "t")
+            with pytest.raises(SafetyError, match="of a joint limit"):
+                ctl._check_q(np.array([1.0, 3.19, 1.0, 1.0, 1.0, 1.0]), "t")
+            # every planned waypoint is inside the limits (random reachable targets)
+            rng = np.random.default_rng(9)
+            q0 = ctl._measured_q()
+            planned = 0
+            for _ in range(10):
+                dq = rng.uniform(-0.4, 0.4, 6)
+                try:
+                    plan = ctl.plan_grasp(reachable_grasp(ctl, q0, dq), 0.03, q0)
+                except SafetyError:
+                    continue
+                planned += 1
+                for q in plan.pregrasp + plan.approach + plan.lift:
+                    assert m.within_limits(q, tol=0.0)
+            assert planned >= 5
+            # the simulated arm ignores a POSITION setpoint outside its limits (as the PDF says)
+            ax = sim.axes[0x06]
+            before = ax.setpoint
+            await ctl.link.send([make_packet(0x06, PacketID.POSITION, [3.5])])
+            await asyncio.sleep(0.05)
+            assert ax.setpoint == before
+
+    run(main(), 30)
+
+
+def test_stop_mid_motion_and_concurrent_execute() -> None:
+    async def main() -> None:
+        async with sim_and_controller("pty") as (sim, ctl):
+            T = reachable_grasp(ctl, ctl._measured_q(), [0.8, 0.3, -0.3, 0.4, 0.3, 0.5])
+            task = asyncio.create_task(ctl.execute_grasp(T_B_G=T, width_m=0.03))
+            await wait_state(ctl, "pregrasp", task=task)
+            await asyncio.sleep(0.05)
+            with pytest.raises(ArmError, match="already executing"):
+                await ctl.execute_grasp(T_B_G=T, width_m=0.03)
+            await ctl.stop()
+            rep = await asyncio.wait_for(task, 2.0)
+            assert not rep.ok and "stopped" in rep.reason
+            await wait_until(lambda: all(sim.axes[d].mode == Mode.DISABLE for d in JOINT_DEVICES))
+            await asyncio.sleep(0.01)
+            q = sim.q()
+            await asyncio.sleep(0.1)
+            assert np.abs(sim.q() - q).max() == 0.0
+
+    run(main(), 20)
+
+
+def test_world_frame_and_jaw_blocked_by_object() -> None:
+    """A grasp given in a rotated/shifted world frame, and jaws that stop on the object."""
+    kin = dataclasses.replace(
+        ArmKinematicsConfig(), T_B_W_xyz=(0.1, -0.05, 0.02), T_B_W_rpy_deg=(0.0, 0.0, 30.0)
+    )
+    cfg = fast_config(kinematics=kin)
+
+    async def main() -> None:
+        async with sim_and_controller("can", cfg) as (sim, ctl):
+            T_B_G = reachable_grasp(ctl, ctl._measured_q(), [0.2, 0.1, -0.1, 0.1, 0.1, 0.1])
+            T_W_G = np.linalg.inv(ctl.T_B_W) @ T_B_G
+            sim.jaw_block_mm = 12.0  # the object is 12 mm of jaw travel wide
+            rep = await ctl.execute_grasp(T_W_G=T_W_G, width_m=0.04)
+            assert rep.ok, rep.reason
+            assert sim.axes[0x01].pos == pytest.approx(12.0)
+            assert rep.grasp_pose_error_mm is not None and rep.grasp_pose_error_mm < 1.0
+            # the lift goes along world +z, which is base +z here (yaw only)
+            z = [ctl.model.fk(np.asarray(q))[2, 3] for q in (rep.q_grasp, rep.q_lift)]
+            assert z[1] - z[0] == pytest.approx(0.1, abs=1e-3)
+
+    run(main(), 30)
+
+
+def test_T_B_W_forms_agree() -> None:
+    a = ArmConfig(
+        kinematics=dataclasses.replace(
+            ArmKinematicsConfig(), T_B_W_xyz=(0.1, 0.2, 0.3), T_B_W_rpy_deg=(10.0, -20.0, 30.0)
+        )
+    )
+    T = pose_from_xyz_rpy((0.1, 0.2, 0.3), np.radians([10.0, -20.0, 30.0]))
+    b = ArmConfig(
+        kinematics=dataclasses.replace(ArmKinematicsConfig(), T_B_W=tuple(float(v) for v in T.ravel()))
+    )
+    assert np.allclose(T_B_W_from_config(a), T_B_W_from_config(b))
+    # yaw only: R = Rz
+    c = ArmConfig(kinematics=dataclasses.replace(ArmKinematicsConfig(), T_B_W_rpy_deg=(0, 0, 90)))
+    assert np.allclose(T_B_W_from_config(c)[:3, 0], [0, 1, 0], atol=1e-12)
+    bad = ArmConfig(kinematics=dataclasses.replace(ArmKinematicsConfig(), T_B_W=(2.0,) * 16))
+    with pytest.raises(ArmError):
+        ArmController(bad)
+
+
+def test_config_validation() -> None:
+    from pugsd.config import load_config_dict
+
+    cfg = load_config_dict(
+        {
+            "arm": {
+                "enabled": True,
+                "transport": "can",
+                "can": {"tx_base": 0x200, "rx_base": 0x280 * 2},
+            }
+        }
+    )
+    assert cfg.arm.can.tx_base == 0x200
+    with pytest.raises(ConfigError):
+        ArmCanConfig(tx_base=0x301)
+    with pytest.raises(ConfigError):
+        ArmCanConfig(tx_base=0x800)  # does not fit an 11-bit id
+    assert ArmCanConfig(tx_base=0x800, rx_base=0x900, extended_ids=True).tx_base == 0x800
+    with pytest.raises(ConfigError):
+        load_config_dict({"arm": {"safety": {"safe_mode": "explode"}}})
+    with pytest.raises(ConfigError):
+        ArmSafetyConfig(workspace_min_m=(1.0, 0.0, 0.0), workspace_max_m=(0.0, 1.0, 1.0))
+    with pytest.raises(ConfigError):
+        load_config_dict({"arm": {"kinematics": {"joint_min_rad": [0.0] * 5}}})
+    assert math.isclose(ArmConfig().safety.watchdog_s, 0.25)
+    assert ArmConfig().enabled is False
+
+
+def test_parse_execute_request_and_execute_grasp_id() -> None:
+    from pugsd.arm.controller import parse_execute_request
+    from pugsd.core.types import ScoredGrasps
+
+    assert parse_execute_request(b"3") == (3, None)
+    assert parse_execute_request('{"grasp_id": 4, "width_m": 0.03}') == (4, 0.03)
+    for bad in (b"", b"true", b"x", b'{"grasp_id": "a"}', b'{"grasp_id": 1, "width_m": "w"}'):
+        with pytest.raises(ArmError):
+            parse_execute_request(bad)
+
+    async def main() -> None:
+        async with sim_and_controller("udp") as (_sim, ctl):
+            T = reachable_grasp(ctl, ctl._measured_q(), [0.1, 0.1, -0.1, 0.1, 0.1, 0.1])
+            g = ScoredGrasps(
+                pose_W=np.stack([T, T]),
+                contact_W=np.zeros((2, 3)),
+                width_m=np.array([0.02, 0.5]),
+                baseline_confidence=np.ones(2),
+                sigma2_occ=np.zeros(2),
+                pugs_confidence=np.ones(2),
+                grasp_id=np.array([11, 12]),
+            )
+            with pytest.raises(ArmError, match="not among"):
+                await ctl.execute_grasp_id(g, 13)
+            with pytest.raises(SafetyError, match="width"):
+                await ctl.execute_grasp_id(g, 12)
+            rep = await ctl.execute_grasp_id(g, 11)
+            assert rep.ok and rep.grasp_id == 11 and rep.width_m == 0.02
+
+    run(main(), 30)
+
+
+def test_socketcan_when_available() -> None:
+    """Real SocketCAN (vcan0) only where AF_CAN sockets can be created; skipped otherwise."""
+    import socket
+
+    try:
+        s = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+    except (OSError, AttributeError) as exc:
+        pytest.skip(f"AF_CAN not available here: {exc}")
+    s.close()
+    from pugsd.arm.transport import CanTransport
+
+    async def main() -> None:
+        tr = CanTransport(interface="socketcan", channel="vcan0")
+        try:
+            await tr.open()
+        except ArmError as exc:
+            pytest.skip(f"no vcan0: {exc}")
+        await tr.send(make_packet(0x02, PacketID.POSITION, [1.0]))
+        await tr.close()
+
+    run(main(), 10)
+
+
+def test_stop_while_planning_prevents_motion() -> None:
+    async def main() -> None:
+        async with sim_and_controller("udp") as (sim, ctl):
+            T = reachable_grasp(ctl, ctl._measured_q())
+            task = asyncio.create_task(ctl.execute_grasp(T_B_G=T, width_m=0.03))
+            await wait_state(ctl, "planning", task=task)
+            await ctl.stop()
+            rep = await asyncio.wait_for(task, 5.0)
+            assert not rep.ok and rep.state == "planning" and "stopped" in rep.reason
+            assert _no_motion(sim)
+
+    run(main(), 20)
+
+
+def test_device_reported_limits_are_enforced() -> None:
+    """POSITION_LIMITS read from the devices at start (either float order) narrow the plan."""
+
+    async def main() -> None:
+        async with sim_and_controller("udp") as (sim, ctl):
+            lim = ctl.link.axes[0x06].limits
+            assert lim == pytest.approx((sim.axes[0x06].lo, sim.axes[0x06].hi))
+            q0 = ctl._measured_q()
+            T = reachable_grasp(ctl, q0, [0.0, 0.5, 0.0, 0.0, 0.0, 0.0])
+            ctl.plan_grasp(T, 0.03, q0)  # fine with the factory limits
+            # the shoulder reports a narrow range: the same target is refused
+            ctl.link.axes[0x06].limits = (1.0, 1.3)
+            with pytest.raises(SafetyError, match="limits"):
+                ctl.plan_grasp(T, 0.03, q0)
+            st = ctl.status()
+            assert st["joints"][1]["device_limits"] == [1.0, 1.3]
+
+    run(main(), 20)
