@@ -74,6 +74,9 @@ class Reconstruction:
         pts = pcd.point.positions.numpy().astype(np.float64)
         if len(pts) == 0:
             raise EmptyCloudError("the TSDF holds no surface")
+        # the voxel hash map returns blocks in a run-dependent order: sort so that the seeded
+        # subsample below is reproducible
+        pts = pts[np.lexsort(pts.T[::-1])]
         return self.clean(pts, seed)
 
     def clean(self, pts: np.ndarray, seed: int = 0) -> np.ndarray:
