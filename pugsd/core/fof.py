@@ -179,7 +179,9 @@ class FofStore:
         self._dirty[slots] = True
         if self._n > self.cfg.max_voxels:
             slots = self._evict(slots)
-        self._refresh_gaussians()
+            self._refresh_gaussians()
+        else:
+            self._refresh_gaussians(slots)
         self.last_touched = slots
         return slots
 
@@ -210,15 +212,30 @@ class FofStore:
         t = remap[touched]
         return t[t >= 0]
 
-    def _refresh_gaussians(self) -> None:
+    def _refresh_gaussians(self, rows: np.ndarray | None = None) -> None:
+        """Recompute the voxel Gaussians of ``rows`` (all when None or after a compaction)."""
         n = self._n
-        c = self._count[:n]
-        info = self._sum_prec[:n] / c[:, None, None]
+        if rows is None or self._mu.shape[0] > n:
+            rows = np.arange(n)
+            self._mu = np.zeros((n, 3))
+            self._cov = np.tile(np.eye(3), (n, 1, 1))
+            self._prec = np.tile(np.eye(3), (n, 1, 1))
+            self._logdet = np.zeros(n)
+        grow = n - self._mu.shape[0]
+        if grow > 0:  # new voxels are appended at the end and are always among ``rows``
+            self._mu = np.concatenate([self._mu, np.zeros((grow, 3))])
+            self._cov = np.concatenate([self._cov, np.broadcast_to(np.eye(3), (grow, 3, 3))])
+            self._prec = np.concatenate([self._prec, np.broadcast_to(np.eye(3), (grow, 3, 3))])
+            self._logdet = np.concatenate([self._logdet, np.zeros(grow)])
+        c = self._count[rows]
+        info = self._sum_prec[rows] / c[:, None, None]
         cov = np.linalg.inv(info)
         cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))
-        self._mu = np.einsum("nij,nj->ni", np.linalg.inv(self._sum_prec[:n]), self._sum_prec_mu[:n])
-        self._cov = cov
-        self._prec, self._logdet = precision_and_logdet(cov)
+        self._mu[rows] = np.einsum(
+            "nij,nj->ni", np.linalg.inv(self._sum_prec[rows]), self._sum_prec_mu[rows]
+        )
+        self._cov[rows] = cov
+        self._prec[rows], self._logdet[rows] = precision_and_logdet(cov)
         self._tree = cKDTree(self._mu)
 
     # ------------------------------------------------------------------ queries
@@ -239,7 +256,7 @@ class FofStore:
         if self._tree is None or self._n == 0:
             raise EmptyCloudError("the occupancy field is empty")
         k = min(k or self.cfg.k_neighbours, self._n)
-        _, idx = self._tree.query(x, k=k, workers=-1)
+        _, idx = self._tree.query(x, k=k, workers=1)
         return np.asarray(idx).reshape(len(x), k)
 
     def fused_covariance(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -19,8 +19,11 @@ Two training schemes share one model object:
 
 from __future__ import annotations
 
+import copy
+import logging
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import gpytorch
 import numpy as np
@@ -28,6 +31,8 @@ import torch
 
 from pugsd.config import SvgpConfig
 from pugsd.errors import EmptyCloudError, ModelNotReadyError
+
+log = logging.getLogger(__name__)
 
 
 def farthest_point_sample(points: np.ndarray, m: int, seed: int = 0) -> np.ndarray:
@@ -102,6 +107,9 @@ class OccupancySVGP:
         self._ngd: gpytorch.optim.NGD | None = None
         self._adam: torch.optim.Optimizer | None = None
         self._mll: gpytorch.mlls.VariationalELBO | None = None
+        self._good_state: tuple[dict[str, Any], dict[str, Any]] | None = None
+        self.failures = 0
+        self.consecutive_failures = 0
 
     # ------------------------------------------------------------------ set-up
     def _t(self, a: np.ndarray) -> torch.Tensor:
@@ -121,11 +129,18 @@ class OccupancySVGP:
         self.model = model.to(device=self.device, dtype=self.dtype)
         self.likelihood = lik.to(device=self.device, dtype=self.dtype)
         self._mll = gpytorch.mlls.VariationalELBO(self.likelihood, self.model, num_data=len(x))
+        self._make_optimizers(len(x))
+        self.steps_since_inducing_change = 0
+        self.version += 1
+        self._save_good_state()
+
+    def _make_optimizers(self, num_data: int) -> None:
+        assert self.model is not None and self.likelihood is not None
         hyper = [p for n, p in self.model.named_parameters() if "variational_strategy" not in n]
         hyper += list(self.likelihood.parameters())
         if self.natural:
             self._ngd = gpytorch.optim.NGD(
-                self.model.variational_parameters(), num_data=len(x), lr=self.cfg.ngd_lr
+                self.model.variational_parameters(), num_data=num_data, lr=self.cfg.ngd_lr
             )
             groups = [{"params": hyper, "lr": self.cfg.adam_lr}]
             if self.cfg.inducing_lr > 0:
@@ -137,11 +152,30 @@ class OccupancySVGP:
                 )
             self._adam = torch.optim.Adam(groups)
         else:
+            self._ngd = None
             self._adam = torch.optim.Adam(
                 [*self.model.parameters(), *self.likelihood.parameters()], lr=self.cfg.paper_lr
             )
-        self.steps_since_inducing_change = 0
-        self.version += 1
+
+    def _save_good_state(self) -> None:
+        assert self.model is not None and self.likelihood is not None
+        self._good_state = (
+            copy.deepcopy(self.model.state_dict()),
+            copy.deepcopy(self.likelihood.state_dict()),
+        )
+
+    def _recover(self, exc: Exception, n: int) -> None:
+        """A numerical failure (e.g. NotPSDError) must not poison later steps: restore the last
+        good state with fresh optimizers; after 3 failures in a row start a fresh model."""
+        assert self.model is not None and self.likelihood is not None
+        self.failures += 1
+        self.consecutive_failures += 1
+        log.warning("SVGP step failed (%s: %s); restoring the last good state", type(exc).__name__, exc)
+        if self._good_state is not None:
+            self.model.load_state_dict(self._good_state[0])
+            self.likelihood.load_state_dict(self._good_state[1])
+            self.model.variational_strategy._memoize_cache = {}
+        self._make_optimizers(n)
 
     @property
     def initialised(self) -> bool:
@@ -226,12 +260,23 @@ class OccupancySVGP:
         for _ in range(steps):
             parts = []
             if n_new > 0:
-                parts.append(
-                    self._rng.choice(new_idx, size=min(n_new, len(new_idx)), replace=False)
-                )
+                parts.append(self._rng.choice(new_idx, size=min(n_new, len(new_idx)), replace=False))
             parts.append(self._rng.choice(n, size=bs - sum(len(p) for p in parts), replace=False))
             sel = torch.as_tensor(np.concatenate(parts), device=self.device)
-            elbo = self._step(xt[sel], yt[sel])
+            try:
+                elbo = self._step(xt[sel], yt[sel])
+            except (RuntimeError, ValueError) as exc:  # NotPSDError is a RuntimeError
+                self._recover(exc, n)
+                if self.consecutive_failures >= 3:
+                    log.warning("SVGP failed 3 times in a row: starting a fresh model")
+                    self._init_model(x, y)
+                    self.consecutive_failures = 0
+                return TrainStats(self.total_steps, float("nan"), False, moved, n)
+            if not np.isfinite(elbo):
+                self._recover(FloatingPointError("non-finite ELBO"), n)
+                return TrainStats(self.total_steps, float("nan"), False, moved, n)
+        self.consecutive_failures = 0
+        self._save_good_state()
         self.version += 1
         return TrainStats(self.total_steps, elbo, self.is_ready(prev), moved, n)
 
@@ -318,9 +363,7 @@ class OccupancySVGP:
         model.train()
 
     # ------------------------------------------------------------------ prediction
-    def predict(
-        self, x: np.ndarray, scale: float = 1.0
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def predict(self, x: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Eq. 7-8 at points x (N, 3): (mu_z, sigma_z^2, sigma_pred^2).
 
         The model predicts in normalised units; ``scale`` maps back (mu s, sigma^2 s^2) before

@@ -107,3 +107,34 @@ def test_cuda_matches_cpu() -> None:
     mu_g, v_g, _ = gpu.predict(q)
     np.testing.assert_allclose(mu_g, mu_c, atol=1e-6)
     np.testing.assert_allclose(v_g, v_c, atol=1e-6)
+
+
+def test_numerical_failure_restores_last_good_state(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A NotPSDError inside a step must not poison later updates (seen under load in the daemon)."""
+    from linear_operator.utils.errors import NotPSDError
+
+    rng = np.random.default_rng(4)
+    x = rng.uniform(-0.1, 0.1, (800, 3))
+    y = _field(x)
+    m = OccupancySVGP(SvgpConfig(num_inducing=32, seed=0))
+    m.update(x, y, np.arange(len(x)), steps=30)
+    mu0, _, _ = m.predict(x[:20])
+    real_step = m._step
+    calls = {"n": 0}
+
+    def failing(xb: torch.Tensor, yb: torch.Tensor) -> float:
+        calls["n"] += 1
+        if calls["n"] == 2:
+            # corrupt the state first, as a failed Cholesky midway through a step would
+            for p in m.model.parameters():  # type: ignore[union-attr]
+                p.data.fill_(float("nan"))
+            raise NotPSDError("matrix not positive definite")
+        return real_step(xb, yb)
+
+    monkeypatch.setattr(m, "_step", failing)
+    st = m.update(x, y, np.zeros(0, dtype=np.int64), steps=5)
+    assert np.isnan(st.elbo) and m.failures == 1
+    mu1, _, _ = m.predict(x[:20])
+    np.testing.assert_allclose(mu1, mu0, atol=0.05)  # restored, finite
+    st = m.update(x, y, np.zeros(0, dtype=np.int64), steps=5)
+    assert np.isfinite(st.elbo) and m.consecutive_failures == 0

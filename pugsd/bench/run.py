@@ -1,0 +1,245 @@
+# SPDX-License-Identifier: Apache-2.0
+"""One benchmark run: render, measure, compare, judge against the issue's targets."""
+
+from __future__ import annotations
+
+import datetime as dt
+import os
+import time
+import traceback
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from pugsd.bench import measure as m
+from pugsd.bench.options import BenchOptions
+from pugsd.bench.targets import evaluate_targets
+from pugsd.config import PugsdConfig, core_of, load_config_dict
+from pugsd.core.pipeline import PugsPipeline
+
+SCHEMA = "pugsd-bench/1"
+
+STAGE_ORDER = (
+    "stereo_depth",
+    "backproject",
+    "fof_update",
+    "tsdf",
+    "ingest",
+    "ingest_with_tsdf",
+    "svgp_step",
+    "train_per_frame",
+    "query_cloud",
+    "grasp_proposal",
+    "algorithm1",
+    "eq13",
+    "end_to_end",
+)
+
+
+def resolve_device(device: str) -> str:
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return device
+
+
+def build_config(overrides: Sequence[str], device: str) -> PugsdConfig:
+    ov = list(overrides)
+    if not any(o.split("=", 1)[0].strip() == "svgp.device" for o in ov):
+        ov.append(f"svgp.device={device}")
+    return load_config_dict({"daemon": {"log_level": "warning"}}, ov)
+
+
+def _with(cfg_overrides: Sequence[str], extra: dict[str, Any], device: str) -> PugsdConfig:
+    ov = list(cfg_overrides) + [f"{k}={_toml(v)}" for k, v in extra.items()]
+    return build_config(ov, device)
+
+
+def _toml(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return f'"{v}"'
+    return repr(v)
+
+
+def _cuda_section(
+    cfg_overrides: Sequence[str], frames: list[Any], opts: BenchOptions
+) -> dict[str, Any]:
+    """SVGP steps per second on CUDA versus CPU on the same store, and Algorithm 1 for 20k query
+    points on CUDA (after one warm-up call)."""
+    out: dict[str, Any] = {}
+    for dev in ("cpu", "cuda"):
+        cfg = build_config([*cfg_overrides, f"svgp.device={dev}"], dev)
+        pipe = PugsPipeline(core_of(cfg), seed=opts.seed)
+        for f in frames:
+            pipe.add_stereo(f)
+        pipe.train_steps(1)  # initialises the model
+        ts = []
+        for _ in range(max(opts.svgp_step_repeats, 5)):
+            t0 = time.perf_counter()
+            pipe.train_steps(1)
+            if dev == "cuda":
+                torch.cuda.synchronize()
+            ts.append(time.perf_counter() - t0)
+        out[f"svgp_step_{dev}"] = m.summarize(ts)
+        out[f"svgp_steps_per_s_{dev}"] = round(1.0 / float(np.median(ts)), 2)
+        if dev == "cuda":
+            rng = np.random.default_rng(opts.seed)
+            mu = pipe.store.mu_W
+            q = mu[rng.integers(0, len(mu), 20000)] + rng.normal(0.0, 1e-3, (20000, 3))
+            pipe.sigma2_occ(q)  # warm-up
+            ta = []
+            for _ in range(5):
+                t0 = time.perf_counter()
+                pipe.sigma2_occ(q)
+                torch.cuda.synchronize()
+                ta.append(time.perf_counter() - t0)
+            out["algorithm1_20k_cuda"] = m.summarize(ta)
+    out["speedup_steps_per_s"] = round(
+        out["svgp_steps_per_s_cuda"] / out["svgp_steps_per_s_cpu"], 2
+    )
+    return out
+
+
+def run_bench(
+    opts: BenchOptions,
+    overrides: Sequence[str] = (),
+    device: str = "auto",
+    write: m.Writer = lambda s: None,
+    command: str = "",
+    torch_threads: int | None = None,
+) -> dict[str, Any]:
+    """Run everything ``opts`` asks for and return the JSON-ready result.
+
+    ``torch_threads``: ``torch.set_num_threads`` for the whole run (None: the config's
+    ``[daemon] torch_threads`` where it exists, as the daemon applies it; 0: torch's default)."""
+    t_start = time.monotonic()
+    dev = resolve_device(device)
+    base = build_config(overrides, dev)
+    d = base.daemon
+    n_threads = int(getattr(d, "torch_threads", 0)) if torch_threads is None else torch_threads
+    if n_threads > 0:
+        torch.set_num_threads(n_threads)
+    result: dict[str, Any] = {
+        "schema": SCHEMA,
+        "quick": opts.quick,
+        "command": command,
+        "started_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+        "machine": m.machine_info(dev),
+        "settings": {
+            "object": opts.object_name,
+            "trajectories": list(opts.trajectories),
+            "n_frames": opts.n_frames,
+            "resolution": [opts.width, opts.height],
+            "rate_hz": opts.rate_hz,
+            "downsample": base.stereo.downsample,
+            "train_steps_per_frame": d.train_steps_per_frame,
+            "idle_train_steps": d.idle_train_steps,
+            "paper_epochs": opts.paper_epochs
+            if opts.paper_epochs is not None
+            else base.svgp.paper_epochs,
+            "num_inducing": base.svgp.num_inducing,
+            "batch_size": base.svgp.batch_size,
+            "dtype": base.svgp.dtype,
+            "overrides": list(overrides),
+        },
+        "errors": {},
+    }
+    write(
+        f"pugsd bench{' --quick' if opts.quick else ''}: {opts.n_frames} frames "
+        f"{opts.width}x{opts.height} per trajectory ({', '.join(opts.trajectories)}), "
+        f"device {dev}, torch threads {torch.get_num_threads()}"
+    )
+    t0 = time.monotonic()
+    frames, seq_overrides = m.render_sequences(opts)
+    result["render_s"] = round(time.monotonic() - t0, 2)
+    write(f"rendered {sum(len(v) for v in frames.values())} stereo pairs in {result['render_s']} s")
+
+    pooled: dict[str, list[float]] = {}
+    per_traj: dict[str, Any] = {}
+    comparison: dict[str, Any] = {}
+    for traj in opts.trajectories:
+        cfg = _with(overrides, seq_overrides.get(traj, {}), dev)
+        core = core_of(cfg)
+        write(f"[{traj}] streaming ({d.train_steps_per_frame} SVGP steps per frame)...")
+        run = m.run_streaming(core, frames[traj], opts, d.train_steps_per_frame, d.idle_train_steps)
+        stream_res = run.result
+        write(
+            f"[{traj}] streaming: last frame -> grasps {run.last_frame_to_grasps_s:.2f} s "
+            f"(ready {run.ready}, {run.extra_steps_after_last_frame} idle steps after the last frame)"
+        )
+        m.steady_state_cycles(run, frames[traj], opts, d.train_steps_per_frame)
+        if opts.thread_sweep and traj == opts.trajectories[0]:
+            result["svgp_step_by_torch_threads"] = m.svgp_thread_sweep(
+                run, opts.thread_sweep, opts.svgp_step_repeats
+            )
+        write(f"[{traj}] paper mode ({result['settings']['paper_epochs']} epochs)...")
+        paper_res, paper_s, paper_steps = m.run_paper(core, frames[traj], stream_res.cloud_W, opts)
+        rho = m.spearman(stream_res.sigma2_occ, paper_res.sigma2_occ)
+        same = m.same_top_grasp(stream_res, paper_res)
+        comparison[traj] = {
+            "streaming_last_frame_to_grasps_s": round(run.last_frame_to_grasps_s, 4),
+            "paper_last_frame_to_grasps_s": round(paper_s, 4),
+            "ratio_paper_over_streaming": round(paper_s / run.last_frame_to_grasps_s, 2),
+            "spearman_sigma2_occ": None if rho is None else round(rho, 4),
+            "top_grasp_same": same,
+            "top5_overlap": m.topk_overlap(stream_res, paper_res),
+            "query_points": len(stream_res.cloud_W),
+            "grasps_streaming": len(stream_res.grasps),
+            "grasps_paper": len(paper_res.grasps),
+            "streaming_ready": run.ready,
+            "streaming_idle_steps_after_last_frame": run.extra_steps_after_last_frame,
+            "streaming_svgp_steps": run.steps_total,
+            "paper_svgp_steps": paper_steps,
+            "paper_epochs": result["settings"]["paper_epochs"],
+            "store_voxels": run.voxels,
+            "points_backprojected": run.points,
+        }
+        write(
+            f"[{traj}] paper: {paper_s:.1f} s, ratio {paper_s / run.last_frame_to_grasps_s:.1f}, "
+            f"spearman {rho if rho is None else round(rho, 3)}, top grasp same {same}"
+        )
+        per_traj[traj] = {k: m.summarize(v) for k, v in run.samples.items()}
+        for k, v in run.samples.items():
+            pooled.setdefault(k, []).extend(v)
+        del run
+    result["stages"] = {k: m.summarize(pooled[k]) for k in STAGE_ORDER if k in pooled}
+    result["stages_by_trajectory"] = per_traj
+    result["paper_vs_streaming"] = comparison
+
+    if dev == "cuda":
+        try:
+            result["cuda"] = _cuda_section(overrides, frames[opts.trajectories[0]], opts)
+        except Exception as exc:
+            result["errors"]["cuda"] = _err(exc)
+
+    feed = frames[opts.trajectories[0]]
+    if opts.use_daemon:
+        write("sustained throughput through the daemon (loopback zenoh, in-process)...")
+        try:
+            result["throughput"] = m.throughput_daemon(base, feed, opts, write)
+        except Exception as exc:
+            result["errors"]["throughput"] = _err(exc)
+        write(
+            f"long replay: {opts.replay_sim_min:g} simulated minutes offered in "
+            f"{opts.replay_wall_s:g} s..."
+        )
+        try:
+            result["replay"] = m.replay_daemon(base, feed, opts, write)
+        except Exception as exc:
+            result["errors"]["replay"] = _err(exc)
+    result["memory"] = {
+        "peak_rss_mb": round(m.peak_rss_mb(), 1),
+        "rss_end_mb": round(m.rss_mb(), 1),
+        "rss_growth_frac_replay": (result.get("replay") or {}).get("rss_growth_frac"),
+    }
+    result["machine"]["load_average_at_end"] = [round(x, 2) for x in os.getloadavg()]
+    result["wall_s"] = round(time.monotonic() - t_start, 1)
+    result["targets"] = evaluate_targets(result)
+    return result
+
+
+def _err(exc: BaseException) -> str:
+    return "".join(traceback.format_exception_only(type(exc), exc)).strip()

@@ -1,0 +1,190 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The issue's targets (2-core CPU, no GPU; ratios from one run) judged on a result dict, and the
+printed table."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+Writer = Callable[[str], None]
+
+
+def _row(name: str, required: str, measured: Any, ok: bool | None, note: str = "") -> dict[str, Any]:
+    return {"target": name, "required": required, "measured": measured, "pass": ok, "note": note}
+
+
+def evaluate_targets(r: dict[str, Any]) -> list[dict[str, Any]]:
+    """One row per target: pass True/False, or None where it could not be measured here."""
+    rows: list[dict[str, Any]] = []
+    quick_note = "quick run: reduced frames/epochs, not comparable" if r.get("quick") else ""
+    for traj, c in (r.get("paper_vs_streaming") or {}).items():
+        s = c["streaming_last_frame_to_grasps_s"]
+        rows.append(_row(f"streaming last frame -> grasps ({traj})", "<= 1.0 s", s, s <= 1.0,
+                         quick_note))  # fmt: skip
+        ratio = c["ratio_paper_over_streaming"]
+        rows.append(_row(f"paper / streaming time ({traj})", ">= 50x", ratio, ratio >= 50.0,
+                         quick_note))  # fmt: skip
+        rho = c["spearman_sigma2_occ"]
+        rows.append(_row(f"Spearman sigma2_occ vs paper ({traj})", ">= 0.9", rho,
+                         None if rho is None else rho >= 0.9, quick_note))  # fmt: skip
+    tp = r.get("throughput")
+    if tp is not None:
+        at10 = [t for t in tp["trials"] if t["rate_hz"] >= 10.0]
+        held10 = any(t["held"] for t in at10) if at10 else None
+        sus = tp.get("sustained_hz")
+        lowest = min((t["rate_hz"] for t in tp["trials"]), default=None)
+        meas = f"{sus:g} Hz" if sus is not None else f"< {lowest:g} Hz (none held)"
+        rows.append(_row("sustained input without drops (daemon)", ">= 10 Hz", meas, held10))
+    else:
+        rows.append(_row("sustained input without drops (daemon)", ">= 10 Hz", None, None,
+                         (r.get("errors") or {}).get("throughput", "not measured")))  # fmt: skip
+    ing = (r.get("stages") or {}).get("ingest", {}).get("median_ms")
+    rows.append(_row("median ingest (depth + back-projection + FOF)", "<= 50 ms", ing,
+                     None if ing is None else ing <= 50.0))  # fmt: skip
+    rp = r.get("replay")
+    if rp is not None and rp.get("rss_growth_frac") is not None:
+        g = rp["rss_growth_frac"]
+        w0, w1 = rp["window_min"]
+        enough = rp["simulated_min"] >= rp["target_simulated_min"] - 1e-9
+        note = "" if enough else f"replay stopped at {rp['simulated_min']} simulated min"
+        rows.append(_row(f"RSS growth, minute {w0:g} -> {w1:g} of replay", "< 10%",
+                         f"{100 * g:.1f}%", (g < 0.10) and enough, note or quick_note))  # fmt: skip
+    else:
+        rows.append(_row("RSS growth over the long replay", "< 10%", None, None,
+                         (r.get("errors") or {}).get("replay", "not measured")))  # fmt: skip
+    cu = r.get("cuda")
+    if cu is not None:
+        sp = cu["speedup_steps_per_s"]
+        rows.append(_row("CUDA SVGP steps/s vs CPU", ">= 5x", sp, sp >= 5.0))
+        a = cu["algorithm1_20k_cuda"]["median_ms"]
+        rows.append(_row("CUDA Algorithm 1, 20k query points", "< 100 ms", a, a < 100.0))
+    else:
+        note = "no GPU on this machine" if not r["machine"].get("cuda_available") else "not run"
+        rows.append(_row("CUDA SVGP steps/s vs CPU", ">= 5x", None, None, note))
+        rows.append(_row("CUDA Algorithm 1, 20k query points", "< 100 ms", None, None, note))
+    if not r.get("quick"):
+        w = r.get("wall_s")
+        rows.append(_row("whole benchmark wall time", "< 15 min", None if w is None else
+                         f"{w / 60:.1f} min", None if w is None else w < 900.0))  # fmt: skip
+    return rows
+
+
+def _fmt(v: Any, nd: int = 1) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, float):
+        return f"{v:.{nd}f}"
+    return str(v)
+
+
+STAGE_LABELS = {
+    "stereo_depth": "stereo depth (SGBM, downsampled)",
+    "backproject": "back-projection with covariance",
+    "fof_update": "FOF store update (Eq. 4-6 targets)",
+    "tsdf": "TSDF integration",
+    "ingest": "ingest = depth + back-proj. + FOF",
+    "ingest_with_tsdf": "ingest incl. TSDF",
+    "svgp_step": "one SVGP training step",
+    "train_per_frame": "SVGP steps per frame (daemon K)",
+    "query_cloud": "query cloud (TSDF extraction)",
+    "grasp_proposal": "grasp proposal",
+    "algorithm1": "Algorithm 1 (query cloud)",
+    "eq13": "Eq. 13 ranking",
+    "end_to_end": "end-to-end newest frame -> grasps",
+}
+
+
+def format_table(r: dict[str, Any]) -> list[str]:
+    """The printed summary (also pasted into docs/performance.md)."""
+    mi = r["machine"]
+    st = r["settings"]
+    out = [
+        f"pugsd bench{' (QUICK: not comparable with targets)' if r.get('quick') else ''}"
+        f" -- {mi['cpu_model']}, {mi['logical_cores']} cores, torch {mi['torch']} "
+        f"({mi['torch_threads']} threads), device {mi['device']}",
+        f"{st['object']}, {st['n_frames']} frames {st['resolution'][0]}x{st['resolution'][1]} "
+        f"at {st['rate_hz']:g} Hz, downsample {st['downsample']}, M={st['num_inducing']}, "
+        f"B={st['batch_size']}, {st['train_steps_per_frame']} SVGP steps/frame, "
+        f"paper epochs {st['paper_epochs']}; load avg {mi['load_average_at_start']} -> "
+        f"{mi.get('load_average_at_end')}",
+        "",
+        f"{'stage':<40} {'median ms':>10} {'p95 ms':>10} {'n':>5}",
+    ]
+    for k, label in STAGE_LABELS.items():
+        s = (r.get("stages") or {}).get(k)
+        if s is None:
+            continue
+        out.append(f"{label:<40} {_fmt(s['median_ms']):>10} {_fmt(s['p95_ms']):>10} {s['n']:>5}")
+    sweep = r.get("svgp_step_by_torch_threads")
+    if sweep:
+        out.append(
+            "one SVGP step by torch threads (median ms): "
+            + ", ".join(f"{t}: {_fmt(v['median_ms'])}" for t, v in sweep.items())
+        )
+    out += [
+        "",
+        "paper mode vs streaming (same frames; last frame -> scored grasps)",
+        f"{'trajectory':<11} {'stream s':>9} {'paper s':>9} {'ratio':>7} {'spearman':>9} "
+        f"{'top same':>9} {'top5':>5} {'Q':>6} {'ready':>6} {'idle st':>7}",
+    ]
+    for traj, c in (r.get("paper_vs_streaming") or {}).items():
+        out.append(
+            f"{traj:<11} {_fmt(c['streaming_last_frame_to_grasps_s'], 2):>9} "
+            f"{_fmt(c['paper_last_frame_to_grasps_s'], 1):>9} "
+            f"{_fmt(c['ratio_paper_over_streaming'], 1):>7} {_fmt(c['spearman_sigma2_occ'], 3):>9} "
+            f"{_fmt(c['top_grasp_same']):>9} {_fmt(c['top5_overlap'], 1):>5} "
+            f"{c['query_points']:>6} {_fmt(c['streaming_ready']):>6} "
+            f"{c['streaming_idle_steps_after_last_frame']:>7}"
+        )
+    tp = r.get("throughput")
+    if tp is not None:
+        sus = tp["sustained_hz"]
+        held = f"{sus:g} Hz" if sus is not None else "none of the rates tried"
+        out += ["", f"sustained throughput ({tp['source']}): highest rate held {held}"]
+        for t in tp["trials"]:
+            lat = t.get("latency", {})
+            e2e = lat.get("newest_frame_to_grasps", {})
+            age = lat.get("frame_age_at_integrate", {})
+            out.append(
+                f"  {t['rate_hz']:>5g} Hz: offered {t['offered']:>4}, integrated "
+                f"{t['integrated']:>4}, dropped {sum(t['drops'].values()):>4} "
+                f"({'held' if t['held'] else 'NOT held'}); frame age at integrate p50 "
+                f"{_fmt(age.get('p50_ms'))} ms; newest frame -> grasps p50 "
+                f"{_fmt(e2e.get('p50_ms'))} ms"
+            )
+    rp = r.get("replay")
+    mem = r.get("memory") or {}
+    out += ["", f"memory: peak RSS {_fmt(mem.get('peak_rss_mb'))} MiB"]
+    if rp is not None:
+        out.append(
+            f"  long replay ({rp['source']}): {rp['simulated_min']} simulated min offered in "
+            f"{rp['feed_wall_s']} s ({rp['speedup_vs_real_time']}x real time), integrated "
+            f"{rp['integrated']}, RSS min {rp['window_min'][0]:g} {_fmt(rp['rss_window_start_mb'])} "
+            f"MiB -> min {rp['window_min'][1]:g} {_fmt(rp['rss_window_end_mb'])} MiB "
+            f"(growth {_fmt(None if rp['rss_growth_frac'] is None else 100 * rp['rss_growth_frac'])}%,"
+            f" lowest RSS over {_fmt(rp.get('rss_window_s'))} simulated s; peaks "
+            f"{_fmt(rp.get('rss_window_start_peak_mb'))} -> {_fmt(rp.get('rss_window_end_peak_mb'))} "
+            f"MiB); {rp.get('grasps_published', '-')} grasp updates published"
+        )
+    cu = r.get("cuda")
+    if cu is not None:
+        out.append(
+            f"CUDA: SVGP steps/s {cu['svgp_steps_per_s_cuda']} vs CPU {cu['svgp_steps_per_s_cpu']} "
+            f"({cu['speedup_steps_per_s']}x); Algorithm 1 at 20k points "
+            f"{_fmt(cu['algorithm1_20k_cuda']['median_ms'])} ms"
+        )
+    for k, v in (r.get("errors") or {}).items():
+        out.append(f"ERROR in {k}: {v}")
+    out += ["", f"{'target':<48} {'required':>9} {'measured':>20} {'result':>6}"]
+    for t in r.get("targets", []):
+        res = "n/a" if t["pass"] is None else ("PASS" if t["pass"] else "FAIL")
+        meas = _fmt(t["measured"], 3) if isinstance(t["measured"], float) else _fmt(t["measured"])
+        line = f"{t['target']:<48} {t['required']:>9} {meas:>20} {res:>6}"
+        if t.get("note"):
+            line += f"  ({t['note']})"
+        out.append(line)
+    out.append(f"wall time {r.get('wall_s')} s (rendering {r.get('render_s')} s)")
+    return out

@@ -1,0 +1,174 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Smoke tests of ``pugsd bench --quick``: a well-formed JSON with the expected keys and sane
+values. No wall-clock assertions: the benchmark measures, the tests only check the plumbing."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from pugsd.bench.options import BenchOptions
+from pugsd.bench.run import SCHEMA
+from pugsd.bench.targets import evaluate_targets, format_table
+from pugsd.cli import main
+
+STAGES = (
+    "stereo_depth",
+    "backproject",
+    "fof_update",
+    "ingest",
+    "svgp_step",
+    "grasp_proposal",
+    "algorithm1",
+    "eq13",
+    "end_to_end",
+)
+
+
+_QUICK = BenchOptions.quick_preset()
+
+
+def _tiny() -> BenchOptions:
+    """The quick preset, smaller still (tests share the machine)."""
+    return _QUICK.replace(
+        n_frames=3,
+        width=320,
+        height=240,
+        ready_timeout_s=0.5,
+        svgp_step_repeats=2,
+        drain_timeout_s=2.0,
+        throughput_min_frames=3,
+        throughput_trial_s=0.5,
+        replay_sim_min=0.2,
+        replay_window_min=(0.05, 0.2),
+        replay_wall_s=1.0,
+    )
+
+
+@pytest.fixture(scope="module")
+def quick_json(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    path = tmp_path_factory.mktemp("bench") / "out" / "bench.json"
+    mp = pytest.MonkeyPatch()
+    mp.setattr(BenchOptions, "quick_preset", classmethod(lambda cls: _tiny()))
+    try:
+        rc = main(["bench", "--quick", "--json", str(path)])
+    finally:
+        mp.undo()
+    assert rc == 0
+    return dict(json.loads(path.read_text()))
+
+
+def _finite_nonneg(x: Any) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x) and x >= 0
+
+
+def test_quick_json_is_well_formed(quick_json: dict[str, Any]) -> None:
+    r = quick_json
+    assert r["schema"] == SCHEMA
+    assert r["quick"] is True
+    assert r["errors"] == {}
+    m = r["machine"]
+    assert m["logical_cores"] >= 1 and m["torch_threads"] >= 1
+    assert m["device"] in ("cpu", "cuda") and isinstance(m["cpu_model"], str)
+    assert r["settings"]["downsample"] >= 1 and r["settings"]["n_frames"] == 3
+
+
+def test_quick_stage_latencies_are_sane(quick_json: dict[str, Any]) -> None:
+    stages = quick_json["stages"]
+    for k in STAGES:
+        s = stages[k]
+        assert s["n"] >= 1, k
+        assert _finite_nonneg(s["median_ms"]) and _finite_nonneg(s["p95_ms"]), k
+        assert s["p95_ms"] >= s["median_ms"] - 1e-9, k
+        assert s["max_ms"] >= s["p95_ms"] - 1e-9, k
+
+
+def test_quick_paper_vs_streaming(quick_json: dict[str, Any]) -> None:
+    cmp = quick_json["paper_vs_streaming"]
+    assert set(cmp) == {"complete", "partial"}
+    for c in cmp.values():
+        assert _finite_nonneg(c["streaming_last_frame_to_grasps_s"])
+        assert _finite_nonneg(c["paper_last_frame_to_grasps_s"])
+        ratio = c["paper_last_frame_to_grasps_s"] / c["streaming_last_frame_to_grasps_s"]
+        assert c["ratio_paper_over_streaming"] == pytest.approx(ratio, rel=0.01, abs=0.01)
+        rho = c["spearman_sigma2_occ"]
+        assert rho is None or -1.0 <= rho <= 1.0
+        assert c["top_grasp_same"] in (True, False, None)
+        assert c["query_points"] > 0 and c["paper_epochs"] == 3
+        assert c["paper_svgp_steps"] >= 3
+
+
+def test_quick_throughput_replay_memory(quick_json: dict[str, Any]) -> None:
+    tp = quick_json["throughput"]
+    assert tp["source"] == "daemon" and len(tp["trials"]) >= 1
+    for t in tp["trials"]:
+        assert 0 <= t["integrated"] <= t["offered"]
+        assert t["held"] == (t["integrated"] == t["offered"] and not any(t["drops"].values()))
+    rp = quick_json["replay"]
+    assert rp["frames_offered"] > 0 and rp["simulated_min"] > 0
+    assert rp["rss_growth_frac"] is None or math.isfinite(rp["rss_growth_frac"])
+    mem = quick_json["memory"]
+    assert mem["peak_rss_mb"] > 0 and mem["peak_rss_mb"] >= mem["rss_end_mb"] - 1.0
+
+
+def test_quick_targets_and_table(quick_json: dict[str, Any]) -> None:
+    names = [t["target"] for t in quick_json["targets"]]
+    assert any("paper / streaming" in n for n in names)
+    assert any("sustained input" in n for n in names)
+    assert any("RSS growth" in n for n in names)
+    assert all(t["pass"] in (True, False, None) for t in quick_json["targets"])
+    assert any(line.startswith("target") for line in quick_json["table"])
+
+
+def test_targets_on_a_synthetic_result() -> None:
+    """The judge itself, without running anything."""
+    r: dict[str, Any] = {
+        "quick": False,
+        "wall_s": 600.0,
+        "machine": {"cuda_available": False, "cpu_model": "x", "logical_cores": 2,
+                    "torch": "t", "torch_threads": 1, "device": "cpu",
+                    "load_average_at_start": [0.0]},
+        "settings": {"object": "mug", "n_frames": 30, "resolution": [640, 480], "rate_hz": 10.0,
+                     "downsample": 4, "num_inducing": 500, "batch_size": 1024,
+                     "train_steps_per_frame": 4, "paper_epochs": 100},
+        "stages": {"ingest": {"n": 30, "median_ms": 40.0, "p95_ms": 60.0, "max_ms": 70.0}},
+        "paper_vs_streaming": {
+            "complete": {
+                "streaming_last_frame_to_grasps_s": 0.8, "paper_last_frame_to_grasps_s": 60.0,
+                "ratio_paper_over_streaming": 75.0, "spearman_sigma2_occ": 0.95,
+                "top_grasp_same": True, "top5_overlap": 1.0, "query_points": 100,
+                "streaming_ready": True, "streaming_idle_steps_after_last_frame": 0,
+            }
+        },
+        "throughput": {"source": "daemon", "sustained_hz": 5.0, "trials": [
+            {"rate_hz": 10.0, "offered": 100, "integrated": 90, "drops": {"a": 10},
+             "held": False, "latency": {}},
+            {"rate_hz": 5.0, "offered": 50, "integrated": 50, "drops": {"a": 0},
+             "held": True, "latency": {}}]},
+        "replay": {"source": "daemon", "rss_growth_frac": 0.02, "window_min": [5.0, 30.0],
+                   "simulated_min": 30.0, "target_simulated_min": 30.0, "feed_wall_s": 1.0,
+                   "speedup_vs_real_time": 7.5, "integrated": 10, "rss_window_start_mb": 1.0,
+                   "rss_window_end_mb": 1.02},
+        "memory": {"peak_rss_mb": 10.0},
+    }
+    rows = {t["target"]: t["pass"] for t in evaluate_targets(r)}
+    assert rows["streaming last frame -> grasps (complete)"] is True
+    assert rows["paper / streaming time (complete)"] is True
+    assert rows["Spearman sigma2_occ vs paper (complete)"] is True
+    assert rows["sustained input without drops (daemon)"] is False
+    assert rows["median ingest (depth + back-projection + FOF)"] is True
+    assert rows["RSS growth, minute 5 -> 30 of replay"] is True
+    assert rows["CUDA SVGP steps/s vs CPU"] is None
+    assert rows["whole benchmark wall time"] is True
+    r["targets"] = evaluate_targets(r)
+    table = format_table(r)
+    assert any("FAIL" in line for line in table) and any("PASS" in line for line in table)
+
+
+def test_tools_bench_is_executable() -> None:
+    p = Path(__file__).resolve().parents[2] / "tools" / "bench"
+    assert p.is_file() and p.stat().st_mode & 0o111
