@@ -1,10 +1,86 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Subcommands of this subsystem."""
+"""``pugsd run`` (the service) and ``pugsd demo`` (everything in one process on loopback)."""
 
 from __future__ import annotations
 
 import argparse
+import asyncio
+import logging
+import os
+import signal
+import sys
+
+from pugsd.config import core_of, load_config
+from pugsd.daemon.app import Daemon, apply_thread_limits
+from pugsd.daemon.logs import setup_logging
+
+log = logging.getLogger(__name__)
+
+
+async def serve(daemon: Daemon, stop: asyncio.Event | None = None) -> None:
+    """Run ``daemon`` until SIGTERM or SIGINT (or ``stop``)."""
+    stop = stop if stop is not None else asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        await daemon.run(stop)
+    finally:
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.remove_signal_handler(sig)
+
+
+def exit_after(daemon: Daemon) -> int:
+    """0; exits hard when offloaded work outlived the shutdown bound (threads cannot be joined)."""
+    if daemon.abandoned_work():
+        log.warning("exiting with %d abandoned in-flight call(s)", daemon.abandoned_work())
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
+    return 0
+
+
+def _run(args: argparse.Namespace) -> int:
+    cfg = load_config(args.config, args.set or ())
+    setup_logging(cfg.daemon.log_level, cfg.daemon.log_json)
+    from pugsd.core.pipeline import PugsPipeline  # torch import: only when serving
+
+    daemon = Daemon(cfg, PugsPipeline(core_of(cfg)))
+    apply_thread_limits(cfg)
+    asyncio.run(serve(daemon))
+    return exit_after(daemon)
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from pugsd.daemon.demo import run_demo
+
+    cfg_level = "warning"
+    setup_logging(cfg_level, False)
+
+    def write(line: str) -> None:
+        sys.stdout.write(line + "\n")
+        sys.stdout.flush()
+
+    return run_demo(
+        duration_s=args.duration,
+        out_dir=args.out,
+        listen=args.listen,
+        overrides=args.set or (),
+        write=write,
+    )
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    """No subcommands yet."""
+    p = sub.add_parser("run", help="run the streaming daemon (systemd: Type=notify)")
+    p.add_argument("--config", default=None, help="TOML config (default: built-in defaults)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key")
+    p.set_defaults(func=_run)
+    p = sub.add_parser(
+        "demo", help="daemon + synthetic stereo camera + grasp printer on a loopback zenoh peer"
+    )
+    p.add_argument("--duration", type=float, default=60.0, help="seconds to run (default 60)")
+    p.add_argument("--out", default="pugsd-demo", help="directory for the MCAP and PNG")
+    p.add_argument("--listen", default="tcp/127.0.0.1:7447", help="loopback endpoint other nodes can join")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key")
+    p.set_defaults(func=_demo)

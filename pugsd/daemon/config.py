@@ -15,10 +15,74 @@ class DaemonConfig:
     prefix: str = opt("pugs", "zenoh key prefix of pugsd's own API (queries, status, reset)")
     grasp_rate_hz: float = opt(1.0, "how often grasps are recomputed and published", unit="Hz", gt=0.0)
     status_rate_hz: float = opt(1.0, "status message rate", unit="Hz", gt=0.0)
-    pose_wait_s: float = opt(0.5, "how long a frame waits for a usable pose before it is dropped", unit="s", ge=0.0)
+    pose_wait_s: float = opt(
+        0.5, "how long a frame waits for a usable pose before it is dropped", unit="s", ge=0.0
+    )
+    side_image_wait_s: float = opt(
+        0.1,
+        "while masks (or depth std images) arrive, how long a frame waits for its own",
+        unit="s",
+        ge=0.0,
+    )
     shutdown_timeout_s: float = opt(5.0, "bound on finishing in-flight work at shutdown", unit="s", gt=0.0)
     log_json: bool = opt(False, "structured JSON log lines (for the journal)")
     log_level: str = opt("info", "log level", choices=("debug", "info", "warning", "error"))
+    node_name: str = opt("pugsd", "name in the liveliness token <prefix>/alive/<node_name> and in status")
+    allow_non_loopback: bool = opt(
+        False,
+        "permit [zenoh] endpoints other than tcp/127.0.0.1 and multicast/gossip scouting "
+        "(set true to join a LAN or a router; see docs/deploy.md)",
+    )
+    world_frame: str = opt("world", "frame_id of outputs when the poses name none")
+    ready_latch: bool = opt(
+        True,
+        "keep publishing grasps after the model was first ready (until a reset), even while "
+        "new views make the streaming readiness criterion fail again",
+    )
+    torch_threads: int = opt(
+        1,
+        "torch intra-op threads for SVGP training and prediction (0: torch's default); depth "
+        "estimation runs on its own thread in parallel, and oversubscribed cores slow torch "
+        "down several-fold",
+        ge=0,
+    )
+    train_steps_per_frame: int = opt(4, "SVGP steps (NGD + Adam) after each integrated frame", ge=0)
+    idle_train_steps: int = opt(4, "SVGP steps per round while no frame is waiting", ge=0)
+    idle_train_s: float = opt(
+        60.0, "keep training without new frames for this long after the last one", unit="s", ge=0.0
+    )
+    pose_max_gap_s: float = opt(
+        0.5, "never interpolate between poses further apart than this", unit="s", gt=0.0
+    )
+    pose_std_translation_m: float = opt(
+        0.002,
+        "pose std for PoseStamped input and before any pose carried a covariance",
+        unit="m",
+        ge=0.0,
+    )
+    pose_std_rotation_rad: float = opt(
+        0.0,
+        "rotation std for PoseStamped input and before any pose carried one",
+        unit="rad",
+        ge=0.0,
+    )
+    markers_top_k: int = opt(10, "grasps drawn in the MarkerArray", ge=0)
+    publish_cloud: bool = opt(True, "publish the fused cloud with sigma2_occ and PUGS confidence")
+    stall_timeout_s: float = opt(
+        60.0,
+        "a stage inside one call for longer than this is unhealthy (watchdog pings stop)",
+        unit="s",
+        gt=0.0,
+    )
+    max_consecutive_failures: int = opt(
+        20, "a stage failing this many calls in a row is unhealthy (watchdog pings stop)", ge=1
+    )
+    ingress_limit: int = opt(
+        64,
+        "samples handed from zenoh threads to the loop and not yet handled; beyond it the "
+        "callback drops (zenoh is never blocked)",
+        ge=1,
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -27,12 +91,19 @@ class TopicsConfig:
 
     domain_id: int = opt(0, "ROS 2 domain id (first key segment for rmw_zenoh)", ge=0, le=232)
     key_style: str = opt("rmw_zenoh", "key expression style", choices=("rmw_zenoh", "ros2dds"))
-    hash_mode: str = opt("rihs01", "type hash in keys: rihs01 (Jazzy+) or humble", choices=("rihs01", "humble"))
+    hash_mode: str = opt(
+        "rihs01", "type hash in keys: rihs01 (Jazzy+) or humble", choices=("rihs01", "humble")
+    )
     left_image: str = opt("/stereo/left/image_raw", "left rectified image (sensor_msgs/Image)")
     right_image: str = opt("/stereo/right/image_raw", "right rectified image (sensor_msgs/Image)")
     left_info: str = opt("/stereo/left/camera_info", "left CameraInfo")
     right_info: str = opt("/stereo/right/camera_info", "right CameraInfo")
     pose: str = opt("/camera_pose", "camera pose (PoseWithCovarianceStamped or PoseStamped)")
+    pose_type: str = opt(
+        "PoseWithCovarianceStamped",
+        "pose message type when the key does not say (ros2dds keys)",
+        choices=("PoseWithCovarianceStamped", "PoseStamped"),
+    )
     mask: str = opt("/stereo/left/mask", "optional object mask aligned with the left image")
     depth: str = opt("/depth/image", "depth image input (32FC1 m or 16UC1 mm) instead of stereo")
     depth_info: str = opt("/depth/camera_info", "CameraInfo of the depth image")
@@ -51,3 +122,7 @@ class QueuesConfig:
     depth: int = opt(4, "depth frames waiting for fusion (drop oldest)", ge=1)
     commands: int = opt(8, "commands waiting (reject when full)", ge=1)
     record: int = opt(256, "messages waiting for the recorder (drop oldest)", ge=1)
+    pose_wait: int = opt(8, "frames waiting for a usable pose (drop oldest)", ge=1)
+    unpaired: int = opt(8, "stereo halves waiting for their partner stamp (drop oldest)", ge=1)
+    poses: int = opt(512, "poses kept for interpolation", ge=2)
+    side_images: int = opt(8, "masks and depth-std images kept for matching by stamp", ge=1)

@@ -1,0 +1,861 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The streaming daemon: stereo (or depth) and poses in over zenoh, PUGS-scored grasps out.
+
+Wiring (style.md 3.3)::
+
+    zenoh callbacks --(copy bytes, call_soon_threadsafe, ingress bound)--> loop: decode, pair by
+    stamp, wait for a pose (PoseGate) --> [stereo mailbox, drop oldest] --> depth worker
+    (depth_from_stereo, off the loop) --> [depth mailbox, drop oldest] --> model worker
+    (integrate + train_steps under the model lock, off the loop; idle training when no frame)
+    grasp worker (every 1/grasp_rate_hz, once ready: compute + encode off the loop, publish)
+    command worker ([commands mailbox, reject]: reset), status (1 Hz), watchdog, supervisor.
+
+Only the loop thread touches mailboxes and buffers. Heavy calls run off the loop on two dedicated
+threads: one for depth estimation (stateless), one for everything that touches the pipeline's
+mutable state (store, SVGP), which is additionally guarded by ``_model_lock``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import contextlib
+import json
+import logging
+import sys
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from typing import Any, Protocol, TypeVar
+
+import numpy as np
+import zenoh
+
+from pugsd.core.camera import StereoRig
+from pugsd.core.types import DepthFrame, StereoFrame
+from pugsd.daemon.health import Health
+from pugsd.daemon.mailbox import Mailbox, Overflow
+from pugsd.daemon.notify import Notifier, watchdog_interval_s
+from pugsd.daemon.timesync import ExactPairer, PoseBuffer, PoseGate, PoseSample
+from pugsd.errors import DecodeError, PugsdError
+from pugsd.wire import codec
+from pugsd.wire.keys import parse_key
+from pugsd.wire.publisher import Publisher
+from pugsd.wire.session import close_session, open_session
+from pugsd.wire.topics import INPUT_ROLES, key_for, subscribe_key_for
+from pugsd.wire.types import IMAGE, POSE_COV_STAMPED, POSE_STAMPED
+
+log = logging.getLogger(__name__)
+
+R = TypeVar("R")
+
+STEREO_ENCODINGS = ("mono8", "rgb8", "bgr8")
+DEPTH_ENCODINGS = ("32FC1", "16UC1")
+MASK_ENCODINGS = ("mono8",)
+
+
+class Pipeline(Protocol):
+    """What the daemon needs from :class:`pugsd.core.pipeline.PugsPipeline`."""
+
+    @property
+    def ready(self) -> bool: ...
+
+    def depth_from_stereo(self, frame: StereoFrame) -> DepthFrame: ...
+
+    def integrate(self, depth: DepthFrame) -> int: ...
+
+    def train_steps(self, n: int) -> Any: ...
+
+    def compute(self) -> Any: ...
+
+    def reset(self) -> None: ...
+
+    def stats(self) -> dict[str, Any]: ...
+
+
+def apply_thread_limits(cfg: Any) -> None:
+    """``[daemon] torch_threads`` (process-wide; a no-op until the pipeline has imported torch)."""
+    torch = sys.modules.get("torch")
+    if cfg.daemon.torch_threads > 0 and torch is not None:
+        torch.set_num_threads(cfg.daemon.torch_threads)
+
+
+def reason_class(exc: BaseException) -> str:
+    """A short, countable class for a rejection (the full reason goes to the log)."""
+    text = str(exc).lower()
+    for key, words in (
+        ("malformed_cdr", ("malformed cdr", "truncated cdr", "cdr encapsulation", "not bytes")),
+        ("wrong_type", ("not accepted (expected", "unsupported pose type", "rmw_zenoh key")),
+        ("no_camera_info", ("no camerainfo",)),
+        ("non_psd_covariance", ("semi-definite", "not symmetric", "non-finite covariance")),
+        ("bad_pose", ("non-finite pose", "quaternion", "rigid", "orthonormal", "t_w_c")),
+        ("wrong_encoding", ("encoding",)),
+        ("wrong_size", ("data has", "step", "size", "shape", "mismatch", "expects", "empty image")),
+        ("bad_camera_info", ("camerainfo", "baseline", "intrinsics", "rectified")),
+        ("bad_stamp", ("stamp",)),
+    ):
+        if any(w in text for w in words):
+            return key
+    return type(exc).__name__
+
+
+@dataclass(frozen=True, slots=True)
+class Inbound:
+    """One zenoh sample as handed to the loop: role, key, payload copy, receive time."""
+
+    role: str
+    key: str
+    payload: bytes
+    recv_s: float  # time.monotonic()
+
+
+@dataclass(frozen=True, slots=True)
+class Command:
+    name: str
+    query: Any | None  # a zenoh Query to answer, or None for a put
+
+
+class IngressGate:
+    """Thread-safe count of samples scheduled on the loop but not handled; bounds that backlog."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self._pending = 0
+        self._lock = threading.Lock()
+        self.dropped = 0
+
+    def enter(self) -> bool:
+        with self._lock:
+            if self._pending >= self.limit:
+                self.dropped += 1
+                return False
+            self._pending += 1
+            return True
+
+    def leave(self) -> None:
+        with self._lock:
+            self._pending -= 1
+
+    @property
+    def pending(self) -> int:
+        return self._pending
+
+
+class Daemon:
+    """Owns the zenoh entities, mailboxes and workers; ``run(stop)`` serves until ``stop``."""
+
+    def __init__(
+        self,
+        cfg: Any,  # pugsd.config.PugsdConfig
+        pipeline: Pipeline,
+        *,
+        notifier: Notifier | None = None,
+        session: zenoh.Session | None = None,
+    ) -> None:
+        self.cfg = cfg
+        d, q = cfg.daemon, cfg.queues
+        self.pipeline = pipeline
+        self.notifier = notifier if notifier is not None else Notifier()
+        self._own_session = session is None
+        self._session = session
+        self.health = Health(d.stall_timeout_s, d.max_consecutive_failures)
+        self.stereo_box: Mailbox[tuple[StereoFrame, float]] = Mailbox(
+            "stereo", q.stereo, Overflow.DROP_OLDEST
+        )
+        self.depth_box: Mailbox[tuple[DepthFrame, float]] = Mailbox("depth", q.depth, Overflow.DROP_OLDEST)
+        self.commands: Mailbox[Command] = Mailbox("commands", q.commands, Overflow.REJECT)
+        default_cov = np.diag([d.pose_std_translation_m**2] * 3 + [d.pose_std_rotation_rad**2] * 3).astype(
+            np.float64
+        )
+        self._pose_stamped_cov = default_cov
+        self.poses = PoseBuffer(q.poses, int(d.pose_max_gap_s * 1e9), default_cov)
+        self.gate: PoseGate[tuple[str, Any, float]] = PoseGate(self.poses, d.pose_wait_s, q.pose_wait)
+        self.pairer: ExactPairer[codec.ImageMsg, codec.ImageMsg] = ExactPairer(q.unpaired)
+        self._masks: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._stds: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._infos: dict[str, codec.CameraInfoMsg] = {}
+        self._rig: StereoRig | None = None
+        self._last_mask_s: float | None = None
+        self._last_std_s: float | None = None
+        self._frame_id = d.world_frame
+        self.ingress = IngressGate(d.ingress_limit)
+        self._model_lock = threading.Lock()
+        # one thread for depth estimation, one for everything that touches the model state
+        self._depth_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pugsd-depth")
+        self._model_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pugsd-model")
+        self._in_flight: set[concurrent.futures.Future[Any]] = set()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._subscribers: list[Any] = []
+        self._entities: list[Any] = []  # queryables, token (undeclared after the subscribers)
+        self._publishers: dict[str, Publisher] = {}
+        self.recorder: Any = None  # pugsd.record.recorder.Recorder when [record] enabled
+        self._stopping = False
+        self._retry_train_at = 0.0
+        self._generation = 0  # bumped by reset: frames from before it are not integrated
+        self._busy: dict[str, bool] = {}
+        # model state as seen by the loop
+        self.latest_grasps: bytes | None = None
+        self.latest_result: Any = None  # the last PipelineResult (for the demo's figure)
+        self.latest_status: dict[str, Any] = {}
+        self.model_version: int | None = None
+        self.elbo: float | None = None
+        self.ready = False
+        self.was_ready = False  # ready at least once since the start or the last reset
+        self._changed = False  # model changed since the last compute
+        self._last_frame_s: float | None = None  # monotonic time of the last integrated frame
+        self._newest_recv_s: float | None = None  # receive time of the newest integrated frame
+        self._newest_stamp_ns = 0
+        self.grasps_published = 0
+
+    # --- lifecycle ------------------------------------------------------------------------------
+
+    @property
+    def session(self) -> zenoh.Session:
+        assert self._session is not None
+        return self._session
+
+    def key(self, suffix: str) -> str:
+        return f"{self.cfg.daemon.prefix}/{suffix}"
+
+    async def run(self, stop: asyncio.Event) -> None:
+        """Serve until ``stop`` is set; then stop intake, finish in-flight work within
+        ``shutdown_timeout_s``, undeclare everything and close the session."""
+        self._loop = asyncio.get_running_loop()
+        apply_thread_limits(self.cfg)
+        if self._session is None:
+            self._session = open_session(
+                self.cfg.zenoh, require_loopback=not self.cfg.daemon.allow_non_loopback
+            )
+        try:
+            self._declare_outputs()
+            self._declare_inputs()
+            self._start_recorder()
+            log.info(
+                "pugsd serving: prefix %r, %d input keys, zenoh %s",
+                self.cfg.daemon.prefix,
+                len(self._subscribers),
+                self.session.zid(),
+            )
+            self.notifier.send("READY=1", "STATUS=waiting for frames")
+            async with asyncio.TaskGroup() as tg:
+                workers = {
+                    "depth": tg.create_task(self._depth_worker(), name="depth"),
+                    "model": tg.create_task(self._model_worker(), name="model"),
+                    "grasps": tg.create_task(self._grasp_worker(), name="grasps"),
+                    "commands": tg.create_task(self._command_worker(), name="commands"),
+                    "status": tg.create_task(self._status_worker(), name="status"),
+                    "watchdog": tg.create_task(self._watchdog_worker(), name="watchdog"),
+                    "gate": tg.create_task(self._gate_worker(), name="gate"),
+                }
+                tg.create_task(self._supervise(stop, workers), name="supervisor")
+        finally:
+            self.notifier.send("STOPPING=1")
+            self._close()
+            for ex in (self._depth_exec, self._model_exec):
+                ex.shutdown(wait=False, cancel_futures=True)
+            log.info("pugsd stopped")
+
+    @property
+    def serving(self) -> bool:
+        """True once the subscriptions are live (READY was sent) and until shutdown begins."""
+        return bool(self._subscribers) and not self._stopping
+
+    def abandoned_work(self) -> int:
+        """Offloaded calls still running after shutdown (the CLI then exits hard)."""
+        return sum(1 for f in self._in_flight if not f.done())
+
+    async def _supervise(self, stop: asyncio.Event, workers: dict[str, asyncio.Task[None]]) -> None:
+        await stop.wait()
+        t0 = time.monotonic()
+        log.info("shutdown: stopping intake")
+        self._stopping = True
+        for sub in self._subscribers:
+            self._undeclare(sub)
+        self._subscribers.clear()
+        for box in (self.stereo_box, self.depth_box, self.commands):
+            box.close()
+        for name, task in workers.items():
+            if not self._busy.get(name):
+                task.cancel()
+        busy = [t for t in workers.values() if not t.done()]
+        if busy:
+            log.info("shutdown: finishing in-flight work (%s)", ", ".join(t.get_name() for t in busy))
+            _, pending = await asyncio.wait(busy, timeout=self.cfg.daemon.shutdown_timeout_s)
+            for t in pending:
+                log.warning("shutdown: %s did not finish in time; abandoning it", t.get_name())
+                t.cancel()
+        log.info("shutdown: workers stopped in %.2f s", time.monotonic() - t0)
+
+    def _undeclare(self, ent: Any) -> None:
+        try:
+            ent.undeclare()
+        except Exception as exc:
+            log.debug("undeclare failed: %s", exc)
+
+    def _start_recorder(self) -> None:
+        if not self.cfg.record.enabled:
+            return
+        from pugsd.record.recorder import Recorder, default_record_keys  # only when recording
+
+        keys = default_record_keys(self.cfg)
+        self.recorder = Recorder.from_config(self.cfg).start()
+        self.recorder.subscribe(self.session, keys)
+        log.info("recording %d key expressions to %s", len(keys), self.cfg.record.directory)
+
+    def _close(self) -> None:
+        if self.recorder is not None:
+            files = self.recorder.stop(timeout=self.cfg.daemon.shutdown_timeout_s)
+            log.info("recording finished: %s", ", ".join(str(f) for f in files) or "no file")
+            self.recorder = None
+        for sub in self._subscribers:
+            self._undeclare(sub)
+        self._subscribers.clear()
+        for ent in self._entities:
+            self._undeclare(ent)
+        self._entities.clear()
+        for pub in self._publishers.values():
+            self._undeclare(pub)
+        self._publishers.clear()
+        if self._own_session and self._session is not None:
+            close_session(self._session)
+            self._session = None
+
+    # --- zenoh entities ---------------------------------------------------------------------------
+
+    def _declare_outputs(self) -> None:
+        t = self.cfg.topics
+        for role in ("grasps", "markers", "cloud", "status"):
+            self._publishers[role] = Publisher(self.session, key_for(t, role))
+        s = self.session
+        self._entities.append(s.declare_queryable(self.key("grasps/latest"), self._bridge_query("latest")))
+        self._entities.append(s.declare_queryable(self.key("status"), self._bridge_query("status")))
+        self._entities.append(s.declare_queryable(self.key("reset"), self._bridge_query("reset")))
+        self._entities.append(s.declare_subscriber(self.key("reset"), self._bridge_reset_put))
+        self._entities.append(s.liveliness().declare_token(self.key(f"alive/{self.cfg.daemon.node_name}")))
+
+    def _declare_inputs(self) -> None:
+        t = self.cfg.topics
+        for role in INPUT_ROLES:
+            key = subscribe_key_for(t, role)
+            self._subscribers.append(self.session.declare_subscriber(key, self._bridge_sample(role)))
+
+    def _bridge_sample(self, role: str) -> Callable[[Any], None]:
+        loop = self._loop
+        assert loop is not None
+        gate = self.ingress
+
+        def on_sample(sample: Any) -> None:  # zenoh thread: copy bytes, hand over, never block
+            if not gate.enter():
+                return
+            try:
+                item = Inbound(role, str(sample.key_expr), sample.payload.to_bytes(), time.monotonic())
+                loop.call_soon_threadsafe(self._on_inbound, item)
+            except Exception:  # loop closed during shutdown
+                gate.leave()
+
+        return on_sample
+
+    def _bridge_query(self, kind: str) -> Callable[[Any], None]:
+        loop = self._loop
+        assert loop is not None
+
+        def on_query(query: Any) -> None:
+            try:
+                loop.call_soon_threadsafe(self._on_query, kind, query)
+            except RuntimeError:
+                query.drop()
+
+        return on_query
+
+    def _bridge_reset_put(self, sample: Any) -> None:
+        loop = self._loop
+        assert loop is not None
+        with contextlib.suppress(RuntimeError):
+            loop.call_soon_threadsafe(self._offer_command, Command("reset", None))
+
+    # --- loop-side handlers -----------------------------------------------------------------------
+
+    def _on_query(self, kind: str, query: Any) -> None:
+        key = str(query.key_expr) if kind != "latest" else self.key("grasps/latest")
+        with query:
+            if kind == "latest":
+                if self.latest_grasps is None:
+                    query.reply_err("no grasps yet: model not ready")
+                else:
+                    query.reply(key, self.latest_grasps)
+            elif kind == "status":
+                query.reply(key, json.dumps(_jsonable(self.status())))
+            elif kind == "reset":
+                if self._offer_command(Command("reset", None)):
+                    query.reply(key, "accepted")
+                else:
+                    query.reply_err(f"rejected: {self.commands.reject_reason()}")
+
+    def _offer_command(self, cmd: Command) -> bool:
+        ok = self.commands.offer(cmd)
+        if not ok:
+            self.health.reject("commands", "queue full" if not self._stopping else "shutting down")
+            log.warning("command %s rejected: %s", cmd.name, self.commands.reject_reason())
+        return ok
+
+    def _reject(self, role: str, exc: BaseException) -> None:
+        cls = reason_class(exc)
+        self.health.reject(role, cls)
+        n = self.health.rejected[f"{role}: {cls}"]
+        if n <= 5 or n % 100 == 0:
+            log.warning("rejected %s input (%s, #%d): %s", role, cls, n, exc)
+
+    def _on_inbound(self, item: Inbound) -> None:
+        self.ingress.leave()
+        self.health.count(f"received.{item.role}")
+        if self._stopping:
+            return
+        try:
+            self._dispatch(item)
+        except PugsdError as exc:
+            self._reject(item.role, exc)
+        except Exception as exc:  # a bug, not bad input: count and log, keep serving
+            self.health.count(f"errors.input.{item.role}")
+            log.exception("handling %s input failed: %s", item.role, exc)
+
+    def _msg_type(self, item: Inbound, default: str) -> str:
+        if self.cfg.topics.key_style == "rmw_zenoh":
+            return parse_key(item.key).typename
+        return default
+
+    def _dispatch(self, item: Inbound) -> None:
+        role, data = item.role, item.payload
+        if role in ("left_image", "right_image"):
+            self._expect_type(item, IMAGE)
+            img = codec.decode_image(data, STEREO_ENCODINGS)
+            pair = (
+                self.pairer.add_left(img.stamp_ns, img)
+                if role == "left_image"
+                else self.pairer.add_right(img.stamp_ns, img)
+            )
+            if pair is not None:
+                self.health.count("paired")
+                self._admit(img.stamp_ns, ("stereo", pair, item.recv_s), item.recv_s)
+        elif role in ("left_info", "right_info", "depth_info"):
+            info = codec.decode_camera_info(data)
+            self._infos[role] = info
+            if role != "depth_info":
+                self._rig = None  # rebuilt lazily from both infos
+            self._poll_gate()
+        elif role == "pose":
+            typename = self._msg_type(item, _POSE_TYPES[self.cfg.topics.pose_type])
+            pm = codec.decode_pose(data, typename, self._pose_stamped_cov)
+            cov = pm.cov if pm.cov is not None and np.any(pm.cov != 0.0) else None
+            self.poses.add(PoseSample(pm.stamp_ns, pm.T, cov))
+            if pm.frame_id:
+                self._frame_id = pm.frame_id
+            self.health.count("poses")
+            self._poll_gate()
+        elif role == "mask":
+            self._expect_type(item, IMAGE)
+            m = codec.decode_image(data, MASK_ENCODINGS)
+            _bounded_put(self._masks, m.stamp_ns, m.array > 0, self.cfg.queues.side_images)
+            self._last_mask_s = item.recv_s
+            self._poll_gate()
+        elif role == "depth_std":
+            self._expect_type(item, IMAGE)
+            s = codec.decode_image(data, ("32FC1",))
+            _bounded_put(self._stds, s.stamp_ns, s.array.astype(np.float32), self.cfg.queues.side_images)
+            self._last_std_s = item.recv_s
+            self._poll_gate()
+        elif role == "depth":
+            self._expect_type(item, IMAGE)
+            img = codec.decode_image(data, DEPTH_ENCODINGS)
+            self._admit(img.stamp_ns, ("depth", img, item.recv_s), item.recv_s)
+
+    def _expect_type(self, item: Inbound, typename: str) -> None:
+        got = self._msg_type(item, typename)
+        if got != typename:
+            raise DecodeError(f"{item.role}: type {got} not accepted (expected {typename})")
+
+    def _admit(self, stamp_ns: int, entry: tuple[str, Any, float], now_s: float) -> None:
+        for _, reason in self.gate.add(stamp_ns, entry, now_s):
+            self.health.drop("pose_wait", reason)
+        self._poll_gate()
+
+    def _pending(self, entry: tuple[str, Any, float], now_s: float) -> str | None:
+        """Why a pose-ready frame must still wait (missing CameraInfo, a mask on its way)."""
+        kind, payload, recv_s = entry
+        if kind == "stereo":
+            if "left_info" not in self._infos or "right_info" not in self._infos:
+                return "no CameraInfo for both cameras yet"
+            stamp = payload[0].stamp_ns
+        else:
+            if "depth_info" not in self._infos:
+                return "no CameraInfo for the depth image yet"
+            stamp = payload.stamp_ns
+            if self._std_active(now_s) and stamp not in self._stds and self._side_wait(recv_s, now_s):
+                return "depth std image not here yet"
+        if self._mask_active(now_s) and stamp not in self._masks and self._side_wait(recv_s, now_s):
+            return "mask not here yet"
+        return None
+
+    def _side_wait(self, recv_s: float, now_s: float) -> bool:
+        return now_s - recv_s < self.cfg.daemon.side_image_wait_s
+
+    def _mask_active(self, now_s: float) -> bool:
+        return self._last_mask_s is not None and now_s - self._last_mask_s < _SIDE_ACTIVE_S
+
+    def _std_active(self, now_s: float) -> bool:
+        return self._last_std_s is not None and now_s - self._last_std_s < _SIDE_ACTIVE_S
+
+    def _poll_gate(self) -> None:
+        ready, dropped = self.gate.poll(time.monotonic(), self._pending)
+        for _, reason in dropped:
+            self.health.drop("pose_wait", _short(reason))
+        for (kind, payload, recv_s), stamp_ns, T, cov in ready:
+            try:
+                if kind == "stereo":
+                    self._emit_stereo(payload, stamp_ns, T, cov, recv_s)
+                else:
+                    self._emit_depth(payload, stamp_ns, T, cov, recv_s)
+            except PugsdError as exc:
+                self._reject("left_image" if kind == "stereo" else "depth", exc)
+
+    def _stereo_rig(self) -> StereoRig:
+        if self._rig is None:
+            left, right = self._infos.get("left_info"), self._infos.get("right_info")
+            if left is None or right is None:
+                raise DecodeError("stereo: no CameraInfo for both cameras yet")
+            self._rig = codec.stereo_rig_from_infos(left, right)
+        return self._rig
+
+    def _emit_stereo(
+        self,
+        pair: tuple[codec.ImageMsg, codec.ImageMsg],
+        stamp_ns: int,
+        T: np.ndarray,
+        cov: np.ndarray,
+        recv_s: float,
+    ) -> None:
+        left, right = pair
+        if left.encoding != right.encoding:
+            raise DecodeError(f"stereo pair encoding mismatch: {left.encoding} vs {right.encoding}")
+        frame = StereoFrame(
+            stamp_ns=stamp_ns,
+            left=left.rgb_or_mono(),
+            right=right.rgb_or_mono(),
+            rig=self._stereo_rig(),
+            T_W_C=T,
+            pose_cov=cov,
+            mask=self._masks.pop(stamp_ns, None),
+        )
+        self.health.count("frames.stereo")
+        self.stereo_box.offer((frame, recv_s))
+
+    def _emit_depth(
+        self, img: codec.ImageMsg, stamp_ns: int, T: np.ndarray, cov: np.ndarray, recv_s: float
+    ) -> None:
+        info = self._infos.get("depth_info")
+        if info is None:
+            raise DecodeError("depth: no CameraInfo for the depth image yet")
+        frame = DepthFrame(
+            stamp_ns=stamp_ns,
+            depth_m=img.depth_m(),
+            camera=info.camera,
+            T_W_C=T,
+            pose_cov=cov,
+            sigma_m=self._stds.pop(stamp_ns, None),
+            mask=self._masks.pop(stamp_ns, None),
+        )
+        self.health.count("frames.depth")
+        self.depth_box.offer((frame, recv_s))
+
+    # --- workers ----------------------------------------------------------------------------------
+
+    async def _offload(self, stage: str, fn: Callable[..., R], *args: Any) -> R:
+        """Run ``fn(*args)`` off the loop, timed and watched as ``stage``."""
+        loop = asyncio.get_running_loop()
+        self._busy[stage] = True
+        try:
+            with self.health.busy(stage):
+                ex = self._depth_exec if stage == "depth" else self._model_exec
+                fut = ex.submit(fn, *args)
+                self._in_flight.add(fut)
+                fut.add_done_callback(self._in_flight.discard)
+                return await asyncio.wrap_future(fut, loop=loop)
+        finally:
+            self._busy[stage] = False
+
+    def _locked(self, fn: Callable[..., R], *args: Any) -> R:
+        with self._model_lock:
+            return fn(*args)
+
+    async def _guard(self, stage: str, coro: Awaitable[R]) -> R | None:
+        """Await ``coro``; a PugsdError is a counted rejection, anything else a logged error."""
+        try:
+            out = await coro
+        except PugsdError as exc:
+            self._reject(stage, exc)
+        except Exception as exc:
+            self.health.failed(stage)
+            key = f"errors.{stage}"
+            self.health.count(key)
+            n = self.health.counts[key]
+            if n == 1:
+                log.exception("%s stage failed; continuing", stage)
+            elif n <= 5 or n % 100 == 0:
+                log.error("%s stage failed (#%d): %s: %s", stage, n, type(exc).__name__, exc)
+        else:
+            self.health.succeeded(stage)
+            return out
+        return None
+
+    async def _depth_worker(self) -> None:
+        while not self._stopping:
+            frame, recv_s = await self.stereo_box.take()
+            gen = self._generation
+            depth = await self._guard("depth", self._offload("depth", self.pipeline.depth_from_stereo, frame))
+            if depth is not None and gen != self._generation:
+                self.health.drop("depth", "map reset while in flight")
+            elif depth is not None:
+                self.health.count("depth")
+                self.depth_box.offer((depth, recv_s))
+
+    async def _train(self, steps: int) -> None:
+        stats = await self._guard(
+            "train", self._offload("train", self._locked, self.pipeline.train_steps, steps)
+        )
+        if stats is not None:
+            self._note_train(stats, steps)
+            self._changed = True
+
+    async def _model_worker(self) -> None:
+        d = self.cfg.daemon
+        while not self._stopping:
+            idle = (
+                self._last_frame_s is not None
+                and d.idle_train_steps > 0
+                and time.monotonic() - self._last_frame_s < d.idle_train_s
+            )
+            item = await self.depth_box.take_within(0.02 if idle else 0.5)
+            if item is not None:
+                depth, recv_s = item
+                n = await self._guard(
+                    "integrate",
+                    self._offload("integrate", self._locked, self.pipeline.integrate, depth),
+                )
+                if n is None:
+                    continue
+                self.health.count("integrated")
+                if self.health.counts["integrated"] == 1:
+                    log.info("first frame integrated (%d points)", n)
+                self.health.count("points", n)
+                self.health.observe("frame_age_at_integrate", time.monotonic() - recv_s)
+                self._last_frame_s = time.monotonic()
+                self._newest_recv_s = recv_s
+                self._newest_stamp_ns = max(self._newest_stamp_ns, depth.stamp_ns)
+                self._changed = True
+                if d.train_steps_per_frame > 0 and not self._stopping:
+                    await self._train(d.train_steps_per_frame)
+            elif idle and not self._stopping and time.monotonic() >= self._retry_train_at:
+                await self._train(d.idle_train_steps)
+                k = self.health.failures.get("train", 0)
+                # a failing model is retried with exponential backoff (0.1 s .. 5 s)
+                self._retry_train_at = time.monotonic() + (min(0.1 * 2 ** (k - 1), 5.0) if k else 0.0)
+
+    def _note_train(self, stats: Any, steps: int) -> None:
+        self.health.count("train_steps", steps)
+        elbo = float(stats.elbo)
+        self.elbo = elbo if np.isfinite(elbo) else None
+        was = self.ready
+        self.ready = bool(stats.ready)
+        self.was_ready = self.was_ready or self.ready
+        if self.ready and not was:
+            log.info("model ready (ELBO %.4g)", elbo)
+
+    def _compute_and_encode(self, frame_id: str, stamp_ns: int) -> tuple[Any, dict[str, bytes]]:
+        with self._model_lock:
+            result = self.pipeline.compute()
+        g = result.grasps
+        out = {"grasps": codec.encode_grasp_array(g, frame_id, stamp_ns)}
+        out["markers"] = codec.encode_grasp_markers(
+            g, frame_id, stamp_ns, top_k=self.cfg.daemon.markers_top_k
+        )
+        if self.cfg.daemon.publish_cloud:
+            out["cloud"] = codec.encode_cloud(
+                result.cloud_W,
+                stamp_ns,
+                frame_id,
+                sigma2_occ=result.sigma2_occ,
+                pugs_confidence=result.pugs_conf_points,
+            )
+        return result, out
+
+    async def _grasp_worker(self) -> None:
+        period = 1.0 / self.cfg.daemon.grasp_rate_hz
+        next_t = time.monotonic()
+        while not self._stopping:
+            next_t += period
+            await asyncio.sleep(max(0.0, next_t - time.monotonic()))
+            next_t = max(next_t, time.monotonic() - period)
+            publishable = self.ready or (self.cfg.daemon.ready_latch and self.was_ready)
+            if not (publishable and self._changed) or self._stopping:
+                continue
+            self._changed = False
+            newest_recv = self._newest_recv_s
+            res = await self._guard(
+                "grasps",
+                self._offload("grasps", self._compute_and_encode, self._frame_id, self._newest_stamp_ns),
+            )
+            if res is None:
+                continue
+            result, payloads = res
+            for role, data in payloads.items():
+                self._publishers[role].put(data)
+            self.latest_grasps = payloads["grasps"]
+            self.latest_result = result
+            self.model_version = int(result.model_version)
+            self.grasps_published += 1
+            self.health.count("grasps_published")
+            if newest_recv is not None:
+                self.health.observe("newest_frame_to_grasps", time.monotonic() - newest_recv)
+            g = result.grasps
+            if len(g):
+                log.info(
+                    "grasps v%s: %d, top PUGS %.3f (baseline %.3f, sigma2 %.3g)",
+                    self.model_version,
+                    len(g),
+                    float(g.pugs_confidence[0]),
+                    float(g.baseline_confidence[0]),
+                    float(g.sigma2_occ[0]),
+                )
+
+    async def _command_worker(self) -> None:
+        while not self._stopping:
+            cmd = await self.commands.take()
+            if cmd.name == "reset":
+                self._generation += 1
+                self.stereo_box.clear()
+                self.depth_box.clear()
+                self.gate.clear()
+                self.pairer.clear()
+                await self._guard("reset", self._offload("reset", self._locked, self.pipeline.reset))
+                self.latest_grasps = None
+                self.latest_result = None
+                self.ready = False
+                self.was_ready = False
+                self._changed = False
+                self._last_frame_s = None
+                self._newest_recv_s = None
+                self.elbo = None
+                self.health.count("resets")
+                log.info("reset: map cleared")
+
+    def status(self) -> dict[str, Any]:
+        try:
+            pstats = self.pipeline.stats()
+        except Exception as exc:  # stats are best effort
+            pstats = {"error": str(exc)}
+        snap = self.health.snapshot()
+        return {
+            "node": self.cfg.daemon.node_name,
+            "stamp_ns": time.time_ns(),
+            "ready": self.ready,
+            "was_ready": self.was_ready,
+            "model_version": self.model_version,
+            "elbo": self.elbo,
+            "grasps_published": self.grasps_published,
+            **snap,
+            "mailboxes": {b.name: b.stats() for b in (self.stereo_box, self.depth_box, self.commands)},
+            "ingress": {"pending": self.ingress.pending, "dropped": self.ingress.dropped},
+            "waiting": {
+                "pose_gate": len(self.gate),
+                "unpaired": self.pairer.pending(),
+                "unpaired_dropped": self.pairer.unpaired_dropped,
+                "poses": len(self.poses),
+            },
+            "pipeline": pstats,
+            "recorder": None if self.recorder is None else self.recorder.stats.as_dict(),
+        }
+
+    async def _status_worker(self) -> None:
+        period = 1.0 / self.cfg.daemon.status_rate_hz
+        while not self._stopping:
+            await asyncio.sleep(period)
+            st = self.status()
+            self.latest_status = st
+            try:
+                self._publishers["status"].put(codec.encode_status(_jsonable(st)))
+            except Exception as exc:
+                log.warning("status publish failed: %s", exc)
+            c = st["counts"]
+            self.notifier.send(
+                f"STATUS=frames {c.get('frames.stereo', 0) + c.get('frames.depth', 0)}, "
+                f"integrated {c.get('integrated', 0)}, ready {self.ready}, "
+                f"grasps {self.grasps_published}, dropped {c.get('dropped', 0)}, "
+                f"rejected {c.get('rejected', 0)}"
+            )
+
+    async def _watchdog_worker(self) -> None:
+        interval = watchdog_interval_s()
+        period = min(1.0, interval) if interval else 1.0
+        reported: list[str] = []
+        while not self._stopping:
+            self.health.tick()
+            problems = self.health.problems()
+            if problems:
+                if problems != reported:
+                    log.error("unhealthy, withholding watchdog pings: %s", "; ".join(problems))
+                reported = problems
+            else:
+                reported = []
+                if interval:
+                    self.notifier.send("WATCHDOG=1")
+            await asyncio.sleep(period)
+
+    async def _gate_worker(self) -> None:
+        """Expire frames whose pose never came (deadlines pass without new input)."""
+        while not self._stopping:
+            await asyncio.sleep(0.05)
+            if len(self.gate):
+                self._poll_gate()
+
+
+_SIDE_ACTIVE_S = 2.0  # a mask/std topic counts as active this long after its last message
+
+_POSE_TYPES = {"PoseWithCovarianceStamped": POSE_COV_STAMPED, "PoseStamped": POSE_STAMPED}
+
+
+def _bounded_put(d: OrderedDict[int, np.ndarray], key: int, value: np.ndarray, cap: int) -> None:
+    d[key] = value
+    d.move_to_end(key)
+    while len(d) > cap:
+        d.popitem(last=False)
+
+
+def _short(reason: str) -> str:
+    """Drop counters keyed by the reason's stable head (no numbers)."""
+    return reason.split(" (", 1)[0]
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+def _jsonable(obj: Any) -> Any:
+    """Plain JSON types: numpy scalars unwrapped, NaN and inf as None (strict JSON)."""
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    if obj is None or isinstance(obj, (bool, int, float, str)):
+        return obj
+    return str(obj)

@@ -1,0 +1,352 @@
+# SPDX-License-Identifier: Apache-2.0
+"""``pugsd demo``: the daemon, a synthetic stereo camera and a grasp printer on one loopback peer.
+
+Everything talks over zenoh exactly as separate ROS 2 (rmw_zenoh) nodes would: the daemon's session
+listens on the loopback endpoint, and the camera/printer/recorder session connects to it, so the
+camera's frames and the daemon's grasps cross a real TCP link. Console lines go to ``write``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import re
+import signal
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from pugsd.config import PugsdConfig, core_of, load_config_dict
+from pugsd.core.camera import StereoRig
+from pugsd.core.types import StereoFrame
+from pugsd.daemon.app import Daemon, apply_thread_limits
+from pugsd.errors import ConfigError, PugsdError
+from pugsd.wire import codec
+from pugsd.wire.publisher import Publisher
+from pugsd.wire.session import close_session, loopback_config, open_session
+from pugsd.wire.topics import key_for
+
+log = logging.getLogger(__name__)
+
+Writer = Callable[[str], None]
+
+
+class SyntheticCamera:
+    """Publishes StereoFrames as a stereo driver plus localiser would: CameraInfo x2, the pose
+    (PoseWithCovarianceStamped), the object mask, then the left and right images, one stamp."""
+
+    ROLES = ("left_info", "right_info", "pose", "mask", "left_image", "right_image")
+
+    def __init__(self, session: zenoh.Session, topics: Any) -> None:
+        self.topics = topics
+        self.pubs = {r: Publisher(session, key_for(topics, r)) for r in self.ROLES}
+        self.sent = 0
+
+    def wait_matching(self, timeout_s: float) -> bool:
+        t0 = time.monotonic()
+        while not all(self.pubs[r].matching for r in ("left_image", "right_image", "pose")):
+            if time.monotonic() - t0 > timeout_s:
+                return False
+            time.sleep(0.02)
+        return True
+
+    def publish(self, frame: StereoFrame, stamp_ns: int) -> float:
+        """Publish one frame under ``stamp_ns``; returns the longest ``put`` in seconds."""
+        rig: StereoRig = frame.rig
+        li, ri = codec.encode_stereo_infos(rig, stamp_ns)
+        msgs = [
+            ("left_info", li),
+            ("right_info", ri),
+            ("pose", codec.encode_pose_with_covariance(stamp_ns, frame.T_W_C, frame.pose_cov)),
+        ]
+        if frame.mask is not None:
+            mask = np.where(frame.mask, 255, 0).astype(np.uint8)
+            msgs.append(("mask", codec.encode_image(mask, stamp_ns, "left", "mono8")))
+        msgs.append(("left_image", codec.encode_image(frame.left, stamp_ns, "left")))
+        msgs.append(("right_image", codec.encode_image(frame.right, stamp_ns, "right")))
+        worst = 0.0
+        for role, data in msgs:
+            t0 = time.perf_counter()
+            self.pubs[role].put(data)
+            worst = max(worst, time.perf_counter() - t0)
+        self.sent += 1
+        return worst
+
+    def close(self) -> None:
+        for p in self.pubs.values():
+            p.undeclare()
+
+
+def parse_loopback_port(endpoint: str) -> int:
+    m = re.fullmatch(r"tcp/127\.0\.0\.1:(\d{1,5})", endpoint)
+    if not m or not 0 < int(m.group(1)) < 65536:
+        raise ConfigError(f"--listen must be tcp/127.0.0.1:PORT (loopback only), got {endpoint!r}")
+    return int(m.group(1))
+
+
+@dataclass
+class GraspPrinter:
+    """Prints the top grasps whenever the ranking improves or changes."""
+
+    write: Writer
+    t0: float
+    first_s: float | None = None
+    received: int = 0
+    best: float = -1.0
+    last_ident: tuple[int, ...] = ()
+    last_print_s: float = 0.0
+    history: list[tuple[float, int, float]] = field(default_factory=list)
+
+    def on_grasps(self, data: bytes) -> None:
+        self.received += 1
+        try:
+            g = codec.decode_grasp_array(data)
+        except PugsdError as exc:
+            self.write(f"  (undecodable GraspArray: {exc})")
+            return
+        t = time.monotonic() - self.t0
+        if len(g) == 0:
+            return
+        if self.first_s is None:
+            self.first_s = t
+            self.write(f"[{t:6.1f} s] first scored grasps")
+        top = float(g.pugs_confidence[0])
+        self.history.append((t, len(g), top))
+        parts = []
+        for i in range(min(3, len(g))):
+            c = g.contact_W[i]
+            parts.append(
+                f"#{i + 1} PUGS {g.pugs_confidence[i]:.3f} (base {g.baseline_confidence[i]:.3f}, "
+                f"s2 {g.sigma2_occ[i]:.2g}) at ({c[0]:+.3f},{c[1]:+.3f},{c[2]:+.3f}) m "
+                f"w {100 * g.width_m[i]:.1f} cm"
+            )
+        line = " | ".join(parts)
+        ident = tuple(np.round(g.contact_W[: min(3, len(g))] / 0.005).astype(int).ravel())
+        if ident != self.last_ident or abs(top - self.best) > 5e-3 or t - self.last_print_s > 15:
+            self.best = top
+            self.last_ident = ident
+            self.last_print_s = t
+            self.write(f"[{t:6.1f} s] {len(g)} grasps: {line}")
+
+
+def render_scene(object_name: str, n_frames: int, width: int, height: int, seed: int) -> list[StereoFrame]:
+    """The synthetic world's stereo sequence (all around the object)."""
+    from pugsd.sim.sequence import make_sequence  # trimesh and the renderer: only for the demo
+
+    seq = make_sequence(object_name, "complete", n_frames=n_frames, width=width, height=height, seed=seed)
+    return list(seq.frames)
+
+
+def save_figure(result: Any, path: Path, top_k: int = 5, gripper_depth_m: float = 0.09) -> None:
+    """The fused cloud coloured by sigma^2_occ and the top grasps (PUGS-ranked) as grippers."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
+
+    cloud = np.asarray(result.cloud_W)
+    s2 = np.asarray(result.sigma2_occ)
+    fig = plt.figure(figsize=(8, 7))
+    ax: Any = fig.add_subplot(111, projection="3d")
+    pos = s2[np.isfinite(s2) & (s2 > 0)]
+    norm = LogNorm(vmin=float(pos.min()), vmax=float(pos.max())) if pos.size else None
+    sc = ax.scatter(
+        cloud[:, 0],
+        cloud[:, 1],
+        cloud[:, 2],
+        c=np.clip(s2, 1e-30, None),
+        s=2,
+        cmap="viridis",
+        norm=norm,
+    )
+    fig.colorbar(sc, ax=ax, shrink=0.6, label="sigma^2_occ (Algorithm 1)")
+    g = result.grasps
+    for i in range(min(top_k, len(g))):
+        seg = codec.gripper_lines(g.pose_W[i], float(g.width_m[i]), gripper_depth_m)
+        color = codec.confidence_color(float(g.pugs_confidence[i]))
+        for a, b in zip(seg[0::2], seg[1::2]):
+            ax.plot(*zip(a, b), color=color, linewidth=2)
+        ax.text(*g.contact_W[i], f"{i + 1}", color="black")
+    lo, hi = cloud.min(axis=0), cloud.max(axis=0)
+    c, r = 0.5 * (lo + hi), 0.5 * float((hi - lo).max()) + 0.03
+    ax.set_xlim(c[0] - r, c[0] + r)
+    ax.set_ylim(c[1] - r, c[1] + r)
+    ax.set_zlim(c[2] - r, c[2] + r)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_zlabel("z [m]")
+    ax.set_title(f"PUGS: top {min(top_k, len(g))} grasps on the fused cloud (model v{result.model_version})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def demo_config(listen: str, overrides: Sequence[str]) -> PugsdConfig:
+    port = parse_loopback_port(listen)
+    base: dict[str, Any] = {
+        "stereo": {"downsample": 2},
+        "daemon": {"grasp_rate_hz": 1.0, "log_level": "warning"},
+        "queues": {"depth": 16},  # one sweep: keep every view while the model warms up
+        "zenoh": loopback_config(port),
+    }
+    return load_config_dict(base, overrides)
+
+
+async def _demo_main(
+    cfg: PugsdConfig,
+    render: Callable[[], list[StereoFrame]],
+    duration_s: float,
+    out_dir: Path,
+    rate_hz: float,
+    write: Writer,
+    t_start: float,
+    sweeps: int,
+) -> tuple[Daemon, GraspPrinter, list[Path], dict[str, Any]]:
+    from pugsd.core.pipeline import PugsPipeline
+    from pugsd.record.recorder import Recorder
+    from pugsd.wire.topics import topic_types
+
+    port = parse_loopback_port(cfg.zenoh["listen"]["endpoints"][0])
+    rendering = asyncio.create_task(asyncio.to_thread(render))  # overlaps the daemon's start-up
+    daemon = Daemon(cfg, PugsPipeline(core_of(cfg)))
+    apply_thread_limits(cfg)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    serve = asyncio.create_task(daemon.run(stop), name="daemon")
+    while not daemon.serving:
+        if serve.done():
+            await serve  # raises the start-up error
+        await asyncio.sleep(0.01)
+    peer = open_session(loopback_config(None, [port]), require_loopback=True)
+    printer = GraspPrinter(write, t_start)
+    recorder = Recorder(
+        cfg.record, directory=out_dir, queue_size=4096, topic_types=topic_types(cfg.topics)
+    ).start()
+    stop_camera = threading.Event()
+    cam_thread: threading.Thread | None = None
+    camera = SyntheticCamera(peer, cfg.topics)
+    sub: Any = None
+    put_worst = [0.0]
+    try:
+        recorder.subscribe(peer, [f"{cfg.topics.domain_id}/**"])
+        sub = peer.declare_subscriber(
+            key_for(cfg.topics, "grasps"),
+            lambda s: loop.call_soon_threadsafe(printer.on_grasps, s.payload.to_bytes()),
+        )
+        frames = await rendering
+        write(f"[{time.monotonic() - t_start:6.1f} s] rendered {len(frames)} views; daemon serving")
+
+        def run_camera() -> None:
+            if not camera.wait_matching(10.0):
+                log.warning("camera: the daemon's subscriptions did not match within 10 s")
+            i = 0
+            next_t = time.monotonic()
+            while not stop_camera.is_set() and (sweeps <= 0 or i < sweeps * len(frames)):
+                worst = camera.publish(frames[i % len(frames)], time.time_ns())
+                put_worst[0] = max(put_worst[0], worst)
+                i += 1
+                next_t += 1.0 / rate_hz
+                stop_camera.wait(max(0.0, next_t - time.monotonic()))
+            msg = f"[{time.monotonic() - t_start:6.1f} s] camera done: {i} frames; training on"
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(write, msg)
+
+        cam_thread = threading.Thread(target=run_camera, name="demo-camera", daemon=True)
+        cam_thread.start()
+        write(
+            f"[{time.monotonic() - t_start:6.1f} s] camera publishing {len(frames)} views "
+            f"at {rate_hz:g} Hz" + (f", {sweeps} sweep(s)" if sweeps > 0 else " in a loop")
+        )
+        try:
+            await asyncio.wait_for(stop.wait(), timeout=duration_s)
+            write("interrupted; shutting down")
+        except TimeoutError:
+            pass
+    finally:
+        stop_camera.set()
+        if cam_thread is not None:
+            cam_thread.join(5.0)
+        stop.set()
+        await serve
+        if sub is not None:
+            sub.undeclare()
+        camera.close()
+        files = recorder.stop(timeout=10.0)
+        close_session(peer)
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.remove_signal_handler(sig)
+    extra = {"frames_sent": camera.sent, "max_put_s": put_worst[0], "recorder": recorder.stats}
+    return daemon, printer, files, extra
+
+
+def run_demo(
+    duration_s: float = 60.0,
+    out_dir: str | Path = "pugsd-demo",
+    listen: str = "tcp/127.0.0.1:7447",
+    overrides: Sequence[str] = (),
+    write: Writer = lambda s: None,
+    *,
+    object_name: str = "mug",
+    n_frames: int = 12,
+    width: int = 320,
+    height: int = 240,
+    rate_hz: float = 2.0,
+    sweeps: int = 1,
+) -> int:
+    """Run the demo for ``duration_s``; returns 0 when scored grasps were received."""
+    cfg = demo_config(listen, overrides)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    t_start = time.monotonic()
+    write(f"pugsd demo: zenoh peer listening on {listen} (loopback only; multicast scouting off)")
+    write(f"  grasps:  {key_for(cfg.topics, 'grasps')}")
+    write(f"  markers: {key_for(cfg.topics, 'markers')}")
+    write(f"  cloud:   {key_for(cfg.topics, 'cloud')}")
+    write(f"  query:   {cfg.daemon.prefix}/grasps/latest   status: {cfg.daemon.prefix}/status")
+    write(
+        f"rendering a synthetic {object_name} from {n_frames} views ({width}x{height}) while "
+        "the daemon starts..."
+    )
+
+    def render() -> list[StereoFrame]:
+        return render_scene(object_name, n_frames, width, height, seed=0)
+
+    daemon, printer, files, extra = asyncio.run(
+        _demo_main(cfg, render, duration_s, out, rate_hz, write, t_start, sweeps)
+    )
+    st = daemon.status()
+    c = st["counts"]
+    mb = st["mailboxes"]
+    write(
+        f"frames sent {extra['frames_sent']}, integrated {c.get('integrated', 0)}, dropped "
+        f"{mb['stereo']['dropped'] + mb['depth']['dropped'] + c.get('dropped', 0)} (newest frame "
+        f"wins: stereo queue {mb['stereo']['dropped']}, depth queue {mb['depth']['dropped']}, "
+        f"no pose {c.get('dropped', 0)}), rejected {c.get('rejected', 0)}, grasp updates "
+        f"{daemon.grasps_published}; slowest zenoh put {1e3 * extra['max_put_s']:.2f} ms"
+    )
+    lat = st["latency"]
+    write(
+        "stage times p50/max [ms]: "
+        + ", ".join(f"{k} {v['p50_ms']:.0f}/{v['max_ms']:.0f}" for k, v in lat.items() if "p50_ms" in v)
+    )
+    if printer.first_s is not None:
+        write(f"time to first scored grasps: {printer.first_s:.1f} s after the command started")
+    for f in files:
+        write(f"MCAP: {f}")
+    if daemon.latest_result is not None and len(daemon.latest_result.cloud_W):
+        png = out / "grasps.png"
+        save_figure(daemon.latest_result, png, gripper_depth_m=cfg.grasp.gripper.depth_m)
+        write(f"PNG:  {png}")
+    else:
+        write("no grasps were computed (model not ready); no PNG written")
+    return 0 if printer.first_s is not None else 1

@@ -1,0 +1,124 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Bounded hand-off between daemon stages with a named overflow policy and counters.
+
+Loop thread only: ``offer`` never blocks and never raises; ``take`` awaits an item. Zenoh callbacks
+reach a mailbox through ``loop.call_soon_threadsafe(box.offer, item)``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import enum
+from collections import deque
+from typing import Any, Generic, TypeVar
+
+T = TypeVar("T")
+
+
+class Overflow(enum.Enum):
+    """What a full mailbox does with one more item."""
+
+    DROP_OLDEST = "drop_oldest"  # sensor frames: the newest wins (like zenoh's RingChannel)
+    KEEP_LATEST = "keep_latest"  # a size-1 slot that always holds the newest item
+    REJECT = "reject"  # commands: refuse the new item, the caller gets a reason
+
+
+class Mailbox(Generic[T]):
+    """A bounded FIFO of ``maxsize`` items with overflow policy ``policy``."""
+
+    def __init__(self, name: str, maxsize: int, policy: Overflow) -> None:
+        if maxsize < 1:
+            raise ValueError(f"mailbox {name}: maxsize must be >= 1")
+        self.name = name
+        self.maxsize = maxsize
+        self.policy = policy
+        self._items: deque[T] = deque()
+        self._nonempty = asyncio.Event()
+        self.offered = 0
+        self.accepted = 0
+        self.dropped = 0
+        self.rejected = 0
+        self.taken = 0
+        self.high_water = 0
+        self.closed = False
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def offer(self, item: T) -> bool:
+        """Hand over ``item``; False when it was rejected (full REJECT mailbox, or closed)."""
+        self.offered += 1
+        if self.closed:
+            self.rejected += 1
+            return False
+        if len(self._items) >= self.maxsize:
+            if self.policy is Overflow.REJECT:
+                self.rejected += 1
+                return False
+            self._items.popleft()
+            self.dropped += 1
+        self._items.append(item)
+        self.accepted += 1
+        self.high_water = max(self.high_water, len(self._items))
+        self._nonempty.set()
+        return True
+
+    def reject_reason(self) -> str:
+        """Why the last ``offer`` was refused (for a reply to the sender)."""
+        if self.closed:
+            return f"{self.name}: shutting down"
+        return f"{self.name}: busy ({len(self._items)}/{self.maxsize} queued)"
+
+    def take_nowait(self) -> T | None:
+        """The oldest item, or None when empty."""
+        if not self._items:
+            return None
+        item = self._items.popleft()
+        if not self._items:
+            self._nonempty.clear()
+        self.taken += 1
+        return item
+
+    async def take(self) -> T:
+        """Wait for and remove the oldest item."""
+        while True:
+            item = self.take_nowait()
+            if item is not None:
+                return item
+            await self._nonempty.wait()
+
+    async def take_within(self, timeout_s: float) -> T | None:
+        """The oldest item, waiting at most ``timeout_s``; None on timeout."""
+        item = self.take_nowait()
+        if item is not None:
+            return item
+        try:
+            await asyncio.wait_for(self._nonempty.wait(), timeout_s)
+        except TimeoutError:
+            return None
+        return self.take_nowait()
+
+    def clear(self) -> int:
+        """Discard everything queued (counted as dropped); returns how many."""
+        n = len(self._items)
+        self._items.clear()
+        self._nonempty.clear()
+        self.dropped += n
+        return n
+
+    def close(self) -> None:
+        """Refuse further offers (shutdown: stop intake)."""
+        self.closed = True
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "policy": self.policy.value,
+            "maxsize": self.maxsize,
+            "queued": len(self._items),
+            "offered": self.offered,
+            "accepted": self.accepted,
+            "dropped": self.dropped,
+            "rejected": self.rejected,
+            "taken": self.taken,
+            "high_water": self.high_water,
+        }

@@ -1,0 +1,47 @@
+# SPDX-License-Identifier: Apache-2.0
+"""systemd's sd_notify protocol in a few lines: one AF_UNIX datagram to ``$NOTIFY_SOCKET``."""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+
+log = logging.getLogger(__name__)
+
+
+class Notifier:
+    """Sends ``READY=1``, ``WATCHDOG=1``, ``STATUS=...``, ``STOPPING=1``; no-op outside systemd."""
+
+    def __init__(self, address: str | None = None) -> None:
+        addr = address if address is not None else os.environ.get("NOTIFY_SOCKET", "")
+        self.address = "\0" + addr[1:] if addr.startswith("@") else addr  # '@': abstract namespace
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.address)
+
+    def send(self, *fields: str) -> bool:
+        """Send ``KEY=VALUE`` fields in one datagram; False (logged) when it could not be sent."""
+        if not self.address:
+            return False
+        try:
+            with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC) as s:
+                s.connect(self.address)
+                s.sendall("\n".join(fields).encode())
+        except OSError as exc:
+            log.warning("sd_notify to %r failed: %s", self.address, exc)
+            return False
+        return True
+
+
+def watchdog_interval_s() -> float | None:
+    """Half of ``$WATCHDOG_USEC`` when the watchdog is enabled for this process, else None."""
+    usec = os.environ.get("WATCHDOG_USEC")
+    pid = os.environ.get("WATCHDOG_PID")
+    if not usec or (pid and pid.isdigit() and int(pid) != os.getpid()):
+        return None
+    try:
+        return max(int(usec), 1) / 2e6
+    except ValueError:
+        return None

@@ -1,0 +1,291 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Time synchronisation of the inputs: stereo pairs by exact stamp, poses interpolated on SE(3).
+
+Pure buffers (no asyncio, no zenoh): the daemon feeds them on the loop thread and polls them.
+``T_W_C`` is camera -> world; ``pose_cov`` is the 6x6 (rho, phi) covariance of pugsd.core.types.
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Generic, TypeVar
+
+import numpy as np
+
+T = TypeVar("T")
+L = TypeVar("L")
+R = TypeVar("R")
+
+
+# --- SE(3) interpolation ---
+
+
+def quat_from_matrix(Rm: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) of a rotation matrix (Shepperd's method)."""
+    m = np.asarray(Rm, dtype=np.float64)
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
+    qa = np.asarray(q)
+    return qa / np.linalg.norm(qa)
+
+
+def matrix_from_quat(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a quaternion (w, x, y, z); normalises first."""
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def slerp(q0: np.ndarray, q1: np.ndarray, s: float) -> np.ndarray:
+    """Spherical linear interpolation of unit quaternions along the shorter arc, s in [0, 1]."""
+    d = float(np.dot(q0, q1))
+    if d < 0.0:
+        q1, d = -q1, -d
+    if d > 1.0 - 1e-12:
+        q = q0 + s * (q1 - q0)
+        return q / np.linalg.norm(q)
+    theta = np.arccos(min(d, 1.0))
+    return (np.sin((1 - s) * theta) * q0 + np.sin(s * theta) * q1) / np.sin(theta)
+
+
+def interpolate_pose(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
+    """Pose at fraction ``s`` from T0 (s=0) to T1 (s=1): slerp rotation, lerp translation."""
+    out = np.eye(4)
+    out[:3, :3] = matrix_from_quat(slerp(quat_from_matrix(T0[:3, :3]), quat_from_matrix(T1[:3, :3]), s))
+    out[:3, 3] = (1.0 - s) * T0[:3, 3] + s * T1[:3, 3]
+    return out
+
+
+# --- pose buffer ---
+
+
+@dataclass(frozen=True, slots=True)
+class PoseSample:
+    stamp_ns: int
+    T_W_C: np.ndarray  # (4, 4)
+    cov: np.ndarray | None  # (6, 6) or None when the message carried no covariance
+
+
+class PoseLookup:
+    """A pose query's outcome: ``ready`` (pose + covariance), ``wait`` or ``fail`` (reason)."""
+
+    __slots__ = ("T_W_C", "cov", "reason", "state")
+
+    def __init__(
+        self,
+        state: str,
+        T_W_C: np.ndarray | None = None,
+        cov: np.ndarray | None = None,
+        reason: str = "",
+    ) -> None:
+        self.state = state
+        self.T_W_C = T_W_C
+        self.cov = cov
+        self.reason = reason
+
+
+class PoseBuffer:
+    """Time-sorted ring of recent poses; answers "pose at stamp t" by SE(3) interpolation.
+
+    A query is answered once a pose at or after ``t`` exists and one at or before it, no more than
+    ``max_gap_ns`` apart. The covariance is that of the latest pose (by stamp, not after the later
+    bracketing pose) that carries one; ``default_cov`` when none has.
+    """
+
+    def __init__(self, capacity: int, max_gap_ns: int, default_cov: np.ndarray) -> None:
+        self.capacity = capacity
+        self.max_gap_ns = max_gap_ns
+        self.default_cov = np.asarray(default_cov, dtype=np.float64)
+        self._stamps: list[int] = []
+        self._samples: list[PoseSample] = []
+        self._cov_stamps: list[int] = []
+        self._covs: list[np.ndarray] = []
+
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    @property
+    def newest_ns(self) -> int | None:
+        return self._stamps[-1] if self._stamps else None
+
+    def add(self, sample: PoseSample) -> None:
+        i = bisect.bisect_left(self._stamps, sample.stamp_ns)
+        if i < len(self._stamps) and self._stamps[i] == sample.stamp_ns:
+            self._samples[i] = sample
+        else:
+            self._stamps.insert(i, sample.stamp_ns)
+            self._samples.insert(i, sample)
+        if sample.cov is not None:
+            j = bisect.bisect_left(self._cov_stamps, sample.stamp_ns)
+            if j < len(self._cov_stamps) and self._cov_stamps[j] == sample.stamp_ns:
+                self._covs[j] = sample.cov
+            else:
+                self._cov_stamps.insert(j, sample.stamp_ns)
+                self._covs.insert(j, sample.cov)
+        while len(self._stamps) > self.capacity:
+            self._stamps.pop(0)
+            self._samples.pop(0)
+        # keep the newest covariance even when it is older than every stored pose
+        while len(self._cov_stamps) > max(self.capacity, 1):
+            self._cov_stamps.pop(0)
+            self._covs.pop(0)
+
+    def clear(self) -> None:
+        self._stamps.clear()
+        self._samples.clear()
+        self._cov_stamps.clear()
+        self._covs.clear()
+
+    def _cov_at(self, stamp_ns: int) -> np.ndarray:
+        j = bisect.bisect_right(self._cov_stamps, stamp_ns)
+        if j > 0:
+            return self._covs[j - 1]
+        return self.default_cov
+
+    def lookup(self, stamp_ns: int) -> PoseLookup:
+        st = self._stamps
+        if not st:
+            return PoseLookup("wait", reason="no pose yet")
+        i = bisect.bisect_left(st, stamp_ns)
+        if i < len(st) and st[i] == stamp_ns:
+            s = self._samples[i]
+            return PoseLookup("ready", s.T_W_C, self._cov_at(stamp_ns))
+        if i == len(st):
+            return PoseLookup("wait", reason="no pose after the image stamp yet")
+        if i == 0:
+            return PoseLookup("fail", reason="image is older than every buffered pose")
+        a, b = self._samples[i - 1], self._samples[i]
+        if b.stamp_ns - a.stamp_ns > self.max_gap_ns:
+            return PoseLookup(
+                "fail",
+                reason=f"pose gap {(b.stamp_ns - a.stamp_ns) / 1e9:.3f} s around the image stamp",
+            )
+        frac = (stamp_ns - a.stamp_ns) / (b.stamp_ns - a.stamp_ns)
+        T = interpolate_pose(a.T_W_C, b.T_W_C, frac)
+        return PoseLookup("ready", T, self._cov_at(b.stamp_ns))
+
+
+# --- stereo pairing and pose gating ---
+
+
+class ExactPairer(Generic[L, R]):
+    """Pairs left and right halves with the same stamp; keeps ``capacity`` incomplete ones."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = capacity
+        self._left: OrderedDict[int, L] = OrderedDict()
+        self._right: OrderedDict[int, R] = OrderedDict()
+        self.paired = 0
+        self.unpaired_dropped = 0
+
+    def _push(self, mine: OrderedDict[int, T], stamp_ns: int, item: T) -> None:
+        mine[stamp_ns] = item
+        mine.move_to_end(stamp_ns)
+        while len(mine) > self.capacity:
+            mine.popitem(last=False)
+            self.unpaired_dropped += 1
+
+    def add_left(self, stamp_ns: int, item: L) -> tuple[L, R] | None:
+        if stamp_ns in self._right:
+            self.paired += 1
+            return item, self._right.pop(stamp_ns)
+        self._push(self._left, stamp_ns, item)
+        return None
+
+    def add_right(self, stamp_ns: int, item: R) -> tuple[L, R] | None:
+        if stamp_ns in self._left:
+            self.paired += 1
+            return self._left.pop(stamp_ns), item
+        self._push(self._right, stamp_ns, item)
+        return None
+
+    def pending(self) -> int:
+        return len(self._left) + len(self._right)
+
+    def clear(self) -> None:
+        self._left.clear()
+        self._right.clear()
+
+
+@dataclass(slots=True)
+class _Waiting(Generic[T]):
+    stamp_ns: int
+    deadline_s: float
+    item: T
+
+
+class PoseGate(Generic[T]):
+    """Frames waiting for a usable pose: released when one exists, dropped after ``wait_s``."""
+
+    def __init__(self, poses: PoseBuffer, wait_s: float, capacity: int) -> None:
+        self.poses = poses
+        self.wait_s = wait_s
+        self.capacity = capacity
+        self._waiting: list[_Waiting[T]] = []
+
+    def __len__(self) -> int:
+        return len(self._waiting)
+
+    def add(self, stamp_ns: int, item: T, now_s: float) -> list[tuple[T, str]]:
+        """Queue ``item``; returns the items pushed out by the capacity bound, with a reason."""
+        self._waiting.append(_Waiting(stamp_ns, now_s + self.wait_s, item))
+        out: list[tuple[T, str]] = []
+        while len(self._waiting) > self.capacity:
+            w = self._waiting.pop(0)
+            out.append((w.item, "pose wait queue full"))
+        return out
+
+    def poll(
+        self, now_s: float, pending: Callable[[T, float], str | None] | None = None
+    ) -> tuple[list[tuple[T, int, np.ndarray, np.ndarray]], list[tuple[T, str]]]:
+        """(released: item, stamp, T_W_C, cov), (dropped: item, reason).
+
+        ``pending(item, now_s)`` may hold an item back for another reason (e.g. its CameraInfo
+        has not arrived): it returns that reason, or None when the item may go.
+        """
+        ready: list[tuple[T, int, np.ndarray, np.ndarray]] = []
+        dropped: list[tuple[T, str]] = []
+        keep: list[_Waiting[T]] = []
+        for w in self._waiting:
+            res = self.poses.lookup(w.stamp_ns)
+            why: str | None = res.reason
+            if res.state == "ready":
+                why = pending(w.item, now_s) if pending is not None else None
+                if why is None:
+                    assert res.T_W_C is not None and res.cov is not None
+                    ready.append((w.item, w.stamp_ns, res.T_W_C, res.cov))
+                    continue
+            elif res.state == "fail":
+                dropped.append((w.item, res.reason))
+                continue
+            if now_s >= w.deadline_s:
+                what = "usable pose" if res.state != "ready" else "complete inputs"
+                dropped.append((w.item, f"no {what} within {self.wait_s:g} s ({why})"))
+            else:
+                keep.append(w)
+        self._waiting = keep
+        return ready, dropped
+
+    def clear(self) -> int:
+        n = len(self._waiting)
+        self._waiting.clear()
+        return n

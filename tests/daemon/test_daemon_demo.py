@@ -1,0 +1,43 @@
+# SPDX-License-Identifier: Apache-2.0
+"""``pugsd demo`` (the README's command) prints scored grasps within a minute and writes an MCAP
+and a PNG; it listens on the loopback endpoint it prints."""
+
+from __future__ import annotations
+
+import re
+import signal
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from pugsd.wire.session import free_tcp_port
+from tests.daemon.conftest import Proc
+
+
+@pytest.mark.slow
+def test_demo_shows_grasps_within_a_minute(tmp_path: Path) -> None:
+    port = free_tcp_port()
+    out = tmp_path / "demo"
+    t0 = time.monotonic()
+    proc = Proc(
+        [sys.executable, "-m", "pugsd", "demo", "--duration", "60", "--out", str(out),
+         "--listen", f"tcp/127.0.0.1:{port}"],
+        tmp_path / "demo.log",
+    )  # fmt: skip
+    try:
+        rc = proc.wait(240)
+        text = proc.log()
+    finally:
+        proc.signal(signal.SIGTERM)
+        proc.kill()
+    took = time.monotonic() - t0
+    assert rc == 0, text[-4000:]
+    assert f"listening on tcp/127.0.0.1:{port}" in text
+    m = re.search(r"time to first scored grasps: ([0-9.]+) s", text)
+    assert m, text[-4000:]
+    first = float(m.group(1))
+    print(f"\ndemo: first scored grasps {first:.1f} s after start; whole run {took:.0f} s")
+    assert first < 60.0, text[-3000:]
+    assert list(out.glob("*.mcap")) and (out / "grasps.png").stat().st_size > 10_000

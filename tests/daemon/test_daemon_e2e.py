@@ -1,0 +1,182 @@
+# SPDX-License-Identifier: Apache-2.0
+"""End to end over real loopback zenoh, three processes: a publisher process replays a synthetic
+stereo sequence, ``pugsd run`` is the daemon (real PugsPipeline), and this test subscribes.
+
+Checks: a GraspArray whose top grasp lies on the object; the same bytes decode with mcap_ros2's
+independent CDR decoder; the keys are rmw_zenoh keys with Jazzy RIHS01 hashes; the attachment is
+rmw_zenoh's 33 bytes; the daemon's MCAP recording decodes; SIGTERM -> exit 0 within the bound.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import signal
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import psutil
+import pytest
+import zenoh
+
+from pugsd.daemon.config import TopicsConfig
+from pugsd.wire import codec
+from pugsd.wire.attachment import decode_attachment
+from pugsd.wire.topics import key_for
+from pugsd.wire.types import GRASP_ARRAY, msgdef, type_hash
+from tests.daemon.conftest import start_daemon, start_publisher, wait_alive
+
+SHUTDOWN_BOUND_S = 5.0 + 5.0  # daemon.shutdown_timeout_s + interpreter/zenoh teardown
+
+RMW_KEY = re.compile(r"^(\d+)/(.+)/([a-z0-9_]+)::msg::dds_::([A-Za-z0-9]+)_/(RIHS01_[0-9a-f]{64})$")
+
+
+def distance_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Distance to the surface, from 50k area-weighted surface samples (about 1 mm spacing)."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
+    surface, _ = trimesh.sample.sample_surface(mesh, 50000, seed=0)
+    dist, _ = cKDTree(surface).query(np.atleast_2d(points))
+    return np.asarray(dist)
+
+
+def test_end_to_end_stereo_to_grasps(
+    tmp_path: Path, port: int, client: zenoh.Session, sequence_npz: Path
+) -> None:
+    rec_dir = tmp_path / "rec"
+    daemon, _ = start_daemon(tmp_path, port, {"record": {"enabled": True, "directory": str(rec_dir)}})
+    publisher = None
+    got: list[tuple[str, bytes, bytes | None]] = []
+    lock = threading.Lock()
+
+    def on_grasps(s: Any) -> None:
+        att = s.attachment
+        with lock:
+            got.append((str(s.key_expr), s.payload.to_bytes(), None if att is None else att.to_bytes()))
+
+    grasp_key = key_for(TopicsConfig(), "grasps")
+    sub = client.declare_subscriber(grasp_key, on_grasps)
+    others: dict[str, tuple[str, bytes]] = {}
+
+    def keep(role: str) -> Any:
+        def cb(s: Any) -> None:
+            with lock:
+                others[role] = (str(s.key_expr), s.payload.to_bytes())
+
+        return cb
+
+    side = [
+        client.declare_subscriber(key_for(TopicsConfig(), r), keep(r)) for r in ("markers", "cloud", "status")
+    ]
+    try:
+        t_alive = wait_alive(client, daemon)
+        t0 = time.monotonic()
+        # one sweep around the mug (12 views at 2 Hz), then the daemon trains on until ready
+        publisher, pub_stats = start_publisher(tmp_path, sequence_npz, port, 2.0, 150.0, frames=12)
+
+        def nonempty() -> bool:
+            with lock:
+                return any(len(codec.decode_grasp_array(b)) > 0 for _, b, _ in got)
+
+        while not nonempty():
+            assert daemon.p.poll() is None, daemon.log()[-4000:]
+            assert time.monotonic() - t0 < 150, "no grasps within 150 s:\n" + daemon.log()[-4000:]
+            time.sleep(0.2)
+        t_grasps = time.monotonic() - t0
+        with lock:
+            key, data, att = next((k, b, a) for k, b, a in got if len(codec.decode_grasp_array(b)))
+
+        # 1. the top grasp lies on the object
+        g = codec.decode_grasp_array(data)
+        z = np.load(sequence_npz)
+        d = distance_to_mesh(g.contact_W[:1], z["mesh_vertices"], z["mesh_faces"])
+        assert d[0] < 0.01, f"top grasp contact {g.contact_W[0]} is {d[0]:.4f} m off the mug"
+        assert g.pugs_confidence[0] == pytest.approx(np.max(g.pugs_confidence))
+
+        # 2. the same bytes through mcap_ros2's independent CDR decoder
+        from mcap_ros2._dynamic import generate_dynamic
+
+        dec = generate_dynamic(GRASP_ARRAY, msgdef(GRASP_ARRAY))[GRASP_ARRAY](data)
+        assert len(dec.grasps) == len(g)
+        top = dec.grasps[0]
+        assert top.pugs_confidence == pytest.approx(g.pugs_confidence[0])
+        assert (top.contact.x, top.contact.y, top.contact.z) == pytest.approx(tuple(g.contact_W[0]))
+        assert top.pose.position.x == pytest.approx(g.pose_W[0, 0, 3])
+
+        # 3. rmw_zenoh key with the Jazzy type hash, and the 33-byte attachment
+        m = RMW_KEY.match(key)
+        assert m, key
+        assert m.group(1) == "0" and m.group(2) == "pugs/grasps"
+        assert (m.group(3), m.group(4)) == ("pugs_msgs", "GraspArray")
+        assert m.group(5) == type_hash(GRASP_ARRAY) == str(codec.typestore().hash_rihs01(GRASP_ARRAY))
+        assert att is not None and len(att) == 33
+        a = decode_attachment(att)
+        assert a.sequence_number >= 1 and abs(a.source_timestamp_ns - time.time_ns()) < 600e9
+
+        # the other outputs: MarkerArray, PointCloud2 (sigma2_occ, pugs_confidence), status JSON
+        from pugsd.wire.types import MARKER_ARRAY, POINT_CLOUD2, STRING
+
+        t1 = time.monotonic()
+        while len(others) < 3 and time.monotonic() - t1 < 10:
+            time.sleep(0.1)
+        with lock:
+            mk, cl, stt = others["markers"], others["cloud"], others["status"]
+        for (k, _), typ in ((mk, MARKER_ARRAY), (cl, POINT_CLOUD2), (stt, STRING)):
+            assert k.endswith(type_hash(typ)) and RMW_KEY.match(k), k
+        markers = generate_dynamic(MARKER_ARRAY, msgdef(MARKER_ARRAY))[MARKER_ARRAY](mk[1])
+        assert len(markers.markers) >= 2  # DELETEALL + one gripper per top grasp
+        cloud = codec.decode_cloud(cl[1])
+        assert {"sigma2_occ", "pugs_confidence"} <= set(cloud.fields) and len(cloud.points) > 100
+        assert np.all(np.isfinite(cloud.fields["sigma2_occ"]))
+        assert "counts" in codec.decode_status(stt[1])
+        # status over zenoh
+        st = json.loads(next(iter(client.get("pugs/status", timeout=3.0))).ok.payload.to_string())
+        assert st["grasps_published"] >= 1 and st["counts"]["integrated"] >= 1
+    finally:
+        if publisher is not None:
+            publisher.signal(signal.SIGTERM)
+            publisher.wait(10)
+            publisher.kill()
+        sub.undeclare()
+        for sd in side:
+            sd.undeclare()
+        # 4. SIGTERM: exit 0 within the bound, nothing left running
+        children = [c.pid for c in psutil.Process(daemon.pid).children(recursive=True)]
+        t_term = time.monotonic()
+        daemon.signal(signal.SIGTERM)
+        rc = daemon.wait(SHUTDOWN_BOUND_S + 20)
+        t_exit = time.monotonic() - t_term
+        log = daemon.log()
+        daemon.kill()
+    assert rc == 0, log[-4000:]
+    assert t_exit < SHUTDOWN_BOUND_S, f"took {t_exit:.1f} s"
+    assert not psutil.pid_exists(daemon.pid) or psutil.Process(daemon.pid).status() == "zombie"
+    assert not [p for p in children if psutil.pid_exists(p)]
+    # structured JSON logs
+    lines = [json.loads(ln) for ln in log.splitlines() if ln.startswith("{")]
+    assert any(ln["msg"].startswith("pugsd serving") for ln in lines)
+    assert any(ln["msg"] == "pugsd stopped" for ln in lines)
+    # 5. the daemon's own MCAP recording holds the GraspArrays, decodable with mcap_ros2
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    files = sorted(rec_dir.glob("*.mcap"))
+    assert files, list(rec_dir.iterdir())
+    n = 0
+    with open(files[0], "rb") as f:
+        for _, ch, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
+            topics=["/pugs/grasps"]
+        ):
+            n += 1
+            assert ch.topic == "/pugs/grasps" and len(msg.grasps) >= 0
+    assert n >= 1
+    stats = json.loads(pub_stats.read_text()) if pub_stats.exists() else {}
+    print(
+        f"\ne2e: alive after {t_alive:.1f} s, first grasps {t_grasps:.1f} s after the publisher "
+        f"started, SIGTERM exit {t_exit:.2f} s, publisher {stats}"
+    )

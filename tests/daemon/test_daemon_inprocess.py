@@ -1,0 +1,226 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The daemon's plumbing over real loopback zenoh, in-process, with a fake pipeline."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+import zenoh
+
+from pugsd.config import load_config_dict
+from pugsd.daemon.app import Daemon
+from pugsd.daemon.notify import Notifier
+from pugsd.wire import codec
+from pugsd.wire.topics import key_for
+from tests.daemon.conftest import RIG, FakePipeline, Source, daemon_config_dict, query_json, wait_for
+
+
+class RecordingNotifier(Notifier):
+    def __init__(self) -> None:
+        super().__init__("")
+        self.sent: list[str] = []
+
+    def send(self, *fields: str) -> bool:
+        self.sent.extend(fields)
+        return True
+
+
+class DaemonThread:
+    """Runs ``Daemon.run`` on its own event loop in a thread; ``stop()`` sets the stop event."""
+
+    def __init__(self, daemon: Daemon) -> None:
+        self.daemon = daemon
+        self.loop = asyncio.new_event_loop()
+        self.stop_event = asyncio.Event()
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self._main, daemon=True)
+
+    def _main(self) -> None:
+        try:
+            self.loop.run_until_complete(self.daemon.run(self.stop_event))
+        except BaseException as exc:  # surfaced by the test
+            self.error = exc
+        finally:
+            self.loop.close()
+
+    def start(self) -> DaemonThread:
+        self.thread.start()
+        return self
+
+    def stop(self, timeout_s: float = 10.0) -> float:
+        t0 = time.monotonic()
+        self.loop.call_soon_threadsafe(self.stop_event.set)
+        self.thread.join(timeout_s)
+        assert not self.thread.is_alive(), "daemon did not stop"
+        if self.error is not None:
+            raise self.error
+        return time.monotonic() - t0
+
+
+@pytest.fixture
+def running(port: int) -> Iterator[tuple[DaemonThread, FakePipeline, RecordingNotifier]]:
+    cfg = load_config_dict(daemon_config_dict(port))
+    pipe = FakePipeline()
+    notifier = RecordingNotifier()
+    dt = DaemonThread(Daemon(cfg, pipe, notifier=notifier)).start()
+    wait_for(lambda: "READY=1" in notifier.sent, 10.0, "READY")
+    yield dt, pipe, notifier
+    if dt.thread.is_alive():
+        dt.stop()
+
+
+def pose_at(x: float) -> np.ndarray:
+    T = np.eye(4)
+    T[0, 3] = x
+    return T
+
+
+def test_stereo_to_grasps_query_status_reset(
+    running: tuple[DaemonThread, FakePipeline, RecordingNotifier], client: zenoh.Session
+) -> None:
+    dt, pipe, notifier = running
+    src = Source(client)
+    got: list[bytes] = []
+    sub = client.declare_subscriber(key_for(src.topics, "grasps"), lambda s: got.append(s.payload.to_bytes()))
+    src.wait_matching()
+    src.infos()
+    time.sleep(0.1)
+    for i in range(6):
+        src.stereo(1_000_000_000 + i * 100_000_000, pose_at(0.01 * i), seed=i, pose_first=i % 2 == 0)
+        time.sleep(0.05)
+    # the last frame waits for a later pose (interpolation), so send one
+    src.put("pose", codec.encode_pose_with_covariance(2_000_000_000, pose_at(0.1), np.eye(6) * 1e-6))
+    d = dt.daemon
+    wait_for(
+        lambda: len(pipe.integrated) + d.stereo_box.dropped + d.depth_box.dropped == 6,
+        10.0,
+        "frames integrated or dropped (drop oldest)",
+    )
+    wait_for(lambda: len(got) > 0, 10.0, "a GraspArray")
+    g = codec.decode_grasp_array(got[-1])
+    assert len(g) == 3 and g.pugs_confidence[0] == pytest.approx(0.85)
+    # queryable <prefix>/grasps/latest returns the same kind of bytes
+    replies = list(client.get("pugs/grasps/latest", timeout=2.0))
+    assert replies and replies[0].ok is not None
+    assert len(codec.decode_grasp_array(replies[0].ok.payload.to_bytes())) == 3
+    st = query_json(client, "pugs/status")
+    assert st["counts"]["integrated"] == len(pipe.integrated) and st["ready"] is True
+    assert st["model_version"] is not None and st["elbo"] is not None
+    assert "newest_frame_to_grasps" in st["latency"]
+    # liveliness token
+    toks = list(client.liveliness().get("pugs/alive/**", timeout=2.0))
+    assert any(str(r.ok.key_expr) == "pugs/alive/pugsd" for r in toks if r.ok is not None)
+    # reset via query: accepted, map cleared
+    rep = list(client.get("pugs/reset", timeout=2.0))
+    assert rep[0].ok is not None and rep[0].ok.payload.to_string() == "accepted"
+    wait_for(lambda: pipe.resets == 1, 5.0, "reset")
+    wait_for(lambda: dt.daemon.latest_grasps is None, 5.0, "grasps cleared")
+    sub.undeclare()
+    src.close()
+    assert dt.stop() < 5.0
+    assert "STOPPING=1" in notifier.sent
+
+
+def test_frames_without_pose_are_dropped_and_counted(
+    running: tuple[DaemonThread, FakePipeline, RecordingNotifier], client: zenoh.Session
+) -> None:
+    dt, pipe, _ = running
+    src = Source(client)
+    src.wait_matching()
+    src.infos()
+    time.sleep(0.1)
+    from pugsd.wire import codec as c
+
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 255, (48, 64), dtype=np.uint8)
+    for i in range(3):
+        src.put("left_image", c.encode_image(img, 5_000_000_000 + i, "left"))
+        src.put("right_image", c.encode_image(img, 5_000_000_000 + i, "right"))
+    wait_for(lambda: dt.daemon.health.counts.get("paired", 0) == 3, 5.0, "pairs")
+    wait_for(lambda: dt.daemon.health.counts.get("dropped", 0) == 3, 5.0, "pose-wait drops")
+    assert pipe.integrated == []
+    assert any("no usable pose" in k for k in dt.daemon.health.dropped)
+    src.close()
+
+
+def test_command_mailbox_rejects_with_reason(port: int, client: zenoh.Session) -> None:
+    cfg = load_config_dict(daemon_config_dict(port) | {"queues": {"commands": 1}})
+    pipe = FakePipeline()
+    pipe_reset = pipe.reset
+
+    def slow_reset() -> None:
+        time.sleep(0.5)
+        pipe_reset()
+
+    pipe.reset = slow_reset  # type: ignore[method-assign]
+    notifier = RecordingNotifier()
+    dt = DaemonThread(Daemon(cfg, pipe, notifier=notifier)).start()
+    try:
+        wait_for(lambda: "READY=1" in notifier.sent, 10.0, "READY")
+        wait_for(
+            lambda: any(r.ok is not None for r in client.liveliness().get("pugs/alive/**", timeout=0.5)),
+            10.0,
+            "the daemon's liveliness token",
+        )
+        answers: list[Any] = []
+        for _ in range(4):
+            answers.extend(client.get("pugs/reset", timeout=2.0))
+        oks = [r for r in answers if r.ok is not None]
+        errs = [r.err.payload.to_string() for r in answers if r.err is not None]
+        assert oks and errs, (len(oks), errs)
+        assert all("rejected: commands: busy" in e for e in errs)
+        assert dt.daemon.commands.rejected == len(errs)
+    finally:
+        dt.stop()
+    assert RIG.baseline_m > 0
+
+
+def test_failing_training_backs_off_and_withholds_watchdog(
+    port: int, client: zenoh.Session, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("WATCHDOG_USEC", "400000")  # ping every 0.2 s while healthy
+    monkeypatch.delenv("WATCHDOG_PID", raising=False)
+    cfg = load_config_dict(daemon_config_dict(port, max_consecutive_failures=3))
+    pipe = FakePipeline()
+
+    def broken(n: int) -> Any:
+        raise RuntimeError("model diverged")
+
+    pipe.train_steps = broken  # type: ignore[method-assign,assignment]
+    notifier = RecordingNotifier()
+    dt = DaemonThread(Daemon(cfg, pipe, notifier=notifier)).start()
+    src = Source(client)
+    try:
+        wait_for(lambda: notifier.sent.count("WATCHDOG=1") >= 2, 10.0, "healthy watchdog pings")
+        src.wait_matching()
+        src.infos()
+        time.sleep(0.1)
+        src.stereo(10**9, pose_at(0.0))
+        d = dt.daemon
+        wait_for(lambda: d.health.counts.get("errors.train", 0) >= 3, 10.0, "train failures")
+        wait_for(lambda: bool(d.health.problems()), 5.0, "unhealthy")
+        n_before = notifier.sent.count("WATCHDOG=1")
+        time.sleep(1.0)
+        assert notifier.sent.count("WATCHDOG=1") == n_before  # pings withheld while failing
+        # backoff: nowhere near one retry per 20 ms idle round
+        assert d.health.counts["errors.train"] < 15
+        assert len(pipe.integrated) == 1  # integration itself still worked
+    finally:
+        src.close()
+        dt.stop()
+
+
+def test_refuses_non_loopback_zenoh_config_by_default(port: int) -> None:
+    from pugsd.errors import ConfigError
+
+    raw = daemon_config_dict(port)
+    raw["zenoh"]["listen"]["endpoints"] = [f"tcp/0.0.0.0:{port}"]
+    cfg = load_config_dict(raw)
+    with pytest.raises(ConfigError, match="loopback"):
+        asyncio.run(Daemon(cfg, FakePipeline(), notifier=RecordingNotifier()).run(asyncio.Event()))

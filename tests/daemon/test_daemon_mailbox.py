@@ -1,0 +1,53 @@
+# SPDX-License-Identifier: Apache-2.0
+import asyncio
+
+import pytest
+
+from pugsd.daemon.mailbox import Mailbox, Overflow
+
+
+def test_drop_oldest_keeps_newest_and_counts() -> None:
+    box: Mailbox[int] = Mailbox("stereo", 2, Overflow.DROP_OLDEST)
+    for i in range(5):
+        assert box.offer(i)
+    assert len(box) == 2
+    assert box.dropped == 3 and box.accepted == 5 and box.offered == 5
+    assert box.take_nowait() == 3 and box.take_nowait() == 4 and box.take_nowait() is None
+    assert box.stats()["high_water"] == 2
+
+
+def test_reject_refuses_with_reason() -> None:
+    box: Mailbox[str] = Mailbox("commands", 1, Overflow.REJECT)
+    assert box.offer("reset")
+    assert not box.offer("reset")
+    assert box.rejected == 1 and box.dropped == 0
+    assert "busy" in box.reject_reason()
+    box.close()
+    assert box.take_nowait() == "reset"
+    assert not box.offer("x") and "shutting down" in box.reject_reason()
+
+
+def test_keep_latest_slot() -> None:
+    box: Mailbox[int] = Mailbox("snapshot", 1, Overflow.KEEP_LATEST)
+    box.offer(1)
+    box.offer(2)
+    assert box.take_nowait() == 2 and box.dropped == 1
+
+
+def test_take_waits_and_take_within_times_out() -> None:
+    async def main() -> None:
+        box: Mailbox[int] = Mailbox("depth", 4, Overflow.DROP_OLDEST)
+        assert await box.take_within(0.01) is None
+        loop = asyncio.get_running_loop()
+        loop.call_later(0.02, box.offer, 7)
+        assert await asyncio.wait_for(box.take(), 1.0) == 7
+        box.offer(1)
+        box.offer(2)
+        assert box.clear() == 2 and box.dropped == 2
+
+    asyncio.run(main())
+
+
+def test_maxsize_must_be_positive() -> None:
+    with pytest.raises(ValueError):
+        Mailbox("x", 0, Overflow.REJECT)

@@ -1,0 +1,145 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Malformed input of each kind is rejected with a counted, logged reason; the daemon keeps serving.
+
+In-process daemon (fake pipeline) over real loopback zenoh; the subprocess e2e test covers the
+real pipeline.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import pytest
+import zenoh
+
+from pugsd.config import load_config_dict
+from pugsd.daemon.app import Daemon
+from pugsd.wire import codec
+from pugsd.wire.codec import serialize
+from pugsd.wire.types import IMAGE, POSE_COV_STAMPED, msg_class
+from tests.daemon.conftest import FakePipeline, Source, daemon_config_dict, query_json, wait_for
+from tests.daemon.test_daemon_inprocess import DaemonThread, RecordingNotifier
+
+
+def _header(stamp_ns: int) -> object:
+    Time = msg_class("builtin_interfaces/msg/Time")
+    return msg_class("std_msgs/msg/Header")(
+        stamp=Time(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9), frame_id="x"
+    )
+
+
+def raw_image(stamp_ns: int, h: int, w: int, step: int, nbytes: int, enc: str = "mono8") -> bytes:
+    m = msg_class(IMAGE)(
+        header=_header(stamp_ns),
+        height=h,
+        width=w,
+        encoding=enc,
+        is_bigendian=0,
+        step=step,
+        data=np.zeros(nbytes, np.uint8),
+    )
+    return serialize(m, IMAGE)
+
+
+def raw_pose(
+    stamp_ns: int, xyz: tuple[float, float, float], quat: tuple[float, ...], cov: np.ndarray
+) -> bytes:
+    P = msg_class("geometry_msgs/msg/Point")
+    Q = msg_class("geometry_msgs/msg/Quaternion")
+    pose = msg_class("geometry_msgs/msg/Pose")(
+        position=P(x=xyz[0], y=xyz[1], z=xyz[2]),
+        orientation=Q(x=quat[0], y=quat[1], z=quat[2], w=quat[3]),
+    )
+    pwc = msg_class("geometry_msgs/msg/PoseWithCovariance")(pose=pose, covariance=cov.reshape(-1))
+    return serialize(msg_class(POSE_COV_STAMPED)(header=_header(stamp_ns), pose=pwc), POSE_COV_STAMPED)
+
+
+def test_each_kind_of_bad_input_is_rejected_and_counted(
+    port: int, client: zenoh.Session, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    cfg = load_config_dict(daemon_config_dict(port))
+    pipe = FakePipeline()
+    notifier = RecordingNotifier()
+    dt = DaemonThread(Daemon(cfg, pipe, notifier=notifier)).start()
+    src = Source(client)
+    try:
+        wait_for(lambda: "READY=1" in notifier.sent, 10.0, "READY")
+        src.wait_matching()
+        src.infos()
+        good_img = codec.encode_image(np.zeros((48, 64), np.uint8), 10**9, "left")
+        good_pose = codec.encode_pose_with_covariance(10**9, np.eye(4), np.eye(6) * 1e-6)
+        neg = -np.eye(6)
+        bad = {
+            # truncated CDR
+            ("left_image", "malformed_cdr"): good_img[: len(good_img) // 2],
+            ("pose", "malformed_cdr"): good_pose[:30],
+            ("left_info", "malformed_cdr"): b"\x00\x01\x00\x00\x05",
+            ("depth", "malformed_cdr"): b"garbage!",
+            # wrong encoding
+            ("left_image", "wrong_encoding"): codec.encode_image(
+                np.zeros((48, 64), np.uint16), 10**9, "left", "16UC1"
+            ),
+            ("depth", "wrong_encoding"): codec.encode_image(np.zeros((48, 64), np.uint8), 10**9),
+            ("right_image", "wrong_encoding"): raw_image(10**9, 48, 64, 64, 48 * 64, "yuv422"),
+            # wrong sizes: data length vs step*height, and step < width
+            ("left_image", "wrong_size"): raw_image(10**9, 48, 64, 64, 100),
+            ("right_image", "wrong_size"): raw_image(10**9, 48, 64, 32, 48 * 32),
+            # NaN pose, zero quaternion, non-PSD and non-symmetric covariance
+            ("pose", "bad_pose"): raw_pose(10**9, (np.nan, 0, 0), (0, 0, 0, 1), np.zeros((6, 6))),
+            ("pose", "bad_pose#2"): raw_pose(10**9, (0, 0, 0), (0, 0, 0, 0), np.zeros((6, 6))),
+            ("pose", "non_psd_covariance"): raw_pose(10**9, (0, 0, 0), (0, 0, 0, 1), neg),
+        }
+        for (role, _), data in bad.items():
+            src.put(role, data)
+        # a stereo pair whose images do not match the CameraInfo size (valid CDR each)
+        src.put("pose", codec.encode_pose_with_covariance(3 * 10**9, np.eye(4), np.eye(6) * 1e-6))
+        small = np.zeros((24, 32), np.uint8)
+        src.put("left_image", codec.encode_image(small, 3 * 10**9, "left"))
+        src.put("right_image", codec.encode_image(small, 3 * 10**9, "right"))
+        # a PoseStamped on an image topic (wrong type in the rmw_zenoh key) is refused too
+        want = {
+            "left_image: malformed_cdr": 1,
+            "pose: malformed_cdr": 1,
+            "left_info: malformed_cdr": 1,
+            "depth: malformed_cdr": 1,
+            "left_image: wrong_encoding": 1,
+            "depth: wrong_encoding": 1,
+            "right_image: wrong_encoding": 1,
+            "left_image: wrong_size": 2,
+            "right_image: wrong_size": 1,
+            "pose: bad_pose": 2,
+            "pose: non_psd_covariance": 1,
+        }
+        wait_for(
+            lambda: sum(dt.daemon.health.rejected.values()) >= sum(want.values()),
+            10.0,
+            f"rejections (have {dict(dt.daemon.health.rejected)})",
+        )
+        assert dict(dt.daemon.health.rejected) == want, sorted(dt.daemon.health.counts.items())
+        st = query_json(client, "pugs/status")
+        assert st["rejected"] == want and st["counts"]["rejected"] == sum(want.values())
+        # every rejection was logged with its reason
+        logged = [r.getMessage() for r in caplog.records if "rejected" in r.getMessage()]
+        assert len(logged) == sum(want.values())
+        assert any("positive semi-definite" in m for m in logged)
+        assert any("non-finite pose" in m for m in logged)
+        # ...and the daemon still serves good frames
+        for i in range(3):
+            stamp = 5 * 10**9 + i * 10**8
+            src.stereo(stamp, np.eye(4), seed=i)
+        src.put("pose", codec.encode_pose_with_covariance(6 * 10**9, np.eye(4), np.eye(6) * 1e-6))
+        d = dt.daemon
+        wait_for(
+            lambda: len(pipe.integrated) + d.stereo_box.dropped + d.depth_box.dropped == 3,
+            10.0,
+            "good frames integrated (or dropped as the newest won) after bad ones",
+        )
+        assert pipe.integrated and pipe.integrated[-1] == 5 * 10**9 + 2 * 10**8
+        wait_for(lambda: dt.daemon.latest_grasps is not None, 10.0, "grasps after bad input")
+    finally:
+        src.close()
+        dt.stop()
+    time.sleep(0)

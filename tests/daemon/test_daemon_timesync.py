@@ -1,0 +1,132 @@
+# SPDX-License-Identifier: Apache-2.0
+import numpy as np
+import pytest
+
+from pugsd.daemon.timesync import (
+    ExactPairer,
+    PoseBuffer,
+    PoseGate,
+    PoseSample,
+    interpolate_pose,
+    matrix_from_quat,
+    quat_from_matrix,
+)
+
+
+def rot(axis: str, angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    if axis == "z":
+        return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def pose(R: np.ndarray, t: tuple[float, float, float]) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def test_quaternion_round_trip_all_branches() -> None:
+    rng = np.random.default_rng(0)
+    mats = [np.eye(3), rot("z", np.pi), rot("x", np.pi), np.diag([-1.0, 1.0, -1.0])]
+    for _ in range(50):
+        q = rng.normal(size=4)
+        mats.append(matrix_from_quat(q))
+    for R in mats:
+        assert np.allclose(matrix_from_quat(quat_from_matrix(R)), R, atol=1e-9)
+
+
+def test_se3_interpolation_is_slerp_plus_lerp() -> None:
+    T0 = pose(rot("z", 0.0), (0.0, 0.0, 0.0))
+    T1 = pose(rot("z", np.pi / 2), (1.0, 2.0, -2.0))
+    Th = interpolate_pose(T0, T1, 0.5)
+    assert np.allclose(Th[:3, :3], rot("z", np.pi / 4), atol=1e-12)
+    assert np.allclose(Th[:3, 3], [0.5, 1.0, -1.0])
+    assert np.allclose(interpolate_pose(T0, T1, 0.0), T0)
+    assert np.allclose(interpolate_pose(T0, T1, 1.0), T1)
+    # constant angular rate: a quarter of the way is a quarter of the angle (not a chord lerp)
+    Tq = interpolate_pose(T0, T1, 0.25)
+    assert np.allclose(Tq[:3, :3], rot("z", np.pi / 8), atol=1e-12)
+
+
+def test_pose_buffer_interpolates_and_takes_latest_covariance() -> None:
+    cov_a = np.eye(6) * 1e-4
+    cov_default = np.eye(6) * 9.0
+    buf = PoseBuffer(capacity=10, max_gap_ns=10**9, default_cov=cov_default)
+    assert buf.lookup(5).state == "wait"
+    buf.add(PoseSample(100, pose(np.eye(3), (0, 0, 0)), cov_a))
+    buf.add(PoseSample(300, pose(np.eye(3), (2, 0, 0)), None))  # no covariance: keyframes only
+    r = buf.lookup(150)
+    assert r.state == "ready" and r.T_W_C is not None and r.cov is not None
+    assert np.allclose(r.T_W_C[:3, 3], [0.5, 0, 0])
+    assert np.allclose(r.cov, cov_a)  # from the latest pose that carries one
+    assert buf.lookup(300).state == "ready"
+    assert buf.lookup(301).state == "wait"  # no pose after it yet
+    assert buf.lookup(50).state == "fail"  # older than every pose
+    # before any covariance: the default
+    buf2 = PoseBuffer(10, 10**9, cov_default)
+    buf2.add(PoseSample(0, np.eye(4), None))
+    buf2.add(PoseSample(10, np.eye(4), None))
+    r2 = buf2.lookup(5)
+    assert r2.cov is not None and np.allclose(r2.cov, cov_default)
+
+
+def test_pose_buffer_refuses_large_gaps_and_is_bounded() -> None:
+    buf = PoseBuffer(capacity=3, max_gap_ns=100, default_cov=np.zeros((6, 6)))
+    buf.add(PoseSample(0, np.eye(4), None))
+    buf.add(PoseSample(1000, np.eye(4), None))
+    r = buf.lookup(500)
+    assert r.state == "fail" and "gap" in r.reason
+    for t in (2000, 3000, 4000):
+        buf.add(PoseSample(t, np.eye(4), None))
+    assert len(buf) == 3
+    # out-of-order arrival is sorted in
+    buf.add(PoseSample(3500, np.eye(4), None))
+    assert buf.lookup(3200).state == "fail"  # 3000 was evicted? no: gap 3000..3500 > 100
+    buf.add(PoseSample(3550, np.eye(4), None))
+    assert buf.lookup(3520).state == "ready"
+
+
+def test_exact_pairer() -> None:
+    p: ExactPairer[str, str] = ExactPairer(capacity=2)
+    assert p.add_left(1, "L1") is None
+    assert p.add_right(2, "R2") is None
+    assert p.add_right(1, "R1") == ("L1", "R1")
+    assert p.add_left(2, "L2") == ("L2", "R2")
+    for t in (10, 11, 12):  # no partners: the oldest incomplete stamp is dropped
+        p.add_left(t, "x")
+    assert p.unpaired_dropped == 1 and p.pending() == 2
+    assert p.paired == 2
+
+
+def test_pose_gate_waits_then_releases_or_drops() -> None:
+    buf = PoseBuffer(10, 10**9, np.zeros((6, 6)))
+    gate: PoseGate[str] = PoseGate(buf, wait_s=0.5, capacity=2)
+    gate.add(150, "frame150", now_s=0.0)
+    ready, dropped = gate.poll(0.1)
+    assert not ready and not dropped and len(gate) == 1
+    buf.add(PoseSample(100, np.eye(4), None))
+    buf.add(PoseSample(200, np.eye(4), None))
+    ready, dropped = gate.poll(0.2)
+    assert [r[0] for r in ready] == ["frame150"] and ready[0][1] == 150
+    gate.add(900, "late", now_s=1.0)
+    ready, dropped = gate.poll(1.4)
+    assert not ready and not dropped
+    ready, dropped = gate.poll(1.6)
+    assert not ready and dropped[0][0] == "late" and "no usable pose" in dropped[0][1]
+    # capacity bound
+    gate.add(1000, "a", 2.0)
+    gate.add(1001, "b", 2.0)
+    out = gate.add(1002, "c", 2.0)
+    assert out == [("a", "pose wait queue full")]
+
+
+@pytest.mark.parametrize("s", [0.0, 0.3, 1.0])
+def test_interpolation_stays_rigid(s: float) -> None:
+    rng = np.random.default_rng(1)
+    T0 = pose(matrix_from_quat(rng.normal(size=4)), (1, 2, 3))
+    T1 = pose(matrix_from_quat(rng.normal(size=4)), (-1, 0, 3))
+    T = interpolate_pose(T0, T1, s)
+    R = T[:3, :3]
+    assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R), 1.0)
