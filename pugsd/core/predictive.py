@@ -245,7 +245,11 @@ class OccupancySVGP:
             self.natural = self.cfg.natural_gradient
             self._init_model(x, y)
         else:
-            moved = self._cover_new_region(x, new_idx)
+            try:
+                moved = self._cover_new_region(x, new_idx)
+            except (RuntimeError, ValueError) as exc:  # NotPSDError while re-projecting q(u)
+                self._recover(exc, n)
+                return TrainStats(self.total_steps, float("nan"), False, 0, n)
         assert self._mll is not None
         self._mll.num_data = n
         if self._ngd is not None:

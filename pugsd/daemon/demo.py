@@ -123,13 +123,14 @@ class GraspPrinter:
         for i in range(min(3, len(g))):
             c = g.contact_W[i]
             parts.append(
-                f"#{i + 1} PUGS {g.pugs_confidence[i]:.3f} (base {g.baseline_confidence[i]:.3f}, "
+                f"#{i + 1} PUGS {g.pugs_confidence[i]:.3g} (base {g.baseline_confidence[i]:.3f}, "
                 f"s2 {g.sigma2_occ[i]:.2g}) at ({c[0]:+.3f},{c[1]:+.3f},{c[2]:+.3f}) m "
                 f"w {100 * g.width_m[i]:.1f} cm"
             )
         line = " | ".join(parts)
         ident = tuple(np.round(g.contact_W[: min(3, len(g))] / 0.005).astype(int).ravel())
-        if ident != self.last_ident or abs(top - self.best) > 5e-3 or t - self.last_print_s > 15:
+        changed = abs(top - self.best) > 0.05 * max(abs(self.best), 1e-300)
+        if ident != self.last_ident or changed or t - self.last_print_s > 15:
             self.best = top
             self.last_ident = ident
             self.last_print_s = t
@@ -171,7 +172,8 @@ def save_figure(result: Any, path: Path, top_k: int = 5, gripper_depth_m: float 
     g = result.grasps
     for i in range(min(top_k, len(g))):
         seg = codec.gripper_lines(g.pose_W[i], float(g.width_m[i]), gripper_depth_m)
-        color = codec.confidence_color(float(g.pugs_confidence[i]))
+        best = float(np.max(g.pugs_confidence)) or 1.0
+        color = codec.confidence_color(float(g.pugs_confidence[i]) / best)
         for a, b in zip(seg[0::2], seg[1::2]):
             ax.plot(*zip(a, b), color=color, linewidth=2)
         ax.text(*g.contact_W[i], f"{i + 1}", color="black")

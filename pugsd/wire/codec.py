@@ -606,6 +606,10 @@ def encode_grasp_markers(
 
     out = [marker(0, _MARKER_DELETEALL, [], Color(r=0.0, g=0.0, b=0.0, a=0.0))]
     conf = grasps.pugs_confidence if use_pugs_confidence else grasps.baseline_confidence
+    if use_pugs_confidence and len(conf) and float(np.max(conf)) > 0:
+        # PUGS confidences live on a data-dependent scale (Eq. 13 in density units): colour the
+        # grasps relative to the best one so the ranking is visible
+        conf = conf / float(np.max(conf))
     for i in range(min(int(top_k), len(grasps))):
         seg = gripper_lines(grasps.pose_W[i], float(grasps.width_m[i]), depth)
         r, g, b = confidence_color(float(conf[i]))
