@@ -166,6 +166,10 @@ class Daemon:
         )
         self.depth_box: Mailbox[tuple[DepthFrame, float]] = Mailbox("depth", q.depth, Overflow.DROP_OLDEST)
         self.commands: Mailbox[Command] = Mailbox("commands", q.commands, Overflow.REJECT)
+        # one arm motion at a time; a second request is rejected, never queued behind the first
+        self.arm_box: Mailbox[tuple[Any, int, float | None]] = Mailbox("arm", 1, Overflow.REJECT)
+        self.arm: Any = None  # pugsd.arm.controller.ArmController when [arm] enabled
+        self.arm_report: dict[str, Any] | None = None
         default_cov = np.diag([d.pose_std_translation_m**2] * 3 + [d.pose_std_rotation_rad**2] * 3).astype(
             np.float64
         )
@@ -230,6 +234,7 @@ class Daemon:
             )
         try:
             self._declare_outputs()
+            await self._start_arm()
             self._declare_inputs()
             self._start_recorder()
             log.info(
@@ -248,10 +253,12 @@ class Daemon:
                     "status": tg.create_task(self._status_worker(), name="status"),
                     "watchdog": tg.create_task(self._watchdog_worker(), name="watchdog"),
                     "gate": tg.create_task(self._gate_worker(), name="gate"),
+                    "arm": tg.create_task(self._arm_worker(), name="arm"),
                 }
                 tg.create_task(self._supervise(stop, workers), name="supervisor")
         finally:
             self.notifier.send("STOPPING=1")
+            await self._stop_arm()
             self._close()
             for ex in (self._depth_exec, self._model_exec):
                 ex.shutdown(wait=False, cancel_futures=True)
@@ -274,7 +281,7 @@ class Daemon:
         for sub in self._subscribers:
             self._undeclare(sub)
         self._subscribers.clear()
-        for box in (self.stereo_box, self.depth_box, self.commands):
+        for box in (self.stereo_box, self.depth_box, self.commands, self.arm_box):
             box.close()
         for name, task in workers.items():
             if not self._busy.get(name):
@@ -293,6 +300,66 @@ class Daemon:
             ent.undeclare()
         except Exception as exc:
             log.debug("undeclare failed: %s", exc)
+
+    async def _start_arm(self) -> None:
+        """Connect to the arm when the config enables it; motion only on explicit requests."""
+        if not self.cfg.arm.enabled:
+            return
+        from pugsd.arm.controller import ArmController  # only when the arm is enabled
+
+        self.arm = ArmController(self.cfg.arm)
+        await self.arm.start()
+        self._entities.append(
+            self.session.declare_queryable(self.key("arm/execute"), self._bridge_query("arm_execute"))
+        )
+        log.info("arm enabled (%s); execute on %s", self.cfg.arm.transport, self.key("arm/execute"))
+
+    async def _stop_arm(self) -> None:
+        if self.arm is None:
+            return
+        try:
+            await self.arm.close()  # sends zero velocity and the safe mode
+        except Exception as exc:
+            log.error("arm: stop on shutdown failed: %s", exc)
+        self.arm = None
+
+    def _on_arm_execute(self, query: Any) -> str:
+        """Validate an ``<prefix>/arm/execute`` request and queue it; returns the reply text."""
+        from pugsd.arm.controller import parse_execute_request
+
+        if self.arm is None:
+            raise PugsdError("arm disabled: set [arm] enabled = true to allow motion")
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        grasp_id, width_m = parse_execute_request(payload)
+        result = self.latest_result
+        if result is None:
+            raise PugsdError("no grasps yet: model not ready")
+        if grasp_id not in {int(g) for g in result.grasps.grasp_id}:
+            raise PugsdError(f"grasp id {grasp_id} is not among the latest grasps")
+        if self._busy.get("arm") or not self.arm_box.offer((result.grasps, grasp_id, width_m)):
+            raise PugsdError("busy: an arm motion is in progress")
+        return f"accepted: grasp {grasp_id}"
+
+    async def _arm_worker(self) -> None:
+        while not self._stopping:
+            grasps, grasp_id, width_m = await self.arm_box.take()
+            self._busy["arm"] = True
+            try:
+                rep = await self.arm.execute_grasp_id(grasps, grasp_id, width_m)
+                report = _jsonable(rep.to_dict())
+            except PugsdError as exc:
+                log.warning("arm: grasp %d refused or failed: %s", grasp_id, exc)
+                report = {"grasp_id": grasp_id, "ok": False, "error": str(exc)}
+            except Exception as exc:  # keep serving; the controller has already stopped the arm
+                log.error("arm: grasp %d failed: %s", grasp_id, exc)
+                report = {"grasp_id": grasp_id, "ok": False, "error": repr(exc)}
+            finally:
+                self._busy["arm"] = False
+            self.arm_report = report
+            try:
+                self.session.put(self.key("arm/report"), json.dumps(report))
+            except Exception as exc:
+                log.warning("arm: could not publish the report: %s", exc)
 
     def _start_recorder(self) -> None:
         if not self.cfg.record.enabled:
@@ -387,6 +454,12 @@ class Daemon:
                     query.reply(key, self.latest_grasps)
             elif kind == "status":
                 query.reply(key, json.dumps(_jsonable(self.status())))
+            elif kind == "arm_execute":
+                try:
+                    query.reply(key, self._on_arm_execute(query))
+                except PugsdError as exc:
+                    self.health.reject("arm", str(exc).split(":")[0])
+                    query.reply_err(f"rejected: {exc}")
             elif kind == "reset":
                 if self._offer_command(Command("reset", None)):
                     query.reply(key, "accepted")

@@ -1,0 +1,108 @@
+# SPDX-License-Identifier: Apache-2.0
+"""``<prefix>/arm/execute``: explicit requests only, one motion at a time, reports published.
+
+The simulated Bravo 7 runs as a separate process on UDP 127.0.0.1 (``pugsd arm sim``), the daemon
+in-process with a stand-in pipeline whose latest grasps the test sets.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from pugsd.config import load_config_dict
+from pugsd.core.types import ScoredGrasps
+from pugsd.daemon.app import Daemon
+from tests.arm.test_cli import _pose_near_start, sim_process  # noqa: F401 (fixture)
+from tests.daemon.conftest import FakePipeline, Result, daemon_config_dict, wait_for
+from tests.daemon.test_daemon_inprocess import DaemonThread, RecordingNotifier
+
+
+def _try(s: zenoh.Session, key: str, payload: str, timeout: float = 5.0) -> tuple[bool, str] | None:
+    for r in s.get(key, payload=payload, timeout=timeout):
+        if r.ok is not None:
+            return True, r.ok.payload.to_string()
+        return False, r.err.payload.to_string()
+    return None
+
+
+def _ask(s: zenoh.Session, key: str, payload: str) -> tuple[bool, str]:
+    reply = _try(s, key, payload)
+    assert reply is not None, f"no reply on {key}"
+    return reply
+
+
+def _grasps() -> ScoredGrasps:
+    T = _pose_near_start([0.2, 0.1, -0.1, 0.1, 0.1, 0.1])  # world = arm base by default
+    return ScoredGrasps(
+        pose_W=np.stack([T, np.eye(4)]),
+        contact_W=np.zeros((2, 3)),
+        width_m=np.array([0.03, 0.02]),
+        baseline_confidence=np.ones(2),
+        sigma2_occ=np.zeros(2),
+        pugs_confidence=np.ones(2),
+        grasp_id=np.array([7, 8]),
+    )
+
+
+def test_arm_execute_query(port: int, client: zenoh.Session, sim_process: int) -> None:  # noqa: F811
+    over = [
+        "arm.enabled=true",
+        "arm.transport=udp",
+        "arm.udp.host='127.0.0.1'",
+        f"arm.udp.port={sim_process}",
+        "arm.udp.local_host='127.0.0.1'",
+        "arm.motion.max_joint_speed_rad_s=2.0",
+        "arm.motion.jaw_speed_mm_s=150.0",
+        "arm.safety.watchdog_s=1.0",  # the simulator is another process on a busy machine
+    ]
+    cfg = load_config_dict(daemon_config_dict(port), over)
+    notifier = RecordingNotifier()
+    dt = DaemonThread(Daemon(cfg, FakePipeline(ready_after=10**9), notifier=notifier)).start()
+    reports: list[dict[str, Any]] = []
+    got = threading.Event()
+
+    def on_report(sample: Any) -> None:
+        reports.append(json.loads(sample.payload.to_string()))
+        got.set()
+
+    sub = client.declare_subscriber("pugs/arm/report", on_report)
+    try:
+        wait_for(lambda: "READY=1" in notifier.sent, 15.0, "READY")
+        key = "pugs/arm/execute"
+        wait_for(lambda: _try(client, key, "7", 0.5) is not None, 10.0, "queryable")
+        ok, text = _ask(client, key, "7")
+        assert not ok and "no grasps yet" in text  # nothing moves before there are grasps
+        dt.daemon.latest_result = Result(_grasps(), np.zeros((1, 3)), np.zeros(1), np.zeros(1), 1)
+        ok, text = _ask(client, key, "99")
+        assert not ok and "not among the latest grasps" in text
+        ok, text = _ask(client, key, "garbage")
+        assert not ok and "expected a grasp id" in text
+        ok, text = _ask(client, key, json.dumps({"grasp_id": 7, "width_m": 0.03}))
+        assert ok and text == "accepted: grasp 7", text
+        ok, text = _ask(client, key, "7")  # a second motion is rejected while the first runs
+        assert not ok and "busy" in text
+        assert got.wait(30.0), "no arm report"
+        rep = reports[-1]
+        assert rep["ok"] is True and rep["grasp_id"] == 7, rep
+        assert rep["grasp_pose_error_mm"] < 1.0
+    finally:
+        sub.undeclare()
+        dt.stop(15.0)
+    assert dt.daemon.arm is None  # closed (zero velocity + safe mode sent) on shutdown
+
+
+def test_arm_execute_refused_when_disabled(port: int, client: zenoh.Session) -> None:
+    cfg = load_config_dict(daemon_config_dict(port))
+    notifier = RecordingNotifier()
+    dt = DaemonThread(Daemon(cfg, FakePipeline(), notifier=notifier)).start()
+    try:
+        wait_for(lambda: "READY=1" in notifier.sent, 15.0, "READY")
+        replies = list(client.get("pugs/arm/execute", payload="7", timeout=1.0))
+        assert replies == []  # no queryable at all: the arm is disabled by default
+    finally:
+        dt.stop(15.0)
