@@ -170,6 +170,7 @@ class Daemon:
         self.arm_box: Mailbox[tuple[Any, int, float | None]] = Mailbox("arm", 1, Overflow.REJECT)
         self.arm: Any = None  # pugsd.arm.controller.ArmController when [arm] enabled
         self.arm_report: dict[str, Any] | None = None
+        self._last_train_s = 0.0  # time.monotonic() of the last training step
         default_cov = np.diag([d.pose_std_translation_m**2] * 3 + [d.pose_std_rotation_rad**2] * 3).astype(
             np.float64
         )
@@ -695,10 +696,14 @@ class Daemon:
     async def _train(self, steps: int) -> None:
         """Up to ``steps`` SVGP steps, one per offload, yielding as soon as a frame is waiting:
         ingest has priority, so frames are not dropped while the model trains (measured in
-        docs/performance.md: 10 Hz went from 15-26 of 100 frames integrated to 100 of 100)."""
+        docs/performance.md: 10 Hz went from 15-26 of 100 frames integrated to 100 of 100).
+        One step is forced when the last is older than ``min_train_interval_s``, so sustained
+        overload cannot starve the model (it then drops frames instead, counted)."""
         for _ in range(steps):
-            if len(self.depth_box) > 0 or self._stopping:
+            overdue = time.monotonic() - self._last_train_s > self.cfg.daemon.min_train_interval_s
+            if self._stopping or (len(self.depth_box) > 0 and not overdue):
                 break
+            self._last_train_s = time.monotonic()
             stats = await self._guard(
                 "train", self._offload("train", self._locked, self.pipeline.train_steps, 1)
             )

@@ -48,6 +48,13 @@ class DaemonConfig:
     )
     train_steps_per_frame: int = opt(4, "SVGP steps (NGD + Adam) after each integrated frame", ge=0)
     idle_train_steps: int = opt(4, "SVGP steps per round while no frame is waiting", ge=0)
+    min_train_interval_s: float = opt(
+        0.5,
+        "training yields to waiting frames, except that one step is forced when the last one is "
+        "older than this (so the model still improves under sustained overload)",
+        unit="s",
+        gt=0.0,
+    )
     idle_train_s: float = opt(
         60.0, "keep training without new frames for this long after the last one", unit="s", ge=0.0
     )
