@@ -241,28 +241,17 @@ def _arm_stop(args: argparse.Namespace) -> int:
     return 0
 
 
-def _grasp_decoder() -> Any:
-    """``decode_grasp_array`` from the wire module (``messages``, else ``codec``)."""
-    import importlib
-
-    for mod in ("pugsd.wire.messages", "pugsd.wire.codec"):
-        try:
-            return importlib.import_module(mod).decode_grasp_array
-        except (ImportError, AttributeError):
-            continue
-    raise ArmError("the daemon wire API (decode_grasp_array) is not available")
-
-
 def fetch_latest_grasps(full_cfg: Any, timeout: float = 2.0) -> Any:
     """The daemon's latest grasps from its zenoh queryable ``<prefix>/grasps/latest``."""
-    decode = _grasp_decoder()
-    try:
-        from pugsd.wire.session import close_session, open_session, tool_config
-    except ImportError as exc:
-        raise ArmError(f"the daemon wire API is not available: {exc}") from None
+    from pugsd.wire.codec import decode_grasp_array as decode
+    from pugsd.wire.session import close_session, open_session, tool_config
+
     key = f"{full_cfg.daemon.prefix}/grasps/latest"
-    # a peer that connects to the daemon's listen endpoints (multicast scouting and gossip off)
-    session = open_session(tool_config(full_cfg.zenoh), require_loopback=False)
+    # a peer that connects to the daemon's listen endpoints (multicast scouting and gossip off),
+    # under the same loopback policy as the daemon itself
+    session = open_session(
+        tool_config(full_cfg.zenoh), require_loopback=not full_cfg.daemon.allow_non_loopback
+    )
     try:
         t_end = time.monotonic() + timeout
         while time.monotonic() < t_end:  # let the connection to the daemon come up first

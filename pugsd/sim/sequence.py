@@ -28,6 +28,7 @@ import numpy as np
 import trimesh
 
 from pugsd.core.camera import StereoRig
+from pugsd.core.geometry import look_at, skew
 from pugsd.core.types import StereoFrame
 from pugsd.errors import InputError
 from pugsd.sim.objects import ObjectSpec, get_object
@@ -61,13 +62,9 @@ TRAJECTORY_SPECS: dict[str, TrajectorySpec] = {
 # ----------------------------------------------------------------------------- SE(3) helpers
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def so3_exp(phi: np.ndarray) -> np.ndarray:
     th = float(np.linalg.norm(phi))
-    K = _skew(phi)
+    K = skew(phi)
     if th < 1e-9:
         return np.eye(3) + K
     return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / th**2 * K @ K
@@ -77,7 +74,7 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     """exp of xi = (rho, phi) (translation first) as a 4x4 transform."""
     rho, phi = np.asarray(xi[:3], float), np.asarray(xi[3:], float)
     th = float(np.linalg.norm(phi))
-    K = _skew(phi)
+    K = skew(phi)
     if th < 1e-9:
         J = np.eye(3) + 0.5 * K
     else:
@@ -92,21 +89,6 @@ def perturb_pose(T: np.ndarray, cov: np.ndarray, rng: np.random.Generator) -> np
     """``exp(xi^) T`` with ``xi = (rho, phi) ~ N(0, cov)`` (left perturbation, world frame)."""
     L = np.linalg.cholesky(np.asarray(cov, float) + 1e-18 * np.eye(6))
     return se3_exp(L @ rng.standard_normal(6)) @ np.asarray(T, float)
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:
-    """T_W_C of an OpenCV camera at ``eye`` looking at ``target`` (image y points down)."""
-    up_v = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, float)
-    z = np.asarray(target, float) - np.asarray(eye, float)
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up_v)
-    if np.linalg.norm(x) < 1e-6:
-        x = np.cross(z, np.array([1.0, 0.0, 0.0]))
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, eye
-    return T
 
 
 def _rot(axis: str, deg: float) -> np.ndarray:

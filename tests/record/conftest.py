@@ -3,30 +3,9 @@
 
 from __future__ import annotations
 
-import time
-from collections.abc import Iterator
 from typing import Any
 
 import pytest
-
-from pugsd.wire.session import close_session, free_tcp_port, loopback_config, open_session
-
-
-@pytest.fixture
-def zenoh_pair() -> Iterator[tuple[Any, Any]]:
-    """(listener, connector) peer sessions: the first listens on a free 127.0.0.1 port, the second
-    connects to it. Both go through the loopback check."""
-    port = free_tcp_port()
-    a = open_session(loopback_config(listen_port=port), require_loopback=True)
-    b = open_session(loopback_config(connect_ports=[port]), require_loopback=True)
-    deadline = time.monotonic() + 5.0
-    while not list(b.info.peers_zid()) and time.monotonic() < deadline:
-        time.sleep(0.01)
-    try:
-        yield a, b
-    finally:
-        close_session(b)
-        close_session(a)
 
 
 @pytest.fixture(scope="session")

@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 import trimesh
 
+from pugsd.core.geometry import look_at
 from pugsd.sim import make_sequence, object_pose
 from pugsd.sim.objects import get_object
 from pugsd.sim.render import OBJECT_ID, World, default_rig, render_stereo
-from pugsd.sim.sequence import TRAJECTORY_SPECS, look_at, perturb_pose, pose_covariance, se3_exp
+from pugsd.sim.sequence import TRAJECTORY_SPECS, perturb_pose, pose_covariance, se3_exp
 
 
 def _sphere_world(r: float, c: np.ndarray) -> World:
