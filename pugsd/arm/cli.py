@@ -332,7 +332,8 @@ def _arm_execute(args: argparse.Namespace) -> int:
         if rep["grasp_pose_error_mm"] is not None:
             _out(
                 f"  grasp pose error {rep['grasp_pose_error_mm']:.2f} mm / "
-                f"{rep['grasp_pose_error_deg']:.2f} deg"
+                f"{rep['grasp_pose_error_deg']:.2f} deg (convergence tolerance allows "
+                f"{rep['grasp_pose_error_bound_mm']:.2f} mm / {rep['grasp_pose_error_bound_deg']:.2f} deg)"
             )
     return 0 if rep["ok"] else 2
 

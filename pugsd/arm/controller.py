@@ -282,6 +282,7 @@ class PhaseReport:
     duration_s: float
     converged: bool
     max_joint_error_rad: float
+    q_measured: list[float] = field(default_factory=list)  # the joints (DH, rad) that converged
 
 
 @dataclass(slots=True)
@@ -296,6 +297,9 @@ class ExecutionReport:
     phases: list[PhaseReport] = field(default_factory=list)
     grasp_pose_error_mm: float | None = None
     grasp_pose_error_deg: float | None = None
+    # what the joint convergence tolerance (and the IK tolerance) allow at the grasp pose, first order
+    grasp_pose_error_bound_mm: float | None = None
+    grasp_pose_error_bound_deg: float | None = None
     duration_s: float = 0.0
     q_pregrasp: list[float] = field(default_factory=list)
     q_grasp: list[float] = field(default_factory=list)
@@ -734,7 +738,7 @@ class ArmController:
                 vel = [self.link.axes[d].velocity for d in JOINT_DEVICES]
                 at_rest = all(v is None or abs(v) <= mo.settle_velocity_rad_s for v in vel)
                 if err <= mo.convergence_tol_rad and jaw_ok and at_rest:
-                    return PhaseReport(name, time.monotonic() - t0, True, err)
+                    return PhaseReport(name, time.monotonic() - t0, True, err, qm.tolist())
                 if el - t_total > mo.convergence_timeout_s:
                     raise ArmError(
                         f"{name}: no convergence within {mo.convergence_timeout_s} s "
@@ -801,11 +805,16 @@ class ArmController:
                 rep.phases.append(
                     await self._follow("approach", plan.approach, plan.jaw_open_mm, plan.jaw_open_mm)
                 )
-                T_meas = self.model.fk(self._measured_q())
+                # the pose error at the joints that met the convergence test, and its bound
+                q_conv = np.asarray(rep.phases[-1].q_measured)
                 T_goal = plan.T_B_G @ self.T_grasp_tool
-                dp, dr = pose_error(T_goal, T_meas)
+                dp, dr = pose_error(T_goal, self.model.fk(q_conv))
                 rep.grasp_pose_error_mm = dp * 1000.0
                 rep.grasp_pose_error_deg = math.degrees(dr)
+                bp, br = self.model.pose_error_bound(plan.approach[-1], self.cfg.motion.convergence_tol_rad)
+                k = self.cfg.kinematics
+                rep.grasp_pose_error_bound_mm = (1.02 * bp + k.ik_tol_m) * 1000.0
+                rep.grasp_pose_error_bound_deg = math.degrees(1.02 * br) + k.ik_tol_deg
                 rep.state = "close"
                 rep.phases.append(
                     await self._follow(

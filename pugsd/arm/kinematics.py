@@ -192,6 +192,15 @@ class Bravo7Model:
             J[3:, i] = z
         return J, T
 
+    def pose_error_bound(self, q: npt.ArrayLike, dq_max_rad: float) -> tuple[float, float]:
+        """First-order bound on the TCP (position m, rotation rad) error when every joint is within
+        ``dq_max_rad`` of ``q``: sum_i |J_i| dq_max over the Jacobian's columns. Controllers that
+        converge joint by joint to a tolerance can promise the pose only to this bound."""
+        J, _ = self.jacobian(q)
+        pos = float(np.linalg.norm(J[:3], axis=0).sum()) * dq_max_rad
+        rot = float(np.linalg.norm(J[3:], axis=0).sum()) * dq_max_rad
+        return pos, rot
+
     def ik(
         self,
         T_target: np.ndarray,

@@ -13,7 +13,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from pugsd.arm.config import ArmConfig, ArmMotionConfig, ArmSimConfig
-from pugsd.arm.controller import ArmController
+from pugsd.arm.controller import ArmController, ExecutionReport
 from pugsd.arm.sim import SimBravo7, close_pty, make_pty_pair, sim_from_config
 from pugsd.arm.transport import (
     CanMapping,
@@ -49,6 +49,17 @@ def fast_config(**over: Any) -> ArmConfig:
     base: dict[str, Any] = {"enabled": True, "motion": motion, "sim": sim}
     base.update(over)
     return ArmConfig(**base)
+
+
+def assert_pose_within_convergence(rep: ExecutionReport | dict[str, Any]) -> None:
+    """The grasp pose error lies within what the joint convergence tolerance allows (the report's
+    first-order bound), and that bound is a few millimetres and about a degree, not vacuous."""
+    d = rep.to_dict() if isinstance(rep, ExecutionReport) else rep
+    err_mm, err_deg = d["grasp_pose_error_mm"], d["grasp_pose_error_deg"]
+    bound_mm, bound_deg = d["grasp_pose_error_bound_mm"], d["grasp_pose_error_bound_deg"]
+    assert None not in (err_mm, err_deg, bound_mm, bound_deg), d
+    assert 0.0 < bound_mm < 10.0 and 0.0 < bound_deg < 1.5, (bound_mm, bound_deg)
+    assert err_mm <= bound_mm and err_deg <= bound_deg, (err_mm, bound_mm, err_deg, bound_deg)
 
 
 def reachable_grasp(ctl: ArmController, q_now: np.ndarray, dq: Any = None) -> np.ndarray:

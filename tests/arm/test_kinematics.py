@@ -65,6 +65,25 @@ def test_jacobian_matches_finite_differences(model: Bravo7Model) -> None:
             assert np.allclose(J[:3, i], v, atol=1e-5)
 
 
+def test_pose_error_bound_holds_for_joint_errors_within_tolerance(model: Bravo7Model) -> None:
+    """Every joint within tol of q: the TCP error stays within the first-order bound, and the
+    bound is not vacuous (the worst sampled corner of the joint box reaches a good part of it)."""
+    rng = np.random.default_rng(11)
+    tol = 0.003
+    for q in model.random_q(rng, 20, margin=0.05):
+        bp, br = model.pose_error_bound(q, tol)
+        assert br == pytest.approx(6 * tol)  # unit axes
+        T = model.fk(q)
+        worst_p = worst_r = 0.0
+        corners = rng.choice([-1.0, 1.0], size=(200, 6)) * tol
+        inside = rng.uniform(-tol, tol, size=(200, 6))
+        for dq in np.vstack([corners, inside]):
+            dp, dr = pose_error(T, model.fk(q + dq))
+            assert dp <= 1.02 * bp and dr <= 1.02 * br
+            worst_p, worst_r = max(worst_p, dp), max(worst_r, dr)
+        assert worst_p > 0.3 * bp and worst_r > 0.3 * br
+
+
 def test_ik_roundtrip_across_workspace(model: Bravo7Model) -> None:
     """IK(FK(q)) reproduces the pose within 1 mm / 0.5 deg for random configurations."""
     rng = np.random.default_rng(3)

@@ -17,6 +17,7 @@ import zenoh
 from pugsd.config import load_config_dict
 from pugsd.core.types import ScoredGrasps
 from pugsd.daemon.app import Daemon
+from tests.arm.helpers import assert_pose_within_convergence
 from tests.arm.test_cli import _pose_near_start, sim_process  # noqa: F401 (fixture)
 from tests.daemon.conftest import FakePipeline, Result, daemon_config_dict, wait_for
 from tests.daemon.test_daemon_inprocess import DaemonThread, RecordingNotifier
@@ -89,7 +90,7 @@ def test_arm_execute_query(port: int, client: zenoh.Session, sim_process: int) -
         assert got.wait(30.0), "no arm report"
         rep = reports[-1]
         assert rep["ok"] is True and rep["grasp_id"] == 7, rep
-        assert rep["grasp_pose_error_mm"] < 1.0
+        assert_pose_within_convergence(rep)
     finally:
         sub.undeclare()
         dt.stop(15.0)
