@@ -141,20 +141,41 @@ class SvgpConfig:
     inducing_lr: float = opt(1e-3, "Adam rate for the inducing locations", ge=0.0)
     steps_per_update: int = opt(4, "streaming: optimisation steps per update call", ge=1)
     replay_fraction: float = opt(
-        0.5,
+        1.0,
         "streaming: share of each minibatch drawn from the whole store (rest: newest points)",
         ge=0.0,
         le=1.0,
     )
     ready_min_steps: int = opt(
-        30, "streaming: model is ready after this many steps since the last inducing change", ge=0
+        30, "streaming: model is ready after this many steps since it was created", ge=0
+    )
+    ready_max_moved_fraction: float = opt(
+        0.15,
+        "streaming: and at most this share of the inducing points moved within the last "
+        "ready_min_steps steps",
+        ge=0.0,
+        le=1.0,
     )
     ready_elbo_tol: float = opt(
         0.05, "streaming: and the relative change of the ELBO EMA falls below this", gt=0.0
     )
+    inducing_policy: str = opt(
+        "spread",
+        "streaming: how inducing points follow new views: 'spread' keeps them spread like a "
+        "farthest-point sample of all points (moving the most crowded), 'coverage' moves the "
+        "least influential ones only where new points are coverage_lengthscales away",
+        choices=("spread", "coverage"),
+    )
+    spread_factor: float = opt(
+        1.0,
+        "spread: new points farther than this many inducing spacings (median nearest-neighbour "
+        "distance) from every inducing point get one",
+        gt=0.0,
+    )
     coverage_lengthscales: float = opt(
         1.5,
-        "new points farther than this many lengthscales from all inducing points trigger a move",
+        "coverage: new points farther than this many lengthscales from all inducing points "
+        "trigger a move",
         gt=0.0,
     )
     predict_chunk: int = opt(20000, "points per batched prediction call", ge=256)

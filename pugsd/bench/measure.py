@@ -110,8 +110,10 @@ class StreamRun:
     samples: dict[str, list[float]]
     result: PipelineResult
     last_frame_to_grasps_s: float
+    last_frame_to_cloud_s: float
     extra_steps_after_last_frame: int
     ready: bool
+    was_ready_before_last_frame: bool
     steps_total: int
     points: int
     voxels: int
@@ -138,41 +140,56 @@ def _add_compute(res: PipelineResult, samples: dict[str, list[float]]) -> None:
     samples["query_cloud"].append(t["cloud"])
     samples["grasp_proposal"].append(t["propose"])
     samples["algorithm1"].append(t["algorithm1"])
+    if "algorithm1_cloud" in t:
+        samples["algorithm1_cloud"].append(t["algorithm1_cloud"])
+        samples["algorithm1_query_cloud"].append(t["algorithm1"] + t["algorithm1_cloud"])
     samples["eq13"].append(t["eq13"])
 
 
 def run_streaming(
     core: CoreConfig, frames: list[StereoFrame], opts: BenchOptions, steps_per_frame: int,
-    idle_steps: int,
+    idle_steps: int, ready_latch: bool = True,
 ) -> StreamRun:  # fmt: skip
     """The daemon's model path, synchronously: each frame is ingested and followed by
-    ``steps_per_frame`` SVGP steps; after the last frame, idle rounds of ``idle_steps`` until the
-    readiness criterion holds (the daemon publishes nothing before), then compute."""
+    ``steps_per_frame`` SVGP steps. After the last frame: its ingest and steps; then, as the
+    daemon does, grasps are computed at once if the model is ready, or was ready before and
+    ``ready_latch`` holds (the daemon's default); otherwise idle rounds of ``idle_steps`` run
+    until the readiness criterion holds (the daemon publishes nothing before). Grasps first
+    (Algorithm 1 at the contacts, Eq. 13), then the rest of the query cloud; the latency is taken
+    at the grasps, the cloud's completion is timed as well."""
     pipe = PugsPipeline(core, seed=opts.seed)
     samples: dict[str, list[float]] = defaultdict(list)
+    was_ready = False
     for f in frames[:-1]:
         _ingest(pipe, f, samples)
         t0 = time.perf_counter()
         pipe.train_steps(steps_per_frame)
         samples["train_per_frame"].append(time.perf_counter() - t0)
+        was_ready = was_ready or pipe.ready
     t_arrival = time.perf_counter()
     _ingest(pipe, frames[-1], samples)
     t0 = time.perf_counter()
     pipe.train_steps(steps_per_frame)
     samples["train_per_frame"].append(time.perf_counter() - t0)
     extra = 0
-    while not pipe.ready and time.perf_counter() - t_arrival < opts.ready_timeout_s:
+    publishable = pipe.ready or (ready_latch and was_ready)
+    while not publishable and time.perf_counter() - t_arrival < opts.ready_timeout_s:
         pipe.train_steps(idle_steps)
         extra += idle_steps
-    res = pipe.compute()
+        publishable = pipe.ready
+    res = pipe.compute(full_cloud=False)
     elapsed = time.perf_counter() - t_arrival
+    res = pipe.complete_cloud(res)
+    cloud_elapsed = time.perf_counter() - t_arrival
     _add_compute(res, samples)
     return StreamRun(
         samples=samples,
         result=res,
         last_frame_to_grasps_s=elapsed,
+        last_frame_to_cloud_s=cloud_elapsed,
         extra_steps_after_last_frame=extra,
         ready=pipe.ready,
+        was_ready_before_last_frame=was_ready,
         steps_total=pipe.svgp.total_steps,
         points=pipe.points,
         voxels=len(pipe.store),
@@ -197,9 +214,9 @@ def steady_state_cycles(
         t0 = time.perf_counter()
         _ingest(pipe, f, samples)
         pipe.train_steps(steps_per_frame)
-        res = pipe.compute()
+        res = pipe.compute(full_cloud=False)
         samples["end_to_end"].append(time.perf_counter() - t0)
-        _add_compute(res, samples)
+        _add_compute(pipe.complete_cloud(res), samples)
 
 
 def svgp_thread_sweep(run: StreamRun, threads: Sequence[int], repeats: int) -> dict[str, Any]:
@@ -233,8 +250,9 @@ def run_paper(
     t_arrival = time.perf_counter()
     pipe.add_stereo(frames[-1])
     stats = pipe.fit_paper(opts.paper_epochs)
-    res = pipe.compute(cloud_W=cloud_W)
-    return res, time.perf_counter() - t_arrival, int(stats.steps)
+    res = pipe.compute(cloud_W=cloud_W, full_cloud=False)  # the same grasps-first path
+    elapsed = time.perf_counter() - t_arrival
+    return pipe.complete_cloud(res), elapsed, int(stats.steps)
 
 
 def spearman(a: np.ndarray, b: np.ndarray) -> float | None:
@@ -305,10 +323,14 @@ def daemon_feed(
     wall_cap_s: float | None = None,
     sim_period_s: float = 0.1,
     rss: _RssTrace | None = None,
+    grasps_timeout_s: float = 0.0,
 ) -> dict[str, Any]:
     """Run the real daemon in-process (loopback zenoh), offer ``n_offer`` stereo frames (cycling
     ``frames`` with fresh stamps) every ``interval_s`` (0: as fast as possible), wait for the
-    pipeline to drain, and return the daemon's counters and latencies."""
+    pipeline to drain, and return the daemon's counters and latencies. With ``grasps_timeout_s``
+    the run also subscribes to the daemon's GraspArray and waits that long for the grasps of the
+    last frame offered (header stamp = that frame's stamp): ``last_frame_to_grasps_s`` is the
+    time from publishing that frame to receiving them (None if they did not come)."""
     import asyncio
     import threading
 
@@ -340,6 +362,18 @@ def daemon_feed(
         camera = SyntheticCamera(peer, cfg.topics)
         sent = [0]
         t_feed = [0.0, 0.0]
+        last_sent: list[tuple[float, int]] = []  # (monotonic time, stamp) of the last frame
+        grasps_rx: list[tuple[float, int]] = []
+        sub = None
+        if grasps_timeout_s > 0:
+            from pugsd.wire import codec
+            from pugsd.wire.topics import key_for
+
+            def on_grasps(sample: Any) -> None:
+                stamp = codec.decode_grasp_array(sample.payload.to_bytes()).stamp_ns
+                grasps_rx.append((time.monotonic(), stamp))
+
+            sub = peer.declare_subscriber(key_for(cfg.topics, "grasps"), on_grasps)
 
         def feed() -> None:
             if not camera.wait_matching(10.0):
@@ -348,7 +382,10 @@ def daemon_feed(
             t_feed[0] = t0
             next_t = t0
             for i in range(n_offer):
-                camera.publish(frames[i % len(frames)], time.time_ns())
+                stamp = time.time_ns()
+                t_pub = time.monotonic()
+                camera.publish(frames[i % len(frames)], stamp)
+                last_sent[:] = [(t_pub, stamp)]
                 sent[0] += 1
                 if rss is not None and (i % 10 == 0 or i == n_offer - 1):
                     rss.add((i + 1) * sim_period_s)
@@ -382,6 +419,18 @@ def daemon_feed(
             if queued == 0 and not st["waiting"]["pose_gate"] and time.monotonic() - still_since > 1.0:
                 break
             await asyncio.sleep(0.1)
+        if grasps_timeout_s > 0 and last_sent:
+            t_last, stamp_last = last_sent[0]
+            t_w = time.monotonic()
+            while time.monotonic() - t_w < grasps_timeout_s:
+                if any(s >= stamp_last for _, s in grasps_rx):
+                    break
+                await asyncio.sleep(0.01)
+            hits = [t for t, s in grasps_rx if s >= stamp_last]
+            out["last_frame_to_grasps_s"] = (min(hits) - t_last) if hits else None
+            out["grasps_received"] = len(grasps_rx)
+        if sub is not None:
+            sub.undeclare()
         st = daemon.status()
         out["status"] = st
         out["sent"] = sent[0]
@@ -409,6 +458,34 @@ def _drop_counts(st: dict[str, Any]) -> dict[str, int]:
         "pose_wait_and_other": int(c.get("dropped", 0)),
         "rejected": int(c.get("rejected", 0)),
     }
+
+
+def daemon_last_frame(
+    base: PugsdConfig, frames: list[StereoFrame], opts: BenchOptions, write: Writer
+) -> dict[str, Any]:
+    """The streaming target end to end: a fresh daemon fed one sequence (``n_frames`` at
+    ``rate_hz``) over loopback zenoh; the time from publishing the last stereo pair to receiving
+    the GraspArray stamped with it (the daemon's own readiness, latch and training schedule)."""
+    r = daemon_feed(
+        base, frames, len(frames), 1.0 / opts.rate_hz, opts.drain_timeout_s,
+        grasps_timeout_s=opts.ready_timeout_s,
+    )  # fmt: skip
+    st = r["status"]
+    lat = r.get("last_frame_to_grasps_s")
+    out = {
+        "frames": r["sent"],
+        "integrated": int(st["counts"].get("integrated", 0)),
+        "drops": _drop_counts(st),
+        "last_frame_to_grasps_s": None if lat is None else round(lat, 4),
+        "grasps_received": r.get("grasps_received", 0),
+        "train_steps": int(st["counts"].get("train_steps", 0)),
+        "ready": bool(st.get("ready")),
+    }
+    write(
+        f"  daemon, {r['sent']} frames at {opts.rate_hz:g} Hz: last frame -> its grasps "
+        f"{'not received' if lat is None else f'{lat:.2f} s'}"
+    )
+    return out
 
 
 def throughput_daemon(

@@ -34,6 +34,8 @@ STAGE_ORDER = (
     "grasp_proposal",
     "algorithm1",
     "eq13",
+    "algorithm1_cloud",
+    "algorithm1_query_cloud",
     "end_to_end",
 )
 
@@ -164,11 +166,15 @@ def run_bench(
         cfg = _with(overrides, seq_overrides.get(traj, {}), dev)
         core = core_of(cfg)
         write(f"[{traj}] streaming ({d.train_steps_per_frame} SVGP steps per frame)...")
-        run = m.run_streaming(core, frames[traj], opts, d.train_steps_per_frame, d.idle_train_steps)
+        run = m.run_streaming(
+            core, frames[traj], opts, d.train_steps_per_frame, d.idle_train_steps, d.ready_latch
+        )
         stream_res = run.result
         write(
             f"[{traj}] streaming: last frame -> grasps {run.last_frame_to_grasps_s:.2f} s "
-            f"(ready {run.ready}, {run.extra_steps_after_last_frame} idle steps after the last frame)"
+            f"(ready {run.ready}, ready before {run.was_ready_before_last_frame}, "
+            f"{run.extra_steps_after_last_frame} idle steps after the last frame; "
+            f"whole cloud {run.last_frame_to_cloud_s:.2f} s)"
         )
         m.steady_state_cycles(run, frames[traj], opts, d.train_steps_per_frame)
         if opts.thread_sweep and traj == opts.trajectories[0]:
@@ -181,6 +187,8 @@ def run_bench(
         same = m.same_top_grasp(stream_res, paper_res)
         comparison[traj] = {
             "streaming_last_frame_to_grasps_s": round(run.last_frame_to_grasps_s, 4),
+            "streaming_last_frame_to_cloud_s": round(run.last_frame_to_cloud_s, 4),
+            "streaming_was_ready_before_last_frame": run.was_ready_before_last_frame,
             "paper_last_frame_to_grasps_s": round(paper_s, 4),
             "ratio_paper_over_streaming": round(paper_s / run.last_frame_to_grasps_s, 2),
             "spearman_sigma2_occ": None if rho is None else round(rho, 4),
@@ -217,6 +225,13 @@ def run_bench(
 
     feed = frames[opts.trajectories[0]]
     if opts.use_daemon:
+        for traj in opts.trajectories:
+            write(f"[{traj}] streaming through the daemon (loopback zenoh, in-process)...")
+            cfg = _with(overrides, seq_overrides.get(traj, {}), dev)
+            try:
+                comparison[traj]["daemon"] = m.daemon_last_frame(cfg, frames[traj], opts, write)
+            except Exception as exc:
+                result["errors"][f"daemon_last_frame_{traj}"] = _err(exc)
         write("sustained throughput through the daemon (loopback zenoh, in-process)...")
         try:
             result["throughput"] = m.throughput_daemon(base, feed, opts, write)

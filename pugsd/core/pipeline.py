@@ -12,6 +12,7 @@ Thread model: ``depth_from_stereo`` is stateless. ``integrate``, ``train_steps``
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -167,8 +168,15 @@ class PugsPipeline:
             cloud = cloud[np.sort(rng.choice(len(cloud), cap, replace=False))]
         return cloud
 
-    def compute(self, cloud_W: np.ndarray | None = None) -> PipelineResult:
-        """Reconstruction -> grasp candidates -> Algorithm 1 -> Eq. 13 ranking."""
+    def compute(self, cloud_W: np.ndarray | None = None, *, full_cloud: bool = True) -> PipelineResult:
+        """Reconstruction -> grasp candidates -> Algorithm 1 -> Eq. 13 ranking.
+
+        Eq. 13 needs sigma^2_occ only at the contact points of valid candidates, so Algorithm 1 runs
+        there first and the grasps are ranked from it. With ``full_cloud`` (default) the rest of
+        the query cloud follows (``complete_cloud``); without it those entries of ``mu_occ`` and
+        ``sigma2_occ`` are NaN, and ``complete_cloud(result)`` fills them in later, so a caller
+        can publish grasps before the per-point cloud is done. Values are per point: the order
+        does not change them."""
         if len(self.store) == 0:
             raise EmptyCloudError("no observations")
         t0 = time.perf_counter()
@@ -181,7 +189,12 @@ class PugsPipeline:
         )
         cands = self.proposer.propose(cloud, None, views)
         t2 = time.perf_counter()
-        mu_occ, s2 = self.sigma2_occ(cloud)
+        mu_occ = np.full(len(cloud), np.nan)
+        s2 = np.full(len(cloud), np.nan)
+        v = cands.valid
+        need = np.unique(cands.src_index[v])
+        if len(need):
+            mu_occ[need], s2[need] = self.sigma2_occ(cloud[need])
         t3 = time.perf_counter()
         g = self.cfg.grasp
         ranked = rank_grasps(
@@ -192,11 +205,10 @@ class PugsPipeline:
         )
         t4 = time.perf_counter()
         pc = np.zeros(len(cloud))
-        v = cands.valid
         pc[cands.src_index[v]] = reweight(cands.confidence[v], s2[cands.src_index[v]], g.gamma)
         timings = {"cloud": t1 - t0, "propose": t2 - t1, "algorithm1": t3 - t2, "eq13": t4 - t3}
         self.timings_s.update(timings)
-        return PipelineResult(
+        result = PipelineResult(
             grasps=ranked,
             baseline_grasps=base,
             cloud_W=cloud,
@@ -206,6 +218,26 @@ class PugsPipeline:
             pugs_conf_points=pc,
             candidates=cands,
             model_version=self.svgp.version,
+            timings_s=timings,
+        )
+        return self.complete_cloud(result) if full_cloud else result
+
+    def complete_cloud(self, result: PipelineResult) -> PipelineResult:
+        """Algorithm 1 for the query points ``compute(full_cloud=False)`` left out (NaN), with the
+        current model; call it before the next training step to stay with ``result``'s model."""
+        todo = np.flatnonzero(np.isnan(result.sigma2_occ))
+        t0 = time.perf_counter()
+        mu_occ, s2 = result.mu_occ.copy(), result.sigma2_occ.copy()
+        if len(todo):
+            mu_occ[todo], s2[todo] = self.sigma2_occ(result.cloud_W[todo])
+        dt = time.perf_counter() - t0
+        timings = {**result.timings_s, "algorithm1_cloud": dt}
+        self.timings_s["algorithm1_cloud"] = dt
+        return dataclasses.replace(
+            result,
+            mu_occ=mu_occ,
+            sigma2_occ=s2,
+            occupancy_confidence=1.0 / (1.0 + self.cfg.grasp.gamma * s2),
             timings_s=timings,
         )
 

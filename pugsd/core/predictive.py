@@ -19,6 +19,7 @@ Two training schemes share one model object:
 
 from __future__ import annotations
 
+import collections
 import copy
 import logging
 import math
@@ -101,6 +102,8 @@ class OccupancySVGP:
         self.likelihood: gpytorch.likelihoods.GaussianLikelihood | None = None
         self.total_steps = 0
         self.steps_since_inducing_change = 0
+        self.steps_since_init = 0
+        self._moves: collections.deque[tuple[int, int]] = collections.deque()  # (step, points moved)
         self.elbo_ema: float | None = None
         self.last_elbo = float("nan")
         self.version = 0
@@ -131,6 +134,8 @@ class OccupancySVGP:
         self._mll = gpytorch.mlls.VariationalELBO(self.likelihood, self.model, num_data=len(x))
         self._make_optimizers(len(x))
         self.steps_since_inducing_change = 0
+        self.steps_since_init = 0
+        self._moves.clear()
         self.version += 1
         self._save_good_state()
 
@@ -205,6 +210,7 @@ class OccupancySVGP:
         self._adam.step()
         self.total_steps += 1
         self.steps_since_inducing_change += 1
+        self.steps_since_init += 1
         elbo = -float(loss.detach())
         self.last_elbo = elbo
         if self.elbo_ema is None:
@@ -284,19 +290,34 @@ class OccupancySVGP:
         self.version += 1
         return TrainStats(self.total_steps, elbo, self.is_ready(prev), moved, n)
 
+    def moved_recently(self) -> int:
+        """Inducing points moved within the last ``ready_min_steps`` steps."""
+        horizon = self.total_steps - self.cfg.ready_min_steps
+        while self._moves and self._moves[0][0] < horizon:
+            self._moves.popleft()
+        return sum(k for _, k in self._moves)
+
     def is_ready(self, prev_ema: float | None = None) -> bool:
-        """Ready once ``ready_min_steps`` steps have passed since the last inducing change and the
-        ELBO moving average changes by less than ``ready_elbo_tol`` (relative) between updates."""
+        """Ready once the model has had ``ready_min_steps`` steps since it was created, at most
+        ``ready_max_moved_fraction`` of the inducing points moved within the last
+        ``ready_min_steps`` steps, and the ELBO moving average changes by less than
+        ``ready_elbo_tol`` (relative) between updates (or 4 x ``ready_min_steps`` steps passed).
+
+        A few inducing points moved into a new view do not reset readiness: the move re-projects
+        q(u) so that the field is (nearly) unchanged; what is not yet fitted is the new data, as
+        after any new frame. Many moves at once (a new object, a large unseen region) do."""
         if self.model is None:
             return False
-        if self.steps_since_inducing_change < self.cfg.ready_min_steps:
+        n = self.cfg.ready_min_steps
+        if self.steps_since_init < n:
+            return False
+        m = len(self.model.variational_strategy.inducing_points)
+        if self.moved_recently() > self.cfg.ready_max_moved_fraction * m:
             return False
         if prev_ema is None or self.elbo_ema is None:
-            return self.steps_since_inducing_change >= 2 * self.cfg.ready_min_steps
+            return self.steps_since_init >= 2 * n
         rel = abs(self.elbo_ema - prev_ema) / max(abs(prev_ema), 1e-6)
-        return rel < self.cfg.ready_elbo_tol or (
-            self.steps_since_inducing_change >= 4 * self.cfg.ready_min_steps
-        )
+        return rel < self.cfg.ready_elbo_tol or self.steps_since_init >= 4 * n
 
     def _cover_new_region(self, x: np.ndarray, new_idx: np.ndarray) -> int:
         """Swap inducing points into newly observed regions and re-project q(u) (Sec. 5.1).
@@ -310,6 +331,8 @@ class OccupancySVGP:
         assert self.model is not None
         if len(new_idx) == 0:
             return 0
+        if self.cfg.inducing_policy == "spread":
+            return self._spread_inducing(x, new_idx)
         vs = self.model.variational_strategy
         Z = vs.inducing_points.detach()
         ls = self.model.covar_module.base_kernel.lengthscale.detach().reshape(1, 3)
@@ -329,6 +352,49 @@ class OccupancySVGP:
             Z_new[replace] = self._t(pick)
             self._reproject(Z_new)
         self.steps_since_inducing_change = 0
+        self._moves.append((self.total_steps, k))
+        return k
+
+    def _spread_inducing(self, x: np.ndarray, new_idx: np.ndarray) -> int:
+        """Keep the inducing points spread like a farthest-point sample of everything observed
+        (what the paper's batch fit starts from), incrementally (Sec. 5.1).
+
+        The spacing is the median nearest-neighbour distance among the inducing points. New points
+        farther than ``spread_factor`` spacings from every inducing point are covered greedily
+        (farthest first, at most 30 % of M per update); each one takes the place of the most
+        crowded inducing point (the smallest nearest-neighbour distance). q(u) is re-projected."""
+        assert self.model is not None
+        vs = self.model.variational_strategy
+        Z = vs.inducing_points.detach().double().cpu().numpy()
+        m = len(Z)
+        D = np.sqrt(((Z[:, None, :] - Z[None, :, :]) ** 2).sum(-1))
+        np.fill_diagonal(D, np.inf)
+        thresh = self.cfg.spread_factor * float(np.median(D.min(1)))
+        cand = x[new_idx]
+        dc = np.sqrt(((cand[:, None, :] - Z[None, :, :]) ** 2).sum(-1)).min(1)
+        kmax = max(1, int(0.3 * m))
+        fresh = np.zeros(m, dtype=bool)  # placed in this update: not removed again
+        k = 0
+        while k < kmax:
+            j = int(np.argmax(dc))
+            if dc[j] <= thresh:
+                break
+            nn = np.where(fresh, np.inf, D.min(1))
+            r = int(np.argmin(nn))
+            Z[r] = cand[j]
+            fresh[r] = True
+            d_r = np.sqrt(((Z - Z[r]) ** 2).sum(1))
+            d_r[r] = np.inf
+            D[r, :] = d_r
+            D[:, r] = d_r
+            dc = np.minimum(dc, np.sqrt(((cand - cand[j]) ** 2).sum(1)))
+            k += 1
+        if k == 0:
+            return 0
+        with torch.no_grad():
+            self._reproject(self._t(Z))
+        self.steps_since_inducing_change = 0
+        self._moves.append((self.total_steps, k))
         return k
 
     def _whitened_mean(self) -> torch.Tensor:

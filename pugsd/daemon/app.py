@@ -22,6 +22,7 @@ import concurrent.futures
 import contextlib
 import json
 import logging
+import math
 import sys
 import threading
 import time
@@ -68,7 +69,9 @@ class Pipeline(Protocol):
 
     def train_steps(self, n: int) -> Any: ...
 
-    def compute(self) -> Any: ...
+    def compute(self, *, full_cloud: bool = True) -> Any: ...
+
+    def complete_cloud(self, result: Any) -> Any: ...
 
     def reset(self) -> None: ...
 
@@ -209,6 +212,8 @@ class Daemon:
         self.ready = False
         self.was_ready = False  # ready at least once since the start or the last reset
         self._changed = False  # model changed since the last compute
+        self._frame_unpublished = False  # a frame was integrated since the last compute started
+        self._steps_since_frame = 0  # training steps since the newest frame was integrated
         self._last_frame_s: float | None = None  # monotonic time of the last integrated frame
         self._newest_recv_s: float | None = None  # receive time of the newest integrated frame
         self._newest_stamp_ns = 0
@@ -711,6 +716,7 @@ class Daemon:
                 break
             self._note_train(stats, 1)
             self._changed = True
+            self._steps_since_frame += 1
 
     async def _model_worker(self) -> None:
         d = self.cfg.daemon
@@ -738,6 +744,8 @@ class Daemon:
                 self._newest_recv_s = recv_s
                 self._newest_stamp_ns = max(self._newest_stamp_ns, depth.stamp_ns)
                 self._changed = True
+                self._frame_unpublished = True
+                self._steps_since_frame = 0
                 if d.train_steps_per_frame > 0 and not self._stopping:
                     await self._train(d.train_steps_per_frame)
             elif idle and not self._stopping and time.monotonic() >= self._retry_train_at:
@@ -756,62 +764,102 @@ class Daemon:
         if self.ready and not was:
             log.info("model ready (ELBO %.4g)", elbo)
 
-    def _compute_and_encode(self, frame_id: str, stamp_ns: int) -> tuple[Any, dict[str, bytes]]:
+    def _compute_and_encode(
+        self, frame_id: str, stamp_ns: int, on_grasps: Callable[[Any, dict[str, bytes]], None]
+    ) -> None:
+        """Grasps first (Algorithm 1 at the contacts, Eq. 13), handed to ``on_grasps`` at once;
+        then, under the same model lock (so the cloud comes from the same model), Algorithm 1 on
+        the rest of the query cloud for the PointCloud2."""
         with self._model_lock:
-            result = self.pipeline.compute()
-        g = result.grasps
-        out = {"grasps": codec.encode_grasp_array(g, frame_id, stamp_ns)}
-        out["markers"] = codec.encode_grasp_markers(
-            g, frame_id, stamp_ns, top_k=self.cfg.daemon.markers_top_k
-        )
+            result = self.pipeline.compute(full_cloud=False)
+            g = result.grasps
+            out = {"grasps": codec.encode_grasp_array(g, frame_id, stamp_ns)}
+            out["markers"] = codec.encode_grasp_markers(
+                g, frame_id, stamp_ns, top_k=self.cfg.daemon.markers_top_k
+            )
+            on_grasps(result, out)
+            if self.cfg.daemon.publish_cloud:
+                result = self.pipeline.complete_cloud(result)
         if self.cfg.daemon.publish_cloud:
-            out["cloud"] = codec.encode_cloud(
+            cloud = codec.encode_cloud(
                 result.cloud_W,
                 stamp_ns,
                 frame_id,
                 sigma2_occ=result.sigma2_occ,
                 pugs_confidence=result.pugs_conf_points,
             )
-        return result, out
+            on_grasps(None, {"cloud": cloud})
+
+    def _publish_outputs(self, result: Any, payloads: dict[str, bytes], newest_recv: float | None) -> None:
+        """On the loop: publish what ``_compute_and_encode`` handed over (grasps, then the cloud)."""
+        for role, data in payloads.items():
+            self._publishers[role].put(data)
+        if result is None:
+            return
+        self.latest_grasps = payloads["grasps"]
+        self.latest_result = result
+        self.model_version = int(result.model_version)
+        self.grasps_published += 1
+        self.health.count("grasps_published")
+        if newest_recv is not None:
+            self.health.observe("newest_frame_to_grasps", time.monotonic() - newest_recv)
+        g = result.grasps
+        if len(g):
+            log.info(
+                "grasps v%s: %d, top PUGS %.3f (baseline %.3f, sigma2 %.3g)",
+                self.model_version,
+                len(g),
+                float(g.pugs_confidence[0]),
+                float(g.baseline_confidence[0]),
+                float(g.sigma2_occ[0]),
+            )
+
+    def _grasps_due(self, now: float, last_start: float) -> bool:
+        """Every 1 / grasp_rate_hz while the model changes; and at once when the input pauses:
+        the newest frame has had its training steps and no frame came for ``pause_publish_s``
+        (then at most twice the configured rate)."""
+        d = self.cfg.daemon
+        period = 1.0 / d.grasp_rate_hz
+        if now - last_start >= period:
+            return True
+        return (
+            d.pause_publish_s > 0
+            and self._frame_unpublished
+            and self._last_frame_s is not None
+            and now - self._last_frame_s >= d.pause_publish_s
+            and self._steps_since_frame >= d.train_steps_per_frame
+            and len(self.depth_box) == 0
+            and now - last_start >= 0.5 * period
+        )
 
     async def _grasp_worker(self) -> None:
-        period = 1.0 / self.cfg.daemon.grasp_rate_hz
-        next_t = time.monotonic()
+        loop = asyncio.get_running_loop()
+        last_start = -math.inf
         while not self._stopping:
-            next_t += period
-            await asyncio.sleep(max(0.0, next_t - time.monotonic()))
-            next_t = max(next_t, time.monotonic() - period)
+            await asyncio.sleep(0.02)
             publishable = self.ready or (self.cfg.daemon.ready_latch and self.was_ready)
             if not (publishable and self._changed) or self._stopping:
                 continue
-            self._changed = False
-            newest_recv = self._newest_recv_s
-            res = await self._guard(
-                "grasps",
-                self._offload("grasps", self._compute_and_encode, self._frame_id, self._newest_stamp_ns),
-            )
-            if res is None:
+            now = time.monotonic()
+            if not self._grasps_due(now, last_start):
                 continue
-            result, payloads = res
-            for role, data in payloads.items():
-                self._publishers[role].put(data)
-            self.latest_grasps = payloads["grasps"]
-            self.latest_result = result
-            self.model_version = int(result.model_version)
-            self.grasps_published += 1
-            self.health.count("grasps_published")
-            if newest_recv is not None:
-                self.health.observe("newest_frame_to_grasps", time.monotonic() - newest_recv)
-            g = result.grasps
-            if len(g):
-                log.info(
-                    "grasps v%s: %d, top PUGS %.3f (baseline %.3f, sigma2 %.3g)",
-                    self.model_version,
-                    len(g),
-                    float(g.pugs_confidence[0]),
-                    float(g.baseline_confidence[0]),
-                    float(g.sigma2_occ[0]),
-                )
+            last_start = now
+            self._changed = False
+            self._frame_unpublished = False
+            newest_recv = self._newest_recv_s
+
+            def hand_over(
+                result: Any, payloads: dict[str, bytes], newest: float | None = newest_recv
+            ) -> None:
+                loop.call_soon_threadsafe(self._publish_outputs, result, payloads, newest)
+
+            await self._guard(
+                "grasps",
+                self._offload(
+                    "grasps", self._compute_and_encode, self._frame_id, self._newest_stamp_ns, hand_over
+                ),
+            )
+            await asyncio.sleep(0)  # let the hand-over callbacks run before the next round
 
     async def _command_worker(self) -> None:
         while not self._stopping:
@@ -828,6 +876,7 @@ class Daemon:
                 self.ready = False
                 self.was_ready = False
                 self._changed = False
+                self._frame_unpublished = False
                 self._last_frame_s = None
                 self._newest_recv_s = None
                 self.elbo = None

@@ -14,6 +14,14 @@ class DaemonConfig:
 
     prefix: str = opt("pugs", "zenoh key prefix of pugsd's own API (queries, status, reset)")
     grasp_rate_hz: float = opt(1.0, "how often grasps are recomputed and published", unit="Hz", gt=0.0)
+    pause_publish_s: float = opt(
+        0.15,
+        "when no frame came for this long and the newest one has had its training steps, publish "
+        "grasps at once instead of at the next grasp_rate_hz tick (at most 2 x grasp_rate_hz; "
+        "0: off)",
+        unit="s",
+        ge=0.0,
+    )
     status_rate_hz: float = opt(1.0, "status message rate", unit="Hz", gt=0.0)
     pose_wait_s: float = opt(
         0.5, "how long a frame waits for a usable pose before it is dropped", unit="s", ge=0.0

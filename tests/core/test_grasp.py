@@ -9,9 +9,15 @@ import numpy as np
 import open3d as o3d
 import pytest
 import torch
+from scipy.spatial import cKDTree
 
 from pugsd.config import GraspConfig
-from pugsd.core.grasp.proposer import AntipodalProposer, TorchScriptProposer, grasp_poses
+from pugsd.core.grasp.proposer import (
+    AntipodalProposer,
+    TorchScriptProposer,
+    _orthonormal,
+    grasp_poses,
+)
 from pugsd.core.grasp.scoring import rank_grasps, reweight
 from pugsd.errors import PugsdError
 from tests.helpers.scenes import box_mesh, cylinder_mesh
@@ -50,6 +56,68 @@ def test_cylinder_grasp_width_is_the_diameter() -> None:
     # the jaws close through the axis: the grasp centre lies on it
     centre = gs.contact[v] + 0.5 * gs.width[v, None] * gs.baseline[v]
     assert np.median(np.linalg.norm(centre[:, :2], axis=1)) < 0.004
+
+
+def _best_orientation_loop(
+    prop: AntipodalProposer, pts: np.ndarray, tree: cKDTree, p: np.ndarray, b: np.ndarray, w: float,
+    views: np.ndarray,
+) -> tuple[np.ndarray, int, float, float, float] | None:  # fmt: skip
+    """The orientation search one approach at a time with np.cross (the code before the speed-up)."""
+    g = prop.g
+    centre = p + 0.5 * w * b
+    half_open = g.max_width_m / 2
+    reach = np.sqrt(
+        (half_open + g.finger_thickness_m) ** 2
+        + (g.finger_length_m / 2 + g.palm_depth_m) ** 2
+        + (max(g.finger_width_m, g.palm_width_m) / 2) ** 2
+    )
+    local = pts[tree.query_ball_point(centre, reach)] - centre
+    if len(local) == 0:
+        return None
+    u, v = _orthonormal(b[None])
+    view_dir = p - views[np.argmin(((views - p) ** 2).sum(1))]
+    view_dir /= max(np.linalg.norm(view_dir), 1e-9)
+    best, best_score = None, -1.0
+    x = local @ b
+    half_l = g.finger_length_m / 2
+    for k in range(prop.cfg.num_orientations):
+        th = 2.0 * np.pi * k / prop.cfg.num_orientations
+        a = np.cos(th) * u[0] + np.sin(th) * v[0]
+        y, z = local @ np.cross(a, b), local @ a
+        in_y, in_z, ax = np.abs(y) <= g.finger_width_m / 2, np.abs(z) <= half_l, np.abs(x)
+        finger = in_y & in_z & (ax >= half_open) & (ax <= half_open + g.finger_thickness_m)
+        palm = (
+            (z < -half_l) & (z >= -half_l - g.palm_depth_m) & (np.abs(y) <= g.palm_width_m / 2)
+            & (ax <= half_open + g.finger_thickness_m)
+        )  # fmt: skip
+        if finger.any() or palm.any():
+            continue
+        slab = in_y & in_z & (ax < half_open)
+        support = int(slab.sum())
+        if support < prop.cfg.min_support:
+            continue
+        x_lo, x_hi = float(x[slab].min()), float(x[slab].max())
+        if not (x_lo < 0.0 < x_hi) or x_hi - x_lo < g.min_width_m:
+            continue
+        pref = 0.75 + 0.25 * float(a @ view_dir)
+        if support * pref > best_score:
+            best_score = support * pref
+            best = (a, support, pref, x_hi - x_lo, 0.5 * (x_lo + x_hi))
+    return best
+
+
+def test_orientation_search_matches_the_plain_loop(monkeypatch: pytest.MonkeyPatch) -> None:
+    """All approaches projected at once give the grasps of one approach at a time."""
+    pts = _surface(box_mesh((0.04, 0.07, 0.12), (0.0, 0.0, 0.06)))
+    pts = np.vstack([pts, _surface(cylinder_mesh(0.02, 0.1, (0.09, 0.0, 0.05)), 3000)])
+    prop = AntipodalProposer(GraspConfig(max_contacts=300))
+    fast = prop.propose(pts, None, VIEWS)
+    monkeypatch.setattr(prop, "_best_orientation", lambda *a: _best_orientation_loop(prop, *a))
+    ref = prop.propose(pts, None, VIEWS)
+    assert fast.valid.sum() > 50
+    np.testing.assert_array_equal(fast.valid, ref.valid)
+    for f in ("contact", "baseline", "approach", "width", "confidence", "pose"):
+        np.testing.assert_allclose(getattr(fast, f), getattr(ref, f), rtol=0, atol=1e-12, err_msg=f)
 
 
 def test_pose_convention() -> None:

@@ -83,6 +83,24 @@ def test_result_is_consistent(partial_box) -> None:  # type: ignore[no-untyped-d
     assert s["frames"] == 6 and s["voxels"] > 0
 
 
+def test_grasps_first_then_the_cloud_gives_the_same_result(partial_box) -> None:  # type: ignore[no-untyped-def]
+    """compute(full_cloud=False) ranks grasps from Algorithm 1 at the contacts only; completing
+    the cloud afterwards gives what one full compute gives on the same model."""
+    pipe, r = partial_box
+    part = pipe.compute(cloud_W=r.cloud_W, full_cloud=False)
+    need = np.unique(part.candidates.src_index[part.candidates.valid])
+    assert 0 < len(need) < 0.5 * len(r.cloud_W)  # most of the cloud was left for later
+    assert np.isfinite(part.sigma2_occ[need]).all()
+    assert np.isnan(np.delete(part.sigma2_occ, need)).all()
+    np.testing.assert_array_equal(part.grasps.grasp_id, r.grasps.grasp_id)
+    np.testing.assert_allclose(part.grasps.pugs_confidence, r.grasps.pugs_confidence, rtol=1e-5)
+    np.testing.assert_allclose(part.pugs_conf_points, r.pugs_conf_points, rtol=1e-5)
+    full = pipe.complete_cloud(part)
+    np.testing.assert_allclose(full.sigma2_occ, r.sigma2_occ, rtol=1e-4, atol=1e-12)
+    np.testing.assert_allclose(full.mu_occ, r.mu_occ, rtol=1e-4, atol=1e-9)
+    assert "algorithm1_cloud" in full.timings_s and full.model_version == r.model_version
+
+
 def test_empty_pipeline_errors() -> None:
     pipe = PugsPipeline(CoreConfig())
     with pytest.raises(EmptyCloudError):

@@ -65,10 +65,13 @@ def test_reprojection_keeps_predictions(trained: tuple[OccupancySVGP, np.ndarray
     assert np.abs(v1 - v0).max() < 0.05
 
 
-def test_streaming_moves_inducing_points_into_new_region() -> None:
+@pytest.mark.parametrize("policy", ["spread", "coverage"])
+def test_streaming_moves_inducing_points_into_new_region(policy: str) -> None:
     rng = np.random.default_rng(2)
     x1 = rng.uniform(0.0, 0.05, (1500, 3))
-    m = OccupancySVGP(SvgpConfig(num_inducing=40, seed=1, lengthscale_init_m=0.01))
+    m = OccupancySVGP(
+        SvgpConfig(num_inducing=40, seed=1, lengthscale_init_m=0.01, inducing_policy=policy)
+    )
     m.update(x1, np.ones(len(x1)), np.arange(len(x1)), steps=30)
     x2 = rng.uniform(0.3, 0.35, (1500, 3))
     X = np.vstack([x1, x2])
@@ -78,6 +81,56 @@ def test_streaming_moves_inducing_points_into_new_region() -> None:
     _, v, _ = m.predict(np.array([[0.325, 0.325, 0.325]]))
     _, v_gap, _ = m.predict(np.array([[0.18, 0.18, 0.18]]))
     assert v[0] < 0.5 * v_gap[0]
+
+
+def _covering_radius(Z: np.ndarray, x: np.ndarray) -> float:
+    return float(np.sqrt(((x[:, None, :] - Z[None, :, :]) ** 2).sum(-1)).min(1).max())
+
+
+def test_spread_policy_keeps_inducing_points_like_a_farthest_point_sample() -> None:
+    """A surface seen strip by strip: the streaming inducing points end up spread over all of it,
+    covering it about as well as a farthest-point sample of the final data (the batch start)."""
+    rng = np.random.default_rng(3)
+    strips = [np.c_[rng.uniform(0.04 * i, 0.04 * (i + 1), (600, 1)), rng.uniform(0, 0.04, (600, 2))]
+              for i in range(5)]  # fmt: skip
+    m = OccupancySVGP(SvgpConfig(num_inducing=60, seed=0, inducing_policy="spread"))
+    X = np.zeros((0, 3))
+    for s in strips:
+        new = np.arange(len(X), len(X) + len(s))
+        X = np.vstack([X, s])
+        m.update(X, np.ones(len(X)), new, steps=2)
+    Z = m.model.variational_strategy.inducing_points.detach().numpy()  # type: ignore[union-attr]
+    per_strip = np.histogram(Z[:, 0], bins=5, range=(0.0, 0.2))[0]
+    assert per_strip.min() >= 6, per_strip  # every strip holds a fair share of the 60 (12 each)
+    fps = X[farthest_point_sample(X, 60, 0)]
+    assert _covering_radius(Z, X) < 1.6 * _covering_radius(fps, X)
+    # the coverage policy, for contrast, leaves the first strip crowded
+    c = OccupancySVGP(SvgpConfig(num_inducing=60, seed=0, inducing_policy="coverage"))
+    X = np.zeros((0, 3))
+    for s in strips:
+        new = np.arange(len(X), len(X) + len(s))
+        X = np.vstack([X, s])
+        c.update(X, np.ones(len(X)), new, steps=2)
+    Zc = c.model.variational_strategy.inducing_points.detach().numpy()  # type: ignore[union-attr]
+    assert np.histogram(Zc[:, 0], bins=5, range=(0.0, 0.2))[0][0] > 2 * per_strip[0]
+
+
+def test_readiness_tolerates_few_moves_and_waits_after_many() -> None:
+    cfg = SvgpConfig(
+        num_inducing=40, seed=0, ready_min_steps=5, ready_elbo_tol=10.0, ready_max_moved_fraction=0.1
+    )
+    m = OccupancySVGP(cfg)
+    rng = np.random.default_rng(4)
+    x1 = rng.uniform(0.0, 0.05, (800, 3))
+    assert not m.update(x1, np.ones(len(x1)), np.arange(len(x1)), steps=4).ready  # 4 < 5 steps
+    assert m.update(x1, np.ones(len(x1)), np.zeros(0, np.int64), steps=2).ready
+    x2 = rng.uniform(0.3, 0.35, (800, 3))  # a large unseen region: many inducing points move
+    X = np.vstack([x1, x2])
+    st = m.update(X, np.ones(len(X)), np.arange(800, 1600), steps=1)
+    assert st.inducing_moved > 4 and not st.ready
+    assert m.moved_recently() == st.inducing_moved
+    st = m.update(X, np.ones(len(X)), np.zeros(0, np.int64), steps=5)
+    assert st.ready and m.moved_recently() == 0  # the moves are older than ready_min_steps
 
 
 def test_not_ready_raises() -> None:

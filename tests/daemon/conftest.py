@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -108,7 +109,7 @@ class FakePipeline:
         self.version += 1
         return TrainStats(-1.0 / (1 + self.steps), self.ready)
 
-    def compute(self) -> Result:
+    def compute(self, *, full_cloud: bool = True) -> Result:
         time.sleep(self.compute_delay_s)
         n = 3
         pose = np.tile(np.eye(4), (n, 1, 1))
@@ -123,7 +124,11 @@ class FakePipeline:
             grasp_id=np.arange(n, dtype=np.int64),
         )
         cloud = np.random.default_rng(0).normal(size=(50, 3))
-        return Result(g, cloud, np.full(50, 0.1), np.full(50, 0.5), self.version)
+        s2 = np.full(50, 0.1) if full_cloud else np.full(50, np.nan)
+        return Result(g, cloud, s2, np.full(50, 0.5), self.version)
+
+    def complete_cloud(self, result: Result) -> Result:
+        return dataclasses.replace(result, sigma2_occ=np.nan_to_num(result.sigma2_occ, nan=0.1))
 
     def reset(self) -> None:
         self.resets += 1

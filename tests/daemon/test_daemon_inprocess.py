@@ -224,3 +224,39 @@ def test_refuses_non_loopback_zenoh_config_by_default(port: int) -> None:
     cfg = load_config_dict(raw)
     with pytest.raises(ConfigError, match="loopback"):
         asyncio.run(Daemon(cfg, FakePipeline(), notifier=RecordingNotifier()).run(asyncio.Event()))
+
+
+def test_grasps_follow_a_pause_in_the_input_at_once(port: int, client: zenoh.Session) -> None:
+    """Grasps are due every 1 / grasp_rate_hz (10 s here); when the input pauses, the newest
+    frame's grasps are published as soon as it has had its training steps, before that tick."""
+    cfg = load_config_dict(daemon_config_dict(port, grasp_rate_hz=0.1, pause_publish_s=0.15))
+    pipe = FakePipeline()
+    notifier = RecordingNotifier()
+    dt = DaemonThread(Daemon(cfg, pipe, notifier=notifier)).start()
+    got: list[tuple[float, int]] = []
+    sub = client.declare_subscriber(
+        key_for(cfg.topics, "grasps"),
+        lambda s: got.append((time.monotonic(), codec.decode_grasp_array(s.payload.to_bytes()).stamp_ns)),
+    )
+    try:
+        wait_for(lambda: "READY=1" in notifier.sent, 10.0, "READY")
+        src = Source(client)
+        src.wait_matching()
+        src.infos()
+        time.sleep(0.1)
+        src.stereo(1_000_000_000, pose_at(0.0))
+        src.put("pose", codec.encode_pose_with_covariance(1_500_000_000, pose_at(0.01), np.eye(6) * 1e-6))
+        wait_for(lambda: len(got) >= 1, 10.0, "the first grasps")
+        t_first, stamp_first = got[0]
+        assert stamp_first == 1_000_000_000
+        time.sleep(max(0.0, t_first + 5.5 - time.monotonic()))  # past half a period, before the tick
+        t_frame = time.monotonic()
+        src.stereo(2_000_000_000, pose_at(0.02))
+        src.put("pose", codec.encode_pose_with_covariance(2_500_000_000, pose_at(0.03), np.eye(6) * 1e-6))
+        wait_for(lambda: len(got) >= 2, 4.0, "grasps for the newest frame after the pause")
+        t_second, stamp_second = got[1]
+        assert stamp_second == 2_000_000_000
+        assert t_frame < t_second < t_first + 10.0  # not the 10 s tick
+    finally:
+        sub.undeclare()
+        dt.stop()
