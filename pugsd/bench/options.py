@@ -21,6 +21,7 @@ class BenchOptions:
     rate_hz: float = 10.0  # the simulated camera rate (stamps are 1 / rate_hz apart)
     seed: int = 0
     paper_epochs: int | None = None  # None: the config's svgp.paper_epochs (paper: 100)
+    paper_reference_seed: int | None = 1  # a second paper fit with this svgp.seed (None: skip)
     svgp_step_repeats: int = 20  # dedicated single-step timings after each sequence
     compute_repeats: int = 5  # newest-frame -> grasps cycles after each sequence
     ready_timeout_s: float = 60.0  # streaming: give up waiting for the readiness criterion
@@ -47,6 +48,7 @@ class BenchOptions:
             quick=True,
             n_frames=6,
             paper_epochs=3,
+            paper_reference_seed=None,
             svgp_step_repeats=3,
             compute_repeats=1,
             ready_timeout_s=5.0,
