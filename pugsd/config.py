@@ -119,7 +119,14 @@ class FofConfig:
 class SvgpConfig:
     """The SVGP on the FOF (Eq. 7-8) and its batch and streaming training."""
 
-    num_inducing: int = opt(500, "inducing points M (paper: 500)", ge=8, le=5000)
+    num_inducing: int = opt(
+        250,
+        "inducing points M of the streaming model (paper: 500; 250 keeps a 2-core CPU real-time "
+        "at 10 Hz: one step costs O(M^3), see docs/performance.md)",
+        ge=8,
+        le=5000,
+    )
+    paper_num_inducing: int = opt(500, "inducing points in paper mode (fit_paper; paper: 500)", ge=8, le=5000)
     kernel: str = opt("rbf", "ARD kernel inside a ScaleKernel", choices=("rbf", "matern52"))
     variance: str = opt(
         "latent",
@@ -152,9 +159,12 @@ class SvgpConfig:
     ready_max_moved_fraction: float = opt(
         0.15,
         "streaming: and at most this share of the inducing points moved within the last "
-        "ready_min_steps steps",
+        "ready_move_window steps",
         ge=0.0,
         le=1.0,
+    )
+    ready_move_window: int = opt(
+        4, "streaming: steps over which inducing-point moves count against readiness", ge=1
     )
     ready_elbo_tol: float = opt(
         0.05, "streaming: and the relative change of the ELBO EMA falls below this", gt=0.0

@@ -144,6 +144,7 @@ def run_bench(
             if opts.paper_epochs is not None
             else base.svgp.paper_epochs,
             "num_inducing": base.svgp.num_inducing,
+            "paper_num_inducing": base.svgp.paper_num_inducing,
             "batch_size": base.svgp.batch_size,
             "dtype": base.svgp.dtype,
             "overrides": list(overrides),

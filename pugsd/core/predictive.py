@@ -118,8 +118,9 @@ class OccupancySVGP:
     def _t(self, a: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(a, dtype=self.dtype, device=self.device)
 
-    def _init_model(self, x: np.ndarray, y: np.ndarray) -> None:
-        zi = farthest_point_sample(x, self.cfg.num_inducing, self.cfg.seed)
+    def _init_model(self, x: np.ndarray, y: np.ndarray, num_inducing: int | None = None) -> None:
+        m = self.cfg.num_inducing if num_inducing is None else num_inducing
+        zi = farthest_point_sample(x, m, self.cfg.seed)
         Z = self._t(x[zi])
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(self.cfg.seed)  # q(u) is initialised with random noise
@@ -220,12 +221,13 @@ class OccupancySVGP:
         return elbo
 
     def fit_paper(self, x: np.ndarray, y: np.ndarray, epochs: int | None = None) -> TrainStats:
-        """The paper's batch fit: a fresh model, Adam (lr ``paper_lr``), ``paper_epochs`` epochs."""
+        """The paper's batch fit: a fresh model with ``paper_num_inducing`` inducing points (FPS),
+        Adam (lr ``paper_lr``), ``paper_epochs`` epochs."""
         if len(x) == 0:
             raise EmptyCloudError("no training points")
         self.natural = False
         self.reset()
-        self._init_model(x, y)
+        self._init_model(x, y, self.cfg.paper_num_inducing)
         xt, yt = self._t(x), self._t(y)
         n = len(x)
         bs = self.cfg.batch_size
@@ -291,8 +293,8 @@ class OccupancySVGP:
         return TrainStats(self.total_steps, elbo, self.is_ready(prev), moved, n)
 
     def moved_recently(self) -> int:
-        """Inducing points moved within the last ``ready_min_steps`` steps."""
-        horizon = self.total_steps - self.cfg.ready_min_steps
+        """Inducing points moved within the last ``ready_move_window`` steps."""
+        horizon = self.total_steps - self.cfg.ready_move_window
         while self._moves and self._moves[0][0] < horizon:
             self._moves.popleft()
         return sum(k for _, k in self._moves)
@@ -300,7 +302,7 @@ class OccupancySVGP:
     def is_ready(self, prev_ema: float | None = None) -> bool:
         """Ready once the model has had ``ready_min_steps`` steps since it was created, at most
         ``ready_max_moved_fraction`` of the inducing points moved within the last
-        ``ready_min_steps`` steps, and the ELBO moving average changes by less than
+        ``ready_move_window`` steps, and the ELBO moving average changes by less than
         ``ready_elbo_tol`` (relative) between updates (or 4 x ``ready_min_steps`` steps passed).
 
         A few inducing points moved into a new view do not reset readiness: the move re-projects

@@ -241,6 +241,11 @@ class Daemon:
         try:
             self._declare_outputs()
             await self._start_arm()
+            warm_up = getattr(self.pipeline, "warm_up", None)
+            if warm_up is not None:  # first-call costs before READY, not on the first frame
+                t0 = time.monotonic()
+                await asyncio.to_thread(self._locked, warm_up)
+                log.info("pipeline warmed up in %.1f s", time.monotonic() - t0)
             self._declare_inputs()
             self._start_recorder()
             log.info(
@@ -765,11 +770,15 @@ class Daemon:
             log.info("model ready (ELBO %.4g)", elbo)
 
     def _compute_and_encode(
-        self, frame_id: str, stamp_ns: int, on_grasps: Callable[[Any, dict[str, bytes]], None]
+        self,
+        frame_id: str,
+        stamp_ns: int,
+        on_grasps: Callable[[Any, dict[str, bytes]], None],
+        with_cloud: bool,
     ) -> None:
         """Grasps first (Algorithm 1 at the contacts, Eq. 13), handed to ``on_grasps`` at once;
-        then, under the same model lock (so the cloud comes from the same model), Algorithm 1 on
-        the rest of the query cloud for the PointCloud2."""
+        then, if ``with_cloud``, under the same model lock (so the cloud comes from the same
+        model), Algorithm 1 on the rest of the query cloud for the PointCloud2."""
         with self._model_lock:
             result = self.pipeline.compute(full_cloud=False)
             g = result.grasps
@@ -778,9 +787,9 @@ class Daemon:
                 g, frame_id, stamp_ns, top_k=self.cfg.daemon.markers_top_k
             )
             on_grasps(result, out)
-            if self.cfg.daemon.publish_cloud:
+            if with_cloud:
                 result = self.pipeline.complete_cloud(result)
-        if self.cfg.daemon.publish_cloud:
+        if with_cloud:
             cloud = codec.encode_cloud(
                 result.cloud_W,
                 stamp_ns,
@@ -834,7 +843,7 @@ class Daemon:
 
     async def _grasp_worker(self) -> None:
         loop = asyncio.get_running_loop()
-        last_start = -math.inf
+        last_start = last_cloud = -math.inf
         while not self._stopping:
             await asyncio.sleep(0.02)
             publishable = self.ready or (self.cfg.daemon.ready_latch and self.was_ready)
@@ -847,6 +856,15 @@ class Daemon:
             self._changed = False
             self._frame_unpublished = False
             newest_recv = self._newest_recv_s
+            # the whole cloud's Algorithm 1 holds the model for several times the grasps' share:
+            # while frames stream, at most every cloud_interval_s, so that ingest keeps up
+            d = self.cfg.daemon
+            streaming = len(self.depth_box) > 0 or (
+                self._last_frame_s is not None and now - self._last_frame_s < d.pause_publish_s
+            )
+            with_cloud = d.publish_cloud and (not streaming or now - last_cloud >= d.cloud_interval_s)
+            if with_cloud:
+                last_cloud = now
 
             def hand_over(
                 result: Any, payloads: dict[str, bytes], newest: float | None = newest_recv
@@ -856,7 +874,12 @@ class Daemon:
             await self._guard(
                 "grasps",
                 self._offload(
-                    "grasps", self._compute_and_encode, self._frame_id, self._newest_stamp_ns, hand_over
+                    "grasps",
+                    self._compute_and_encode,
+                    self._frame_id,
+                    self._newest_stamp_ns,
+                    hand_over,
+                    with_cloud,
                 ),
             )
             await asyncio.sleep(0)  # let the hand-over callbacks run before the next round

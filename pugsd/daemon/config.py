@@ -83,6 +83,13 @@ class DaemonConfig:
     )
     markers_top_k: int = opt(10, "grasps drawn in the MarkerArray", ge=0)
     publish_cloud: bool = opt(True, "publish the fused cloud with sigma2_occ and PUGS confidence")
+    cloud_interval_s: float = opt(
+        5.0,
+        "while frames stream, the cloud (Algorithm 1 on every query point) is recomputed at most "
+        "this often; grasps are not held back by it, and it always follows a pause",
+        unit="s",
+        ge=0.0,
+    )
     stall_timeout_s: float = opt(
         60.0,
         "a stage inside one call for longer than this is unhealthy (watchdog pings stop)",

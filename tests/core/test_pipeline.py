@@ -101,6 +101,14 @@ def test_grasps_first_then_the_cloud_gives_the_same_result(partial_box) -> None:
     assert "algorithm1_cloud" in full.timings_s and full.model_version == r.model_version
 
 
+def test_warm_up_leaves_the_pipeline_untouched() -> None:
+    pipe = PugsPipeline(CoreConfig(svgp=SvgpConfig(num_inducing=200)))
+    v = pipe.svgp.version
+    pipe.warm_up()
+    assert not pipe.svgp.initialised and pipe.svgp.version == v and pipe.svgp.total_steps == 0
+    assert len(pipe.store) == 0 and pipe.stats()["frames"] == 0
+
+
 def test_empty_pipeline_errors() -> None:
     pipe = PugsPipeline(CoreConfig())
     with pytest.raises(EmptyCloudError):

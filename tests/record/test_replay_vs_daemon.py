@@ -28,7 +28,7 @@ from pugsd.record.player import Player, PlayOptions
 from pugsd.wire.codec import decode_grasp_array, decode_status
 from pugsd.wire.session import close_session, free_tcp_port, loopback_config, open_session
 
-OVERRIDES = ["svgp.paper_epochs=3", "svgp.num_inducing=64"]
+OVERRIDES = ["svgp.paper_epochs=3", "svgp.num_inducing=64", "svgp.paper_num_inducing=64"]
 
 
 @pytest.mark.slow

@@ -128,7 +128,7 @@ def test_replay_real_pipeline_is_deterministic(tmp_path: Path) -> None:
 
     p = tmp_path / "mug.mcap"
     generate(p, "partial", "mug", n_frames=6, width=320, height=240, seed=0)
-    cfg = load_config_dict({}, ["svgp.paper_epochs=3", "svgp.num_inducing=64"])
+    cfg = load_config_dict({}, ["svgp.paper_epochs=3", "svgp.num_inducing=64", "svgp.paper_num_inducing=64"])
     a = replay([p], cfg, out_dir=tmp_path / "a")
     b = replay([p], cfg, out_dir=tmp_path / "b")
     assert len(a.grasps) >= 1
