@@ -141,7 +141,12 @@ class QueuesConfig:
     """Bounded mailboxes between stages (sizes)."""
 
     stereo: int = opt(2, "stereo frames waiting for depth (drop oldest)", ge=1)
-    depth: int = opt(4, "depth frames waiting for fusion (drop oldest)", ge=1)
+    depth: int = opt(
+        16,
+        "depth frames waiting for fusion (drop oldest); 16 downsampled frames are about 1 MB and "
+        "bridge a grasp computation (up to ~1 s with the cloud) at 10 Hz",
+        ge=1,
+    )
     commands: int = opt(8, "commands waiting (reject when full)", ge=1)
     record: int = opt(256, "messages waiting for the recorder (drop oldest)", ge=1)
     pose_wait: int = opt(8, "frames waiting for a usable pose (drop oldest)", ge=1)

@@ -34,7 +34,9 @@ from tests.daemon.test_daemon_inprocess import DaemonThread, RecordingNotifier
 def test_overload_in_process_drops_oldest_and_stays_bounded(port: int, client: zenoh.Session) -> None:
     """Fake pipeline with 100 ms depth and 100 ms training (sustainable: ~5 frames/s); 60 frames
     are sent at ~100/s (20x)."""
-    cfg = load_config_dict(daemon_config_dict(port, grasp_rate_hz=10.0, idle_train_steps=0))
+    cfg = load_config_dict(
+        daemon_config_dict(port, grasp_rate_hz=10.0, idle_train_steps=0) | {"queues": {"depth": 4}}
+    )
     pipe = FakePipeline(depth_delay_s=0.1, train_delay_s=0.1)
     notifier = RecordingNotifier()
     dt = DaemonThread(Daemon(cfg, pipe, notifier=notifier)).start()
