@@ -142,9 +142,10 @@ class QueuesConfig:
 
     stereo: int = opt(2, "stereo frames waiting for depth (drop oldest)", ge=1)
     depth: int = opt(
-        16,
-        "depth frames waiting for fusion (drop oldest); 16 downsampled frames are about 1 MB and "
-        "bridge a grasp computation (up to ~1 s with the cloud) at 10 Hz",
+        32,
+        "depth frames waiting for fusion (drop oldest); 32 downsampled frames (depth + sigma) are "
+        "about 5 MB and bridge 3 s at 10 Hz: a grasp computation holds the model for up to ~1.2 s "
+        "with the cloud, back to back with queued work",
         ge=1,
     )
     commands: int = opt(8, "commands waiting (reject when full)", ge=1)
