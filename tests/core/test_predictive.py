@@ -191,3 +191,16 @@ def test_numerical_failure_restores_last_good_state(monkeypatch: pytest.MonkeyPa
     np.testing.assert_allclose(mu1, mu0, atol=0.05)  # restored, finite
     st = m.update(x, y, np.zeros(0, dtype=np.int64), steps=5)
     assert np.isfinite(st.elbo) and m.consecutive_failures == 0
+
+
+def test_paper_mode_uses_its_own_inducing_count() -> None:
+    """Streaming M (CPU default 250) and the paper's batch fit M (500) are separate keys."""
+    rng = np.random.default_rng(5)
+    x = rng.uniform(0.0, 0.05, (400, 3))
+    cfg = SvgpConfig(num_inducing=20, paper_num_inducing=30, paper_epochs=1, batch_size=128)
+    m = OccupancySVGP(cfg)
+    m.fit_paper(x, np.ones(len(x)))
+    assert len(m.model.variational_strategy.inducing_points) == 30  # type: ignore[union-attr]
+    s = OccupancySVGP(cfg)
+    s.update(x, np.ones(len(x)), np.arange(len(x)), steps=1)
+    assert len(s.model.variational_strategy.inducing_points) == 20  # type: ignore[union-attr]
