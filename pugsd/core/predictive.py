@@ -101,7 +101,6 @@ class OccupancySVGP:
         self.model: _SVGP | None = None
         self.likelihood: gpytorch.likelihoods.GaussianLikelihood | None = None
         self.total_steps = 0
-        self.steps_since_inducing_change = 0
         self.steps_since_init = 0
         self._moves: collections.deque[tuple[int, int]] = collections.deque()  # (step, points moved)
         self.elbo_ema: float | None = None
@@ -134,7 +133,6 @@ class OccupancySVGP:
         self.likelihood = lik.to(device=self.device, dtype=self.dtype)
         self._mll = gpytorch.mlls.VariationalELBO(self.likelihood, self.model, num_data=len(x))
         self._make_optimizers(len(x))
-        self.steps_since_inducing_change = 0
         self.steps_since_init = 0
         self._moves.clear()
         self.version += 1
@@ -210,7 +208,6 @@ class OccupancySVGP:
             self._ngd.step()
         self._adam.step()
         self.total_steps += 1
-        self.steps_since_inducing_change += 1
         self.steps_since_init += 1
         elbo = -float(loss.detach())
         self.last_elbo = elbo
@@ -353,7 +350,6 @@ class OccupancySVGP:
             Z_new = Z.clone()
             Z_new[replace] = self._t(pick)
             self._reproject(Z_new)
-        self.steps_since_inducing_change = 0
         self._moves.append((self.total_steps, k))
         return k
 
@@ -395,7 +391,6 @@ class OccupancySVGP:
             return 0
         with torch.no_grad():
             self._reproject(self._t(Z))
-        self.steps_since_inducing_change = 0
         self._moves.append((self.total_steps, k))
         return k
 
