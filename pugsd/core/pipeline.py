@@ -6,26 +6,28 @@ Stages, with the equations they implement:
   -> OccupancySVGP (Eq. 7-8) ; Reconstruction (TSDF cloud) -> proposer -> Algorithm 1
   (Eq. 9-12 on the cloud) -> Eq. 13 ranking.
 
-Thread model: ``depth_from_stereo`` is stateless. ``integrate``, ``train_steps``, ``fit`` and
-``compute`` share state and must be called from one thread at a time (the daemon holds a lock).
+Thread model: ``depth_from_stereo`` and ``propose`` are stateless. ``integrate``, ``train_steps``,
+``fit``, ``grasp_input``, ``score``, ``complete_cloud`` and ``compute`` share state and must be
+called from one thread at a time (the daemon holds a lock for each call, and runs ``propose``, the
+costliest part of a grasp computation, without it).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from pugsd.config import CoreConfig
+from pugsd.config import CoreConfig, CubatureConfig
 from pugsd.core.cubature import algorithm1
 from pugsd.core.fof import FofStore
 from pugsd.core.grasp.proposer import GraspSet, make_proposer
 from pugsd.core.grasp.scoring import rank_grasps, reweight
 from pugsd.core.observation import Observation
-from pugsd.core.predictive import OccupancySVGP, TrainStats
+from pugsd.core.predictive import OccupancySVGP, SvgpSnapshot, TrainStats
 from pugsd.core.reconstruction import Reconstruction
 from pugsd.core.stereo import StereoDepth
 from pugsd.core.types import DepthFrame, ScoredGrasps, StereoFrame
@@ -46,6 +48,74 @@ class PipelineResult:
     candidates: GraspSet
     model_version: int
     timings_s: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class GraspInput:
+    """What the grasp proposer reads, copied out of the pipeline (``PugsPipeline.grasp_input``)."""
+
+    cloud_W: np.ndarray  # (Q, 3) query cloud
+    views_W: np.ndarray  # (V, 3) camera centres seen so far
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Proposal:
+    """Grasp candidates on a ``GraspInput`` snapshot (``PugsPipeline.propose``)."""
+
+    cloud_W: np.ndarray
+    candidates: GraspSet
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class CubatureJob:
+    """Algorithm 1 with lines 1-2 done: the fused Gaussians (Eq. 5-6) of the query points and a
+    frozen copy of the SVGP (``PugsPipeline.cubature_job``). ``run`` does lines 3-6."""
+
+    mean_W: np.ndarray  # (Q, 3)
+    cov_W: np.ndarray  # (Q, 3, 3)
+    model: SvgpSnapshot
+    scale: float  # normalised -> output units (svgp.output_units)
+    cfg: CubatureConfig
+
+    def run(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lines 3-6: sigma points through the SVGP (Eq. 7-8): (mu_occ, sigma2_occ)."""
+        c = self.cfg
+
+        def predict(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            mu, _, var_pred = self.model.predict(p, self.scale)  # Eq. 7-8
+            return mu, var_pred
+
+        return algorithm1(self.mean_W, self.cov_W, predict, c.alpha, c.beta, c.kappa, c.variance_form)
+
+    def run_chunked(
+        self, chunk: int, should_stop: Callable[[], bool]
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """``run`` over ``chunk`` query points at a time (each point's result depends on that point
+        alone, so the values are the same), asking ``should_stop`` before each chunk: None if it
+        said yes."""
+        n = len(self.mean_W)
+        mu, s2 = np.empty(n), np.empty(n)
+        for i in range(0, n, chunk):
+            if should_stop():
+                return None
+            part = dataclasses.replace(
+                self, mean_W=self.mean_W[i : i + chunk], cov_W=self.cov_W[i : i + chunk]
+            )
+            mu[i : i + chunk], s2[i : i + chunk] = part.run()
+        return mu, s2
+
+
+@dataclass(frozen=True)
+class CloudJob:
+    """What ``finish_cloud`` needs to fill in the query cloud of a ``compute(full_cloud=False)``
+    result (``PugsPipeline.cloud_job``)."""
+
+    result: PipelineResult
+    todo: np.ndarray  # indices into result.cloud_W still NaN
+    cubature: CubatureJob | None
+    prepare_s: float
 
 
 class PugsPipeline:
@@ -146,19 +216,18 @@ class PugsPipeline:
     # ------------------------------------------------------------------ query
     def sigma2_occ(self, points_W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Algorithm 1 at query points: (mu_occ, sigma2_occ)."""
+        return self.cubature_job(points_W).run()
+
+    def cubature_job(self, points_W: np.ndarray) -> CubatureJob:
+        """Algorithm 1 lines 1-2 (Eq. 5-6: the fused Gaussian of each query point, read from the
+        store) now, and a frozen copy of the SVGP, so that lines 3-6 (``CubatureJob.run``) can run
+        later, on another thread, with the model as it is now."""
         if not self.svgp.initialised:
             raise ModelNotReadyError("the SVGP has not been trained")
         cov, mean = self.store.fused_covariance(points_W)  # lines 1-2, Eq. 5-6
-        c = self.cfg.cubature
-
         units = self.cfg.svgp.output_units
         scale = float(self._scale or 1.0) if units == "density" else 1.0
-
-        def predict(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            mu, _, var_pred = self.svgp.predict(p, scale)  # Eq. 7-8
-            return mu, var_pred
-
-        return algorithm1(mean, cov, predict, c.alpha, c.beta, c.kappa, c.variance_form)
+        return CubatureJob(mean, cov, self.svgp.snapshot(), scale, self.cfg.cubature)
 
     def query_cloud(self) -> np.ndarray:
         cloud = self.recon.cloud(self.seed)
@@ -168,26 +237,35 @@ class PugsPipeline:
             cloud = cloud[np.sort(rng.choice(len(cloud), cap, replace=False))]
         return cloud
 
-    def compute(self, cloud_W: np.ndarray | None = None, *, full_cloud: bool = True) -> PipelineResult:
-        """Reconstruction -> grasp candidates -> Algorithm 1 -> Eq. 13 ranking.
-
-        Eq. 13 needs sigma^2_occ only at the contact points of valid candidates, so Algorithm 1 runs
-        there first and the grasps are ranked from it. With ``full_cloud`` (default) the rest of
-        the query cloud follows (``complete_cloud``); without it those entries of ``mu_occ`` and
-        ``sigma2_occ`` are NaN, and ``complete_cloud(result)`` fills them in later, so a caller
-        can publish grasps before the per-point cloud is done. Values are per point: the order
-        does not change them."""
+    def grasp_input(self, cloud_W: np.ndarray | None = None) -> GraspInput:
+        """Phase 1 of ``compute``: a snapshot of what the proposer needs (the query cloud and the
+        camera centres). Reads the reconstruction: call it under the same lock as ``integrate``."""
         if len(self.store) == 0:
             raise EmptyCloudError("no observations")
         t0 = time.perf_counter()
         cloud = self.query_cloud() if cloud_W is None else np.asarray(cloud_W, dtype=np.float64)
-        t1 = time.perf_counter()
         views = (
-            np.asarray(self.recon.camera_centers_W)
+            np.array(self.recon.camera_centers_W, dtype=np.float64)
             if self.recon.camera_centers_W
             else np.zeros((1, 3))
         )
-        cands = self.proposer.propose(cloud, None, views)
+        return GraspInput(cloud_W=cloud, views_W=views, timings_s={"cloud": time.perf_counter() - t0})
+
+    def propose(self, inp: GraspInput) -> Proposal:
+        """Phase 2 of ``compute``: grasp candidates on the snapshot. Touches no pipeline state (the
+        proposer is stateless), so the daemon runs it without the model lock while frames are
+        integrated and the SVGP trains."""
+        t0 = time.perf_counter()
+        cands = self.proposer.propose(inp.cloud_W, None, inp.views_W)
+        timings = {**inp.timings_s, "propose": time.perf_counter() - t0}
+        return Proposal(cloud_W=inp.cloud_W, candidates=cands, timings_s=timings)
+
+    def score(self, proposal: Proposal) -> PipelineResult:
+        """Phase 3 of ``compute``: Algorithm 1 (Eq. 9-12) at the contact points of the valid
+        candidates with the current store and SVGP, then the Eq. 13 ranking. The query cloud's
+        other entries of ``mu_occ`` and ``sigma2_occ`` are NaN (``complete_cloud`` fills them).
+        Reads the store and the model: call it under the same lock as ``integrate``."""
+        cloud, cands = proposal.cloud_W, proposal.candidates
         t2 = time.perf_counter()
         mu_occ = np.full(len(cloud), np.nan)
         s2 = np.full(len(cloud), np.nan)
@@ -206,9 +284,9 @@ class PugsPipeline:
         t4 = time.perf_counter()
         pc = np.zeros(len(cloud))
         pc[cands.src_index[v]] = reweight(cands.confidence[v], s2[cands.src_index[v]], g.gamma)
-        timings = {"cloud": t1 - t0, "propose": t2 - t1, "algorithm1": t3 - t2, "eq13": t4 - t3}
+        timings = {**proposal.timings_s, "algorithm1": t3 - t2, "eq13": t4 - t3}
         self.timings_s.update(timings)
-        result = PipelineResult(
+        return PipelineResult(
             grasps=ranked,
             baseline_grasps=base,
             cloud_W=cloud,
@@ -220,19 +298,54 @@ class PugsPipeline:
             model_version=self.svgp.version,
             timings_s=timings,
         )
+
+    def compute(self, cloud_W: np.ndarray | None = None, *, full_cloud: bool = True) -> PipelineResult:
+        """Reconstruction -> grasp candidates -> Algorithm 1 -> Eq. 13 ranking, in one call:
+        ``score(propose(grasp_input(cloud_W)))``.
+
+        Eq. 13 needs sigma^2_occ only at the contact points of valid candidates, so Algorithm 1 runs
+        there first and the grasps are ranked from it. With ``full_cloud`` (default) the rest of
+        the query cloud follows (``complete_cloud``); without it those entries of ``mu_occ`` and
+        ``sigma2_occ`` are NaN, and ``complete_cloud(result)`` fills them in later, so a caller
+        can publish grasps before the per-point cloud is done. Values are per point: the order
+        does not change them."""
+        result = self.score(self.propose(self.grasp_input(cloud_W)))
         return self.complete_cloud(result) if full_cloud else result
 
     def complete_cloud(self, result: PipelineResult) -> PipelineResult:
         """Algorithm 1 for the query points ``compute(full_cloud=False)`` left out (NaN), with the
         current model; call it before the next training step to stay with ``result``'s model."""
+        done = self.finish_cloud(self.cloud_job(result))
+        assert done is not None
+        return done
+
+    def cloud_job(self, result: PipelineResult) -> CloudJob:
+        """Phase 1 of ``complete_cloud`` (reads the store and copies the model: under the lock):
+        call it before the next training step to stay with ``result``'s model."""
         todo = np.flatnonzero(np.isnan(result.sigma2_occ))
         t0 = time.perf_counter()
+        job = self.cubature_job(result.cloud_W[todo]) if len(todo) else None
+        return CloudJob(result, todo, job, time.perf_counter() - t0)
+
+    def finish_cloud(
+        self, job: CloudJob, should_stop: Callable[[], bool] | None = None, chunk: int = 1024
+    ) -> PipelineResult | None:
+        """Phase 2 of ``complete_cloud``: Algorithm 1 lines 3-6 through the frozen model. Touches
+        no pipeline state: the daemon runs it without the model lock. With ``should_stop`` it
+        works through ``chunk`` query points at a time and gives up (None) once that says so."""
+        result = job.result
+        t0 = time.perf_counter()
         mu_occ, s2 = result.mu_occ.copy(), result.sigma2_occ.copy()
-        if len(todo):
-            mu_occ[todo], s2[todo] = self.sigma2_occ(result.cloud_W[todo])
-        dt = time.perf_counter() - t0
+        if job.cubature is not None:
+            if should_stop is None:
+                out: tuple[np.ndarray, np.ndarray] | None = job.cubature.run()
+            else:
+                out = job.cubature.run_chunked(chunk, should_stop)
+            if out is None:
+                return None
+            mu_occ[job.todo], s2[job.todo] = out
+        dt = job.prepare_s + time.perf_counter() - t0
         timings = {**result.timings_s, "algorithm1_cloud": dt}
-        self.timings_s["algorithm1_cloud"] = dt
         return dataclasses.replace(
             result,
             mu_occ=mu_occ,

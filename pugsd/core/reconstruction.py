@@ -21,6 +21,10 @@ from pugsd.errors import EmptyCloudError
 o3d: Any = _o3d
 
 
+VIEW_MERGE_M = 0.01  # camera centres closer than this to a kept one are not kept again
+MAX_VIEWS = 2048
+
+
 class Reconstruction:
     """Incremental TSDF fusion of depth frames and extraction of the query cloud."""
 
@@ -64,7 +68,19 @@ class Reconstruction:
         )
         self._vbg.integrate(blocks, depth_img, color_img, K, ext, 1.0, max_depth, trunc)
         self.frames += 1
-        self.camera_centers_W.append(frame.T_W_C[:3, 3].copy())
+        self._add_view(frame.T_W_C[:3, 3])
+
+    def _add_view(self, c_W: np.ndarray) -> None:
+        """Keep camera centres (for normal orientation and the proposer's view preference) at
+        most ``VIEW_MERGE_M`` apart and at most ``MAX_VIEWS`` of them (oldest dropped): a vehicle
+        hovering for hours would otherwise add ten a second."""
+        if self.camera_centers_W:
+            d2 = ((np.asarray(self.camera_centers_W) - c_W) ** 2).sum(1)
+            if float(d2.min()) <= VIEW_MERGE_M**2:
+                return
+        self.camera_centers_W.append(np.array(c_W, dtype=np.float64))
+        if len(self.camera_centers_W) > MAX_VIEWS:
+            del self.camera_centers_W[0]
 
     def cloud(self, seed: int = 0) -> np.ndarray:
         """Surface points (Q, 3), at most ``sample_points``, outliers removed."""

@@ -7,12 +7,15 @@ Wiring (style.md 3.3)::
     stamp, wait for a pose (PoseGate) --> [stereo mailbox, drop oldest] --> depth worker
     (depth_from_stereo, off the loop) --> [depth mailbox, drop oldest] --> model worker
     (integrate + train_steps under the model lock, off the loop; idle training when no frame)
-    grasp worker (every 1/grasp_rate_hz, once ready: compute + encode off the loop, publish)
+    grasp worker (every 1/grasp_rate_hz, once ready, off the loop: snapshot the query cloud, propose
+    grasps without the model lock, score them (Algorithm 1, Eq. 13) under it, encode, publish)
     command worker ([commands mailbox, reject]: reset), status (1 Hz), watchdog, supervisor.
 
-Only the loop thread touches mailboxes and buffers. Heavy calls run off the loop on two dedicated
-threads: one for depth estimation (stateless), one for everything that touches the pipeline's
-mutable state (store, SVGP), which is additionally guarded by ``_model_lock``.
+Only the loop thread touches mailboxes and buffers. Heavy calls run off the loop on three dedicated
+threads: one for depth estimation (stateless), one for ingest and training (the pipeline's mutable
+state: store, SVGP, TSDF) and one for grasp computations. Every call that reads or writes that
+state holds ``_model_lock``; the grasp proposal, the costliest part of a grasp computation, runs on
+a snapshot without it, so ingest and training go on meanwhile (docs/performance.md).
 """
 
 from __future__ import annotations
@@ -69,9 +72,15 @@ class Pipeline(Protocol):
 
     def train_steps(self, n: int) -> Any: ...
 
-    def compute(self, *, full_cloud: bool = True) -> Any: ...
+    def grasp_input(self) -> Any: ...
 
-    def complete_cloud(self, result: Any) -> Any: ...
+    def propose(self, inp: Any) -> Any: ...
+
+    def score(self, proposal: Any) -> Any: ...
+
+    def cloud_job(self, result: Any) -> Any: ...
+
+    def finish_cloud(self, job: Any, should_stop: Callable[[], bool] | None = None) -> Any: ...
 
     def reset(self) -> None: ...
 
@@ -190,9 +199,10 @@ class Daemon:
         self._frame_id = d.world_frame
         self.ingress = IngressGate(d.ingress_limit)
         self._model_lock = threading.Lock()
-        # one thread for depth estimation, one for everything that touches the model state
+        # one thread for depth estimation, one for ingest and training, one for grasp computations
         self._depth_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pugsd-depth")
         self._model_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pugsd-model")
+        self._grasp_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pugsd-grasps")
         self._in_flight: set[concurrent.futures.Future[Any]] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._subscribers: list[Any] = []
@@ -213,6 +223,7 @@ class Daemon:
         self.was_ready = False  # ready at least once since the start or the last reset
         self._changed = False  # model changed since the last compute
         self._frame_unpublished = False  # a frame was integrated since the last compute started
+        self._grasps_urgent = False  # computing grasps for a newly integrated frame
         self._steps_since_frame = 0  # training steps since the newest frame was integrated
         self._last_frame_s: float | None = None  # monotonic time of the last integrated frame
         self._newest_recv_s: float | None = None  # receive time of the newest integrated frame
@@ -271,7 +282,7 @@ class Daemon:
             self.notifier.send("STOPPING=1")
             await self._stop_arm()
             self._close()
-            for ex in (self._depth_exec, self._model_exec):
+            for ex in (self._depth_exec, self._model_exec, self._grasp_exec):
                 ex.shutdown(wait=False, cancel_futures=True)
             log.info("pugsd stopped")
 
@@ -660,7 +671,7 @@ class Daemon:
         self._busy[stage] = True
         try:
             with self.health.busy(stage):
-                ex = self._depth_exec if stage == "depth" else self._model_exec
+                ex = {"depth": self._depth_exec, "grasps": self._grasp_exec}.get(stage, self._model_exec)
                 fut = ex.submit(fn, *args)
                 self._in_flight.add(fut)
                 fut.add_done_callback(self._in_flight.discard)
@@ -703,15 +714,19 @@ class Daemon:
                 self.health.count("depth")
                 self.depth_box.offer((depth, recv_s))
 
-    async def _train(self, steps: int) -> None:
+    async def _train(self, steps: int, idle: bool = False) -> None:
         """Up to ``steps`` SVGP steps, one per offload, yielding as soon as a frame is waiting:
         ingest has priority, so frames are not dropped while the model trains (measured in
         docs/performance.md: 10 Hz went from 15-26 of 100 frames integrated to 100 of 100).
         One step is forced when the last is older than ``min_train_interval_s``, so sustained
-        overload cannot starve the model (it then drops frames instead, counted)."""
+        overload cannot starve the model (it then drops frames instead, counted). Idle rounds
+        (``idle``) also stop while grasps for a newly integrated frame are being computed: on two
+        cores the SVGP steps and the grasp proposal slow each other down."""
         for _ in range(steps):
             overdue = time.monotonic() - self._last_train_s > self.cfg.daemon.min_train_interval_s
             if self._stopping or (len(self.depth_box) > 0 and not overdue):
+                break
+            if idle and self._grasps_urgent:
                 break
             self._last_train_s = time.monotonic()
             stats = await self._guard(
@@ -753,8 +768,13 @@ class Daemon:
                 self._steps_since_frame = 0
                 if d.train_steps_per_frame > 0 and not self._stopping:
                     await self._train(d.train_steps_per_frame)
-            elif idle and not self._stopping and time.monotonic() >= self._retry_train_at:
-                await self._train(d.idle_train_steps)
+            elif (
+                idle
+                and not self._stopping
+                and not self._grasps_urgent
+                and time.monotonic() >= self._retry_train_at
+            ):
+                await self._train(d.idle_train_steps, idle=True)
                 k = self.health.failures.get("train", 0)
                 # a failing model is retried with exponential backoff (0.1 s .. 5 s)
                 self._retry_train_at = time.monotonic() + (min(0.1 * 2 ** (k - 1), 5.0) if k else 0.0)
@@ -773,23 +793,37 @@ class Daemon:
         self,
         frame_id: str,
         stamp_ns: int,
+        generation: int,
         on_grasps: Callable[[Any, dict[str, bytes]], None],
         with_cloud: bool,
-    ) -> None:
-        """Grasps first (Algorithm 1 at the contacts, Eq. 13), handed to ``on_grasps`` at once;
-        then, if ``with_cloud``, under the same model lock (so the cloud comes from the same
-        model), Algorithm 1 on the rest of the query cloud for the PointCloud2."""
+    ) -> str:
+        """On the grasp thread. Under the model lock: a snapshot of the query cloud. Without it:
+        the grasp proposal (frames are integrated and the SVGP trains meanwhile). Under the lock
+        again: Algorithm 1 at the contacts and Eq. 13 with the model as it is now, handed to
+        ``on_grasps`` at once; then, if ``with_cloud``, still under that lock, the fused
+        covariances of the rest of the query cloud and a frozen copy of the same model, through
+        which Algorithm 1 for the PointCloud2 runs without the lock, in chunks: it gives way (the
+        cloud is not published) as soon as grasps for a newer frame are due (``_grasps_wanted``).
+        Returns "discarded" if a reset while this ran discarded the result, "preempted" if the
+        cloud gave way, else "published"."""
         with self._model_lock:
-            result = self.pipeline.compute(full_cloud=False)
+            inp = self.pipeline.grasp_input()
+        proposal = self.pipeline.propose(inp)
+        with self._model_lock:
+            if generation != self._generation:
+                return "discarded"
+            result = self.pipeline.score(proposal)
             g = result.grasps
             out = {"grasps": codec.encode_grasp_array(g, frame_id, stamp_ns)}
             out["markers"] = codec.encode_grasp_markers(
                 g, frame_id, stamp_ns, top_k=self.cfg.daemon.markers_top_k
             )
             on_grasps(result, out)
-            if with_cloud:
-                result = self.pipeline.complete_cloud(result)
-        if with_cloud:
+            job = self.pipeline.cloud_job(result) if with_cloud else None
+        if job is not None:
+            result = self.pipeline.finish_cloud(job, self._grasps_wanted)
+            if result is None:
+                return "preempted"
             cloud = codec.encode_cloud(
                 result.cloud_W,
                 stamp_ns,
@@ -798,6 +832,7 @@ class Daemon:
                 pugs_confidence=result.pugs_conf_points,
             )
             on_grasps(None, {"cloud": cloud})
+        return "published"
 
     def _publish_outputs(self, result: Any, payloads: dict[str, bytes], newest_recv: float | None) -> None:
         """On the loop: publish what ``_compute_and_encode`` handed over (grasps, then the cloud)."""
@@ -805,6 +840,7 @@ class Daemon:
             self._publishers[role].put(data)
         if result is None:
             return
+        self._grasps_urgent = False
         self.latest_grasps = payloads["grasps"]
         self.latest_result = result
         self.model_version = int(result.model_version)
@@ -823,6 +859,18 @@ class Daemon:
                 float(g.sigma2_occ[0]),
             )
 
+    def _streaming(self, now: float) -> bool:
+        """Frames are coming: one is queued, or the last came less than ``pause_publish_s`` ago."""
+        return len(self.depth_box) > 0 or (
+            self._last_frame_s is not None and now - self._last_frame_s < self.cfg.daemon.pause_publish_s
+        )
+
+    def _grasps_wanted(self) -> bool:
+        """A frame was integrated since the running grasp computation began and the input has
+        paused: fresh grasps now matter more than that computation's cloud. (Called from the
+        grasp thread; reads flags that only the loop writes.)"""
+        return self._frame_unpublished and not self._streaming(time.monotonic())
+
     def _grasps_due(self, now: float, last_start: float) -> bool:
         """Every 1 / grasp_rate_hz while the model changes; and at once when the input pauses:
         the newest frame has had its training steps and no frame came for ``pause_publish_s``
@@ -835,9 +883,8 @@ class Daemon:
             d.pause_publish_s > 0
             and self._frame_unpublished
             and self._last_frame_s is not None
-            and now - self._last_frame_s >= d.pause_publish_s
+            and not self._streaming(now)
             and self._steps_since_frame >= d.train_steps_per_frame
-            and len(self.depth_box) == 0
             and now - last_start >= 0.5 * period
         )
 
@@ -854,14 +901,16 @@ class Daemon:
                 continue
             last_start = now
             self._changed = False
+            # grasps for a frame not yet published: idle training waits for them (less contention)
+            self._grasps_urgent = self._frame_unpublished
             self._frame_unpublished = False
             newest_recv = self._newest_recv_s
-            # the whole cloud's Algorithm 1 holds the model for several times the grasps' share:
-            # while frames stream, at most every cloud_interval_s, so that ingest keeps up
+            # the whole cloud's Algorithm 1 costs about as much as the grasps and occupies the
+            # grasp thread: while frames stream, at most every cloud_interval_s (the first one too)
             d = self.cfg.daemon
-            streaming = len(self.depth_box) > 0 or (
-                self._last_frame_s is not None and now - self._last_frame_s < d.pause_publish_s
-            )
+            streaming = self._streaming(now)
+            if streaming and last_cloud == -math.inf:
+                last_cloud = now
             with_cloud = d.publish_cloud and (not streaming or now - last_cloud >= d.cloud_interval_s)
             if with_cloud:
                 last_cloud = now
@@ -871,17 +920,26 @@ class Daemon:
             ) -> None:
                 loop.call_soon_threadsafe(self._publish_outputs, result, payloads, newest)
 
-            await self._guard(
-                "grasps",
-                self._offload(
+            try:
+                outcome = await self._guard(
                     "grasps",
-                    self._compute_and_encode,
-                    self._frame_id,
-                    self._newest_stamp_ns,
-                    hand_over,
-                    with_cloud,
-                ),
-            )
+                    self._offload(
+                        "grasps",
+                        self._compute_and_encode,
+                        self._frame_id,
+                        self._newest_stamp_ns,
+                        self._generation,
+                        hand_over,
+                        with_cloud,
+                    ),
+                )
+            finally:
+                self._grasps_urgent = False
+            if outcome == "discarded":
+                self.health.count("grasps_discarded")
+                log.info("grasp computation discarded: the map was reset while it ran")
+            elif outcome == "preempted":
+                self.health.count("clouds_preempted")
             await asyncio.sleep(0)  # let the hand-over callbacks run before the next round
 
     async def _command_worker(self) -> None:

@@ -16,9 +16,11 @@ from pugsd.core.grasp.proposer import (
     AntipodalProposer,
     TorchScriptProposer,
     _orthonormal,
+    farthest_point_subset,
     grasp_poses,
 )
 from pugsd.core.grasp.scoring import rank_grasps, reweight
+from pugsd.core.predictive import farthest_point_sample
 from pugsd.errors import PugsdError
 from tests.helpers.scenes import box_mesh, cylinder_mesh
 
@@ -183,3 +185,19 @@ def test_thinning_keeps_distinct_grasps() -> None:
     c = ranked.contact_W + 0.5 * ranked.width_m[:, None] * ranked.pose_W[:, :3, 0]
     d = np.linalg.norm(c[:, None] - c[None], axis=-1) + np.eye(len(c))
     assert d.min() >= 0.02
+
+
+@pytest.mark.parametrize("seed", [0, 1, 7])
+def test_fast_farthest_point_subset_is_the_greedy_fps_set(seed: int) -> None:
+    """open3d's FPS (the proposer's contacts) selects the same points as the greedy reference,
+    duplicates included (the indices travel through the colour channel)."""
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(size=(2000, 3))
+    pts[100] = pts[7]  # an exact duplicate
+    pts[1500:1510] = pts[0]  # a cluster of duplicates
+    ref = farthest_point_sample(pts, 600, seed)
+    fast = farthest_point_subset(pts, 600, seed)
+    assert np.array_equal(np.sort(ref), fast)
+    assert len(np.unique(fast)) == 600
+    assert np.array_equal(farthest_point_subset(pts, 5000, seed), np.arange(2000))
+    assert len(farthest_point_subset(pts[:0], 10, seed)) == 0

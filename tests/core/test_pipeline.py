@@ -101,6 +101,67 @@ def test_grasps_first_then_the_cloud_gives_the_same_result(partial_box) -> None:
     assert "algorithm1_cloud" in full.timings_s and full.model_version == r.model_version
 
 
+def test_grasp_phases_and_cloud_job_use_the_model_of_their_time() -> None:
+    """The daemon's split of ``compute``: grasp_input and score under the lock, propose and
+    finish_cloud without it while training goes on. finish_cloud must use the model frozen by
+    cloud_job, whatever training happened since; chunked and one-shot Algorithm 1 agree."""
+    cam = PinholeCamera(200, 200, 79.5, 59.5, 160, 120)
+    meshes = [box_mesh(BOX, (0, 0, 0.06)), box_mesh((1, 1, 0.01), (0, 0, -0.005))]
+    frames = orbit_frames(
+        meshes, np.array([0, 0, 0.06]), 0.45, 0.25, np.linspace(-40, 40, 4), cam, sigma_m=0.002
+    )
+    pipe = PugsPipeline(CoreConfig(svgp=SvgpConfig(num_inducing=64)))
+    for f in frames:
+        pipe.integrate(f)
+        pipe.train_steps(10)
+    inp = pipe.grasp_input()
+    proposal = pipe.propose(inp)  # the daemon trains meanwhile:
+    pipe.train_steps(5)
+    part = pipe.score(proposal)
+    assert part.model_version == pipe.svgp.version
+    assert {"cloud", "propose", "algorithm1", "eq13"} <= set(part.timings_s)
+    job = pipe.cloud_job(part)
+    expected = pipe.complete_cloud(part)  # the same model, completed at once
+    pipe.train_steps(20)  # the live model moves on ...
+    moved = pipe.complete_cloud(part)
+    assert not np.allclose(moved.sigma2_occ, expected.sigma2_occ, rtol=1e-3)
+    done = pipe.finish_cloud(job)  # ... the job does not
+    assert done is not None
+    # float32 model: the copy recomputes the factors the live model memoised (1e-7 relative)
+    np.testing.assert_allclose(done.sigma2_occ, expected.sigma2_occ, rtol=1e-5, atol=0)
+    np.testing.assert_allclose(done.mu_occ, expected.mu_occ, rtol=1e-5, atol=1e-9)
+    chunked = pipe.finish_cloud(job, should_stop=lambda: False, chunk=97)
+    assert chunked is not None
+    np.testing.assert_allclose(chunked.sigma2_occ, done.sigma2_occ, rtol=1e-5, atol=0)
+    calls: list[int] = []
+    stopped = pipe.finish_cloud(job, should_stop=lambda: calls.append(1) or len(calls) > 2, chunk=97)
+    assert stopped is None and len(calls) == 3
+
+
+def test_camera_centres_stay_bounded_while_hovering() -> None:
+    """Hours at one spot must not grow the view list (the proposer scans it per contact)."""
+    import dataclasses
+
+    from pugsd.core import reconstruction as rec
+
+    cam = PinholeCamera(200, 200, 79.5, 59.5, 160, 120)
+    frames = orbit_frames(
+        [box_mesh(BOX, (0, 0, 0.06))], np.array([0, 0, 0.06]), 0.45, 0.25, np.array([0.0, 30.0]), cam
+    )
+    r = rec.Reconstruction(CoreConfig().reconstruction)
+    rng = np.random.default_rng(0)
+    for _ in range(200):  # hovering: 3 mm jitter
+        T = frames[0].T_W_C.copy()
+        T[:3, 3] += rng.normal(0, 0.001, 3)
+        r.integrate(dataclasses.replace(frames[0], T_W_C=T))
+    assert r.frames == 200 and len(r.camera_centers_W) <= 3
+    r.integrate(frames[1])  # a new viewpoint 0.23 m away is kept
+    assert np.allclose(r.camera_centers_W[-1], frames[1].T_W_C[:3, 3])
+    for k in range(rec.MAX_VIEWS + 10):
+        r._add_view(np.array([0.02 * k, 5.0, 0.0]))
+    assert len(r.camera_centers_W) == rec.MAX_VIEWS
+
+
 def test_warm_up_leaves_the_pipeline_untouched() -> None:
     pipe = PugsPipeline(CoreConfig(svgp=SvgpConfig(num_inducing=200)))
     v = pipe.svgp.version

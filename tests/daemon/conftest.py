@@ -109,8 +109,17 @@ class FakePipeline:
         self.version += 1
         return TrainStats(-1.0 / (1 + self.steps), self.ready)
 
-    def compute(self, *, full_cloud: bool = True) -> Result:
+    def grasp_input(self) -> int:
+        return self.version
+
+    def propose(self, inp: int) -> int:
         time.sleep(self.compute_delay_s)
+        return inp
+
+    def score(self, proposal: int) -> Result:
+        return self.compute(full_cloud=False)
+
+    def compute(self, *, full_cloud: bool = True) -> Result:
         n = 3
         pose = np.tile(np.eye(4), (n, 1, 1))
         pose[:, 0, 3] = [0.0, 0.1, 0.2]
@@ -127,7 +136,10 @@ class FakePipeline:
         s2 = np.full(50, 0.1) if full_cloud else np.full(50, np.nan)
         return Result(g, cloud, s2, np.full(50, 0.5), self.version)
 
-    def complete_cloud(self, result: Result) -> Result:
+    def cloud_job(self, result: Result) -> Result:
+        return result
+
+    def finish_cloud(self, result: Result, should_stop: Any = None) -> Result:
         return dataclasses.replace(result, sigma2_occ=np.nan_to_num(result.sigma2_occ, nan=0.1))
 
     def reset(self) -> None:

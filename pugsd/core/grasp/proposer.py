@@ -24,7 +24,6 @@ import open3d as _o3d
 from scipy.spatial import cKDTree
 
 from pugsd.config import GraspConfig, GripperConfig
-from pugsd.core.predictive import farthest_point_sample
 from pugsd.errors import EmptyCloudError, PugsdError
 
 # open3d's bundled stubs reject valid numpy arguments (Tensor overloads): use it untyped
@@ -86,6 +85,25 @@ def estimate_normals(points: np.ndarray, radius_m: float, view_origins_W: np.nda
     return n
 
 
+def farthest_point_subset(points: np.ndarray, m: int, seed: int = 0) -> np.ndarray:
+    """The indices of the greedy farthest-point sample of ``m`` points that starts at a seeded
+    random point, in ascending index order: the same set as
+    ``pugsd.core.predictive.farthest_point_sample`` (tested), by open3d's C++ implementation
+    (1500 of 4.2k points: 5 ms instead of 100 ms). The indices travel through the colour
+    channel, so duplicate points map back exactly."""
+    n = len(points)
+    m = min(m, n)
+    if m <= 0:
+        return np.zeros(0, dtype=np.int64)
+    start = int(np.random.default_rng(seed).integers(n))
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, np.float64)))
+    tag = np.zeros((n, 3))
+    tag[:, 0] = np.arange(n)
+    pcd.colors = o3d.utility.Vector3dVector(tag)
+    picked = pcd.farthest_point_down_sample(m, start)
+    return np.sort(np.rint(np.asarray(picked.colors)[:, 0]).astype(np.int64))
+
+
 def _orthonormal(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit vectors orthogonal to each row of b (M, 3)."""
     helper = np.where(np.abs(b[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
@@ -126,7 +144,7 @@ class AntipodalProposer:
             estimate_normals(pts, cfg.normal_radius_m, views) if normals_W is None else normals_W
         )
         tree = cKDTree(pts)
-        contacts = farthest_point_sample(pts, min(cfg.max_contacts, len(pts)), self.seed)
+        contacts = farthest_point_subset(pts, min(cfg.max_contacts, len(pts)), self.seed)
         cos_f = np.cos(np.deg2rad(cfg.friction_cone_deg))
 
         # partner search along b = -n_p, sampled every partner_radius

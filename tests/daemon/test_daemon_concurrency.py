@@ -1,0 +1,201 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The grasp computation runs beside ingest: the proposal on a snapshot without the model lock,
+the whole-cloud Algorithm 1 through a frozen model copy that gives way to fresher grasps, and a
+reset while a computation runs discards its result. Fake pipeline, real loopback zenoh."""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from pugsd.config import load_config_dict
+from pugsd.daemon.app import Daemon
+from pugsd.wire import codec
+from pugsd.wire.topics import key_for
+from tests.daemon.conftest import FakePipeline, Result, Source, daemon_config_dict, query_json, wait_for
+from tests.daemon.test_daemon_inprocess import DaemonThread, RecordingNotifier
+
+
+@dataclass
+class TimedPipeline(FakePipeline):
+    """Records when each call runs (monotonic intervals) and which calls overlap."""
+
+    propose_s: float = 0.0
+    cloud_s: float = 0.0  # finish_cloud runs this long unless should_stop says stop
+    calls: list[tuple[str, float, float]] = field(default_factory=list)
+    inside: set[str] = field(default_factory=set)
+    overlaps: list[tuple[str, str]] = field(default_factory=list)
+    propose_started: threading.Event = field(default_factory=threading.Event)
+    cloud_started: threading.Event = field(default_factory=threading.Event)
+    guard: threading.Lock = field(default_factory=threading.Lock)
+
+    def _enter(self, name: str) -> float:
+        with self.guard:
+            self.overlaps.extend((name, other) for other in self.inside)
+            self.inside.add(name)
+        return time.monotonic()
+
+    def _leave(self, name: str, t0: float) -> None:
+        with self.guard:
+            self.inside.discard(name)
+            self.calls.append((name, t0, time.monotonic()))
+
+    def integrate(self, depth: Any) -> int:
+        t0 = self._enter("integrate")
+        try:
+            return super().integrate(depth)
+        finally:
+            self._leave("integrate", t0)
+
+    def train_steps(self, n: int) -> Any:
+        t0 = self._enter("train")
+        try:
+            return super().train_steps(n)
+        finally:
+            self._leave("train", t0)
+
+    def grasp_input(self) -> int:
+        t0 = self._enter("grasp_input")
+        try:
+            return super().grasp_input()
+        finally:
+            self._leave("grasp_input", t0)
+
+    def propose(self, inp: int) -> int:
+        t0 = self._enter("propose")
+        self.propose_started.set()
+        try:
+            time.sleep(self.propose_s)
+            return inp
+        finally:
+            self._leave("propose", t0)
+
+    def score(self, proposal: int) -> Result:
+        t0 = self._enter("score")
+        try:
+            return super().score(proposal)
+        finally:
+            self._leave("score", t0)
+
+    def finish_cloud(self, result: Result, should_stop: Any = None) -> Result | None:
+        t0 = self._enter("finish_cloud")
+        self.cloud_started.set()
+        try:
+            while time.monotonic() - t0 < self.cloud_s:
+                if should_stop is not None and should_stop():
+                    return None
+                time.sleep(0.01)
+            return super().finish_cloud(result)
+        finally:
+            self._leave("finish_cloud", t0)
+
+    def intervals(self, name: str) -> list[tuple[float, float]]:
+        with self.guard:
+            return [(a, b) for n, a, b in self.calls if n == name]
+
+
+def _start(port: int, pipe: FakePipeline, **daemon: Any) -> DaemonThread:
+    cfg = load_config_dict(daemon_config_dict(port, **daemon))
+    notifier = RecordingNotifier()
+    dt = DaemonThread(Daemon(cfg, pipe, notifier=notifier)).start()
+    wait_for(lambda: "READY=1" in notifier.sent, 10.0, "READY")
+    return dt
+
+
+def _frame(src: Source, stamp_ns: int, seed: int = 0) -> None:
+    src.stereo(stamp_ns, np.eye(4), seed=seed)
+    # a later pose, so the frame's pose can be interpolated at once
+    src.put("pose", codec.encode_pose_with_covariance(stamp_ns + 10**6, np.eye(4), np.eye(6) * 1e-6))
+
+
+def test_frames_are_integrated_while_grasps_are_proposed(port: int, client: zenoh.Session) -> None:
+    """A 0.6 s proposal does not hold up ingest: frames sent meanwhile are integrated while it
+    runs, and no call that touches the model state overlaps another (the model lock)."""
+    pipe = TimedPipeline(propose_s=0.6, ready_after=1)
+    dt = _start(port, pipe, grasp_rate_hz=2.0, publish_cloud=False)
+    src = Source(client)
+    try:
+        src.wait_matching()
+        src.infos()
+        time.sleep(0.1)
+        for i in range(30):  # 20 Hz for 1.5 s
+            _frame(src, 10**9 + i * 5 * 10**7, seed=i % 4)
+            time.sleep(0.05)
+        wait_for(lambda: len(pipe.integrated) == 30, 10.0, "all 30 frames integrated")
+        wait_for(lambda: dt.daemon.latest_grasps is not None, 5.0, "grasps")
+    finally:
+        src.close()
+        dt.stop()
+    proposals = pipe.intervals("propose")
+    assert proposals, "no grasp proposal ran"
+    during = [
+        (a, b) for a, b in pipe.intervals("integrate") if any(p0 < a and b < p1 for p0, p1 in proposals)
+    ]
+    assert len(during) >= 3, f"only {len(during)} frames integrated during {len(proposals)} proposals"
+    # the calls made under the model lock never overlap (finish_cloud and propose run without it)
+    stateful = {"integrate", "train", "grasp_input", "score"}
+    bad = [(a, b) for a, b in pipe.overlaps if a in stateful and b in stateful]
+    assert not bad, f"calls that touch the model state overlapped: {bad[:5]}"
+
+
+def test_the_cloud_gives_way_to_grasps_for_a_newer_frame(port: int, client: zenoh.Session) -> None:
+    """While the whole-cloud Algorithm 1 (here 20 s) runs, a new frame arrives and the input
+    pauses: the cloud is abandoned (counted) and that frame's grasps come within seconds."""
+    pipe = TimedPipeline(cloud_s=20.0, ready_after=1)
+    dt = _start(port, pipe, grasp_rate_hz=2.0, publish_cloud=True, pause_publish_s=0.15)
+    src = Source(client)
+    stamps: list[int] = []
+    sub = client.declare_subscriber(
+        key_for(src.topics, "grasps"),
+        lambda s: stamps.append(codec.decode_grasp_array(s.payload.to_bytes()).stamp_ns),
+    )
+    try:
+        src.wait_matching()
+        src.infos()
+        time.sleep(0.1)
+        _frame(src, 10**9)
+        assert pipe.cloud_started.wait(10.0), "the cloud computation did not start"
+        t_new = time.monotonic()
+        _frame(src, 2 * 10**9, seed=1)
+        wait_for(lambda: 2 * 10**9 in stamps, 5.0, "grasps stamped with the newer frame")
+        latency_s = time.monotonic() - t_new
+        st = query_json(client, "pugs/status")
+    finally:
+        pipe.cloud_s = 0.0  # a cloud started after the new grasps ends at once
+        sub.undeclare()
+        src.close()
+        dt.stop()
+    assert latency_s < 5.0  # not after the 20 s cloud
+    assert st["counts"].get("clouds_preempted", 0) >= 1
+    clouds = pipe.intervals("finish_cloud")
+    assert clouds and min(b - a for a, b in clouds) < 5.0
+
+
+def test_a_reset_during_a_proposal_discards_its_grasps(port: int, client: zenoh.Session) -> None:
+    pipe = TimedPipeline(propose_s=1.5, ready_after=1)
+    dt = _start(port, pipe, grasp_rate_hz=2.0, publish_cloud=False)
+    src = Source(client)
+    try:
+        src.wait_matching()
+        src.infos()
+        time.sleep(0.1)
+        _frame(src, 10**9)
+        assert pipe.propose_started.wait(10.0), "no grasp proposal started"
+        assert pipe.intervals("propose") == []  # still proposing
+        replies = list(client.get("pugs/reset", timeout=2.0))
+        assert replies and replies[0].ok is not None
+        wait_for(lambda: pipe.resets == 1 and len(pipe.intervals("propose")) == 1, 5.0, "proposal end")
+        time.sleep(0.3)
+        st = query_json(client, "pugs/status")
+        latest = dt.daemon.latest_grasps
+    finally:
+        src.close()
+        dt.stop()
+    assert st["counts"].get("grasps_discarded") == 1
+    assert pipe.intervals("score") == []  # the stale proposal was never scored
+    assert latest is None and st["counts"].get("grasps_published", 0) == 0
