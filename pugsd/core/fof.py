@@ -124,6 +124,11 @@ class FofStore:
         self._tree: cKDTree | None = None
         self._fprec: np.ndarray = np.zeros((0, 3, 3))
         self._flogdet: np.ndarray = np.zeros(0)
+        # each voxel's neighbour list (K + 1 nearest, itself included) and the distance to the
+        # last of them, as of its last target refresh: what the incremental refresh needs to
+        # find every voxel whose neighbourhood a change reaches (update_targets)
+        self._nb: np.ndarray = np.zeros((0, 0), dtype=np.int64)
+        self._nb_r: np.ndarray = np.zeros(0)
         self.last_touched = np.zeros(0, dtype=np.int64)
         self.evicted = 0
 
@@ -209,6 +214,8 @@ class FofStore:
         self._dirty[: self._n] = True  # neighbourhoods changed near evicted voxels
         self._fprec = np.zeros((0, 3, 3))  # recomputed in full at the next update
         self._flogdet = np.zeros(0)
+        self._nb = np.zeros((0, 0), dtype=np.int64)  # indices changed: full refresh
+        self._nb_r = np.zeros(0)
         t = remap[touched]
         return t[t >= 0]
 
@@ -273,12 +280,21 @@ class FofStore:
     def update_targets(self, full: bool = False) -> int:
         """Recompute Eq. 5 and Eq. 4 targets where the field changed; returns how many changed.
 
-        Sigma~_j depends on the K nearest Gaussians of mu_j and FOF(mu_j) on their Sigma~, so the
-        dirty set is grown by two rings of K nearest neighbours.
+        Sigma~_j (Eq. 5-6) depends on mu_j and on the Gaussians of j's K nearest neighbours;
+        FOF(mu_j) (Eq. 4) on j's neighbours' Sigma~, means and weights. A change (a new voxel, or
+        an existing one re-fused with new observations: the dirty set D) therefore reaches a
+        voxel j if j is in D, if j's neighbour list holds a changed voxel, or if a voxel of D
+        now lies within j's neighbour radius (it enters j's list: the K-NN relation is not
+        symmetric, so the neighbours *of* D miss these). Ring 1 (Sigma~ recomputed) is what D
+        reaches; ring 2 (FOF recomputed) what ring 1 reaches. The result equals a full refresh
+        (tested).
         """
         n = self._n
         if n == 0:
             return 0
+        kq = min(self.cfg.k_neighbours + 1, n)
+        if not full and self._nb.shape[1] != kq:
+            full = True  # no usable neighbour lists (start, growth past K + 1, compaction)
         if full:
             ring2 = np.arange(n)
             ring1 = ring2
@@ -286,13 +302,28 @@ class FofStore:
             dirty = np.flatnonzero(self._dirty[:n])
             if dirty.size == 0:
                 return 0
-            ring1 = np.unique(np.concatenate([dirty, self.neighbours(self._mu[dirty]).ravel()]))
-            ring2 = np.unique(np.concatenate([ring1, self.neighbours(self._mu[ring1]).ravel()]))
+            ring1 = self._reached(dirty, dirty)
+            ring2 = self._reached(ring1, dirty)
+        # fresh neighbour lists for every voxel refreshed (ring 1 is inside ring 2)
+        assert self._tree is not None
+        dist, nbq = self._tree.query(self._mu[ring2], k=kq, workers=1)
+        nbq = np.asarray(nbq).reshape(len(ring2), kq)
+        dist = np.asarray(dist).reshape(len(ring2), kq)
+        if self._nb.shape != (n, kq):
+            nb = np.zeros((n, kq), dtype=np.int64)
+            nb_r = np.zeros(n)
+            if self._nb.shape[1] == kq:  # keep the stored lists (new voxels appended)
+                keep = min(self._nb.shape[0], n)
+                nb[:keep], nb_r[:keep] = self._nb[:keep], self._nb_r[:keep]
+            self._nb, self._nb_r = nb, nb_r
+        self._nb[ring2] = nbq
+        self._nb_r[ring2] = dist[:, -1]
+        in1 = np.searchsorted(ring2, ring1)  # rows of ring 1 within ring 2 (both sorted)
         k = min(self.cfg.k_neighbours, n)
-        # Eq. 5-6 at mu_j for ring 1
-        nb1 = self.neighbours(self._mu[ring1], k)
+        # Eq. 5-6 at mu_j for ring 1 (without j itself unless include_self)
+        nb1 = nbq[in1, :k]
         if not self.cfg.include_self and k > 1:
-            nb1 = self.neighbours(self._mu[ring1], k + 1)[:, 1:]
+            nb1 = nbq[in1, 1:]
         fused, _ = fused_at(self._mu[ring1], self._mu[nb1], self._prec[nb1], self._logdet[nb1])
         self._fused[ring1] = fused
         if full or self._fprec.shape[0] > n:
@@ -305,7 +336,7 @@ class FofStore:
             self._fprec[ring1] = fp
             self._flogdet[ring1] = fl
         # Eq. 4 with fused covariances at mu_j for ring 2
-        nb2 = self.neighbours(self._mu[ring2], k)
+        nb2 = nbq[:, :k]
         w = self._count[:n]
         self._density[ring2] = mixture_density(
             self._mu[ring2], self._mu[nb2], self._fprec[nb2], self._flogdet[nb2], w[nb2]
@@ -313,6 +344,27 @@ class FofStore:
         self._dirty[:n] = False
         self.version += 1
         return int(ring2.size)
+
+    def _reached(self, changed: np.ndarray, moved: np.ndarray) -> np.ndarray:
+        """Sorted indices of the voxels whose targets ``changed`` voxels can alter: those, the ones
+        whose stored neighbour list holds one of them, and the ones within whose stored neighbour
+        radius a ``moved`` (new or re-fused) voxel now lies."""
+        n = self._n
+        old = min(self._nb.shape[0], n)
+        hit = np.zeros(n, dtype=bool)
+        hit[changed] = True
+        hit[:old] |= hit[self._nb[:old]].any(axis=1)
+        hit[old:] = True  # voxels without a stored list yet (new ones are dirty anyway)
+        if len(moved) and old:
+            p = self._mu[moved]
+            r = self._nb_r[:old, None]
+            mu = self._mu[:old]
+            near = np.all(mu >= p.min(0) - r, axis=1) & np.all(mu <= p.max(0) + r, axis=1)
+            cand = np.flatnonzero(near & ~hit[:old])
+            if cand.size:
+                d, _ = cKDTree(p).query(mu[cand], k=1, workers=1)
+                hit[cand[d <= self._nb_r[cand]]] = True
+        return np.flatnonzero(hit)
 
     def raw_density(self) -> np.ndarray:
         return self._density[: self._n].copy()

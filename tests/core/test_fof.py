@@ -77,6 +77,36 @@ def test_store_merges_voxels_and_incremental_targets_match_full() -> None:
     assert len(store) < 700  # voxels merged
 
 
+def test_incremental_targets_match_full_while_views_overlap() -> None:
+    """Streaming-like input: each batch adds new voxels among old ones (uneven density) and
+    re-fuses some. A voxel whose K nearest neighbours gain a new voxel is not necessarily among
+    that voxel's own K nearest (K-NN is not symmetric): its targets must be refreshed too. After
+    every batch the incremental targets equal a full refresh."""
+    rng = np.random.default_rng(11)
+    cfg = FofConfig(voxel_size_m=0.004, k_neighbours=10)
+    store = FofStore(cfg)
+    theta_all = rng.uniform(0, 2 * np.pi, 3000)
+    for b in range(12):
+        th = theta_all[b * 250 : (b + 1) * 250]
+        th = th[(th > b * 0.4) & (th < b * 0.4 + 2.0)] if b % 3 else th  # partial views
+        r = 0.05 + rng.normal(0, 0.002, len(th))
+        pts = np.stack([r * np.cos(th), r * np.sin(th), rng.uniform(0, 0.03, len(th)) ** 2 * 30], 1)
+        sparse = rng.uniform(-0.08, 0.08, (15, 3))  # isolated voxels with wide neighbourhoods
+        pts = np.concatenate([pts, sparse])
+        cov = np.broadcast_to(np.diag([1e-6, 2e-6, 4e-6]), (len(pts), 3, 3)).copy()
+        store.insert(pts, cov)
+        changed = store.update_targets()
+        incremental = store.raw_density()
+        fused_incremental = store._fused[: len(store)].copy()
+        store.update_targets(full=True)
+        np.testing.assert_allclose(store.raw_density(), incremental, rtol=1e-9, atol=0, err_msg=f"batch {b}")
+        np.testing.assert_allclose(store._fused[: len(store)], fused_incremental, rtol=1e-9, atol=1e-15)
+        assert changed > 0
+    # a local change refreshes a neighbourhood, not the store
+    store.insert(np.array([[0.05, 0.0, 0.01], [0.0501, 0.001, 0.011]]), np.eye(3)[None].repeat(2, 0) * 1e-6)
+    assert 0 < store.update_targets() < 0.5 * len(store)
+
+
 def test_store_cap_evicts_oldest() -> None:
     cfg = FofConfig(voxel_size_m=0.001, max_voxels=100)
     store = FofStore(cfg)
