@@ -197,6 +197,22 @@ def run_streaming(
     )
 
 
+def idle_refinement(run: StreamRun, steps: Sequence[int]) -> list[tuple[int, float, np.ndarray]]:
+    """What the daemon publishes while it trains on after the last frame (idle rounds, for
+    ``daemon.idle_train_s``): sigma2_occ on the streaming run's query cloud after each cumulative
+    number of extra SVGP steps, with the training time they took. Trains ``run.pipe`` on."""
+    out: list[tuple[int, float, np.ndarray]] = []
+    done, train_s = 0, 0.0
+    for k in sorted(steps):
+        t0 = time.perf_counter()
+        run.pipe.train_steps(k - done)
+        train_s += time.perf_counter() - t0
+        done = k
+        _, s2 = run.pipe.sigma2_occ(run.result.cloud_W)
+        out.append((k, train_s, s2))
+    return out
+
+
 def steady_state_cycles(
     run: StreamRun, frames: list[StereoFrame], opts: BenchOptions, steps_per_frame: int
 ) -> None:

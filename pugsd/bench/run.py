@@ -178,6 +178,7 @@ def run_bench(
             f"{run.extra_steps_after_last_frame} idle steps after the last frame; "
             f"whole cloud {run.last_frame_to_cloud_s:.2f} s)"
         )
+        refined = m.idle_refinement(run, opts.refine_steps)
         m.steady_state_cycles(run, frames[traj], opts, d.train_steps_per_frame)
         if opts.thread_sweep and traj == opts.trajectories[0]:
             result["svgp_step_by_torch_threads"] = m.svgp_thread_sweep(
@@ -206,6 +207,10 @@ def run_bench(
             "ratio_paper_over_streaming": round(paper_s / run.last_frame_to_grasps_s, 2),
             "spearman_sigma2_occ": None if rho is None else round(rho, 4),
             "spearman_paper_vs_paper_other_seed": None if rho_floor is None else round(rho_floor, 4),
+            "spearman_after_idle_steps": [
+                {"steps": k, "train_s": round(t, 2), "spearman": m.spearman(s2, paper_res.sigma2_occ)}
+                for k, t, s2 in refined
+            ],
             "top_grasp_same": same,
             "top5_overlap": m.topk_overlap(stream_res, paper_res),
             "query_points": len(stream_res.cloud_W),

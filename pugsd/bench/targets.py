@@ -33,6 +33,10 @@ def evaluate_targets(r: dict[str, Any]) -> list[dict[str, Any]]:
         rho = c["spearman_sigma2_occ"]
         floor = c.get("spearman_paper_vs_paper_other_seed")
         fnote = "" if floor is None else f"paper vs paper, other seed: {floor:.3f}"
+        refined = [x for x in c.get("spearman_after_idle_steps") or [] if x["spearman"] is not None]
+        if refined:
+            x = refined[-1]
+            fnote += f"; after +{x['steps']} idle steps ({x['train_s']:.0f} s): {x['spearman']:.3f}"
         rows.append(_row(f"Spearman sigma2_occ vs paper ({traj})", ">= 0.9", rho,
                          None if rho is None else rho >= 0.9, quick_note or fnote))  # fmt: skip
     tp = r.get("throughput")
@@ -149,6 +153,15 @@ def format_table(r: dict[str, Any]) -> list[str]:
             f"{c['streaming_idle_steps_after_last_frame']:>7} "
             f"{_fmt(c.get('streaming_last_frame_to_cloud_s'), 2):>8}"
         )
+        refined = c.get("spearman_after_idle_steps") or []
+        if refined:
+            out.append(
+                f"{'':<11} then idle training: "
+                + ", ".join(
+                    f"+{x['steps']} steps ({_fmt(x['train_s'], 1)} s) spearman {_fmt(x['spearman'], 3)}"
+                    for x in refined
+                )
+            )
     tp = r.get("throughput")
     if tp is not None:
         sus = tp["sustained_hz"]

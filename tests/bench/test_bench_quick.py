@@ -100,6 +100,11 @@ def test_quick_paper_vs_streaming(quick_json: dict[str, Any]) -> None:
         assert c["top_grasp_same"] in (True, False, None)
         assert c["query_points"] > 0 and c["paper_epochs"] == 3
         assert c["paper_svgp_steps"] >= 3
+        refined = c["spearman_after_idle_steps"]
+        assert [x["steps"] for x in refined] == [4]
+        assert _finite_nonneg(refined[0]["train_s"])
+        assert refined[0]["spearman"] is None or -1.0 <= refined[0]["spearman"] <= 1.0
+    assert any("then idle training: +4 steps" in line for line in quick_json["table"])
 
 
 def test_quick_throughput_replay_memory(quick_json: dict[str, Any]) -> None:
