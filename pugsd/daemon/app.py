@@ -804,8 +804,8 @@ class Daemon:
         covariances of the rest of the query cloud and a frozen copy of the same model, through
         which Algorithm 1 for the PointCloud2 runs without the lock, in chunks: it gives way (the
         cloud is not published) as soon as grasps for a newer frame are due (``_grasps_wanted``).
-        Returns "discarded" if a reset while this ran discarded the result, "preempted" if the
-        cloud gave way, else "published"."""
+        Returns "discarded" if a reset while this ran discarded the result ("cloud discarded" if
+        it came after the grasps), "preempted" if the cloud gave way, else "published"."""
         with self._model_lock:
             inp = self.pipeline.grasp_input()
         proposal = self.pipeline.propose(inp)
@@ -824,6 +824,8 @@ class Daemon:
             result = self.pipeline.finish_cloud(job, self._grasps_wanted)
             if result is None:
                 return "preempted"
+            if generation != self._generation:
+                return "cloud discarded"  # the map was reset meanwhile: not the current map
             cloud = codec.encode_cloud(
                 result.cloud_W,
                 stamp_ns,
@@ -940,6 +942,8 @@ class Daemon:
                 log.info("grasp computation discarded: the map was reset while it ran")
             elif outcome == "preempted":
                 self.health.count("clouds_preempted")
+            elif outcome == "cloud discarded":
+                self.health.count("clouds_discarded")
             await asyncio.sleep(0)  # let the hand-over callbacks run before the next round
 
     async def _command_worker(self) -> None:
