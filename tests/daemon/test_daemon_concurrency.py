@@ -45,26 +45,21 @@ class TimedPipeline(FakePipeline):
             self.inside.discard(name)
             self.calls.append((name, t0, time.monotonic()))
 
-    def integrate(self, depth: Any) -> int:
-        t0 = self._enter("integrate")
+    def _timed(self, name: str, fn: Any, *args: Any) -> Any:
+        t0 = self._enter(name)
         try:
-            return super().integrate(depth)
+            return fn(*args)
         finally:
-            self._leave("integrate", t0)
+            self._leave(name, t0)
+
+    def integrate(self, depth: Any) -> int:
+        return int(self._timed("integrate", super().integrate, depth))
 
     def train_steps(self, n: int) -> Any:
-        t0 = self._enter("train")
-        try:
-            return super().train_steps(n)
-        finally:
-            self._leave("train", t0)
+        return self._timed("train", super().train_steps, n)
 
     def grasp_input(self) -> int:
-        t0 = self._enter("grasp_input")
-        try:
-            return super().grasp_input()
-        finally:
-            self._leave("grasp_input", t0)
+        return int(self._timed("grasp_input", super().grasp_input))
 
     def propose(self, inp: int) -> int:
         t0 = self._enter("propose")
@@ -76,11 +71,7 @@ class TimedPipeline(FakePipeline):
             self._leave("propose", t0)
 
     def score(self, proposal: int) -> Result:
-        t0 = self._enter("score")
-        try:
-            return super().score(proposal)
-        finally:
-            self._leave("score", t0)
+        return self._timed("score", super().score, proposal)  # type: ignore[no-any-return]
 
     def finish_cloud(self, result: Result, should_stop: Any = None) -> Result | None:
         t0 = self._enter("finish_cloud")
@@ -99,12 +90,24 @@ class TimedPipeline(FakePipeline):
             return [(a, b) for n, a, b in self.calls if n == name]
 
 
-def _start(port: int, pipe: FakePipeline, **daemon: Any) -> DaemonThread:
+def _start(
+    port: int, client: zenoh.Session, pipe: FakePipeline, **daemon: Any
+) -> tuple[DaemonThread, Source]:
+    """The daemon on ``pipe`` and a camera source whose subscriptions have matched."""
     cfg = load_config_dict(daemon_config_dict(port, **daemon))
     notifier = RecordingNotifier()
     dt = DaemonThread(Daemon(cfg, pipe, notifier=notifier)).start()
-    wait_for(lambda: "READY=1" in notifier.sent, 10.0, "READY")
-    return dt
+    src = Source(client)
+    try:
+        wait_for(lambda: "READY=1" in notifier.sent, 10.0, "READY")
+        src.wait_matching()
+        src.infos()
+        time.sleep(0.1)
+    except BaseException:
+        src.close()
+        dt.stop()
+        raise
+    return dt, src
 
 
 def _frame(src: Source, stamp_ns: int, seed: int = 0) -> None:
@@ -117,12 +120,8 @@ def test_frames_are_integrated_while_grasps_are_proposed(port: int, client: zeno
     """A 0.6 s proposal does not hold up ingest: frames sent meanwhile are integrated while it
     runs, and no call that touches the model state overlaps another (the model lock)."""
     pipe = TimedPipeline(propose_s=0.6, ready_after=1)
-    dt = _start(port, pipe, grasp_rate_hz=2.0, publish_cloud=False)
-    src = Source(client)
+    dt, src = _start(port, client, pipe, grasp_rate_hz=2.0, publish_cloud=False)
     try:
-        src.wait_matching()
-        src.infos()
-        time.sleep(0.1)
         for i in range(30):  # 20 Hz for 1.5 s
             _frame(src, 10**9 + i * 5 * 10**7, seed=i % 4)
             time.sleep(0.05)
@@ -147,17 +146,13 @@ def test_the_cloud_gives_way_to_grasps_for_a_newer_frame(port: int, client: zeno
     """While the whole-cloud Algorithm 1 (here 20 s) runs, a new frame arrives and the input
     pauses: the cloud is abandoned (counted) and that frame's grasps come within seconds."""
     pipe = TimedPipeline(cloud_s=20.0, ready_after=1)
-    dt = _start(port, pipe, grasp_rate_hz=2.0, publish_cloud=True, pause_publish_s=0.15)
-    src = Source(client)
+    dt, src = _start(port, client, pipe, grasp_rate_hz=2.0, publish_cloud=True, pause_publish_s=0.15)
     stamps: list[int] = []
     sub = client.declare_subscriber(
         key_for(src.topics, "grasps"),
         lambda s: stamps.append(codec.decode_grasp_array(s.payload.to_bytes()).stamp_ns),
     )
     try:
-        src.wait_matching()
-        src.infos()
-        time.sleep(0.1)
         _frame(src, 10**9)
         assert pipe.cloud_started.wait(10.0), "the cloud computation did not start"
         t_new = time.monotonic()
@@ -178,12 +173,8 @@ def test_the_cloud_gives_way_to_grasps_for_a_newer_frame(port: int, client: zeno
 
 def test_a_reset_during_a_proposal_discards_its_grasps(port: int, client: zenoh.Session) -> None:
     pipe = TimedPipeline(propose_s=1.5, ready_after=1)
-    dt = _start(port, pipe, grasp_rate_hz=2.0, publish_cloud=False)
-    src = Source(client)
+    dt, src = _start(port, client, pipe, grasp_rate_hz=2.0, publish_cloud=False)
     try:
-        src.wait_matching()
-        src.infos()
-        time.sleep(0.1)
         _frame(src, 10**9)
         assert pipe.propose_started.wait(10.0), "no grasp proposal started"
         assert pipe.intervals("propose") == []  # still proposing

@@ -97,14 +97,16 @@ def test_overload_in_process_drops_oldest_and_stays_bounded(port: int, client: z
 
 @pytest.mark.slow
 def test_overload_real_pipeline(tmp_path: Path, port: int, client: zenoh.Session, sequence_npz: Path) -> None:
-    """``pugsd run`` with the real pipeline; the publisher process sends at 20 Hz for 60 s."""
+    """``pugsd run`` with the real pipeline; the publisher process sends at 100 Hz for 60 s (the
+    daemon integrates about 20 frames/s of this sequence on two cores since grasps are computed
+    beside ingest; 20 Hz, the rate this test used before, no longer overloads it)."""
     daemon, _ = start_daemon(tmp_path, port, {"daemon": {"grasp_rate_hz": 1.0}})
     publisher = None
     rss: list[tuple[float, float]] = []
     try:
         wait_alive(client, daemon)
         proc = psutil.Process(daemon.pid)
-        publisher, stats_path = start_publisher(tmp_path, sequence_npz, port, 20.0, 60.0)
+        publisher, stats_path = start_publisher(tmp_path, sequence_npz, port, 100.0, 60.0)
         t0 = time.monotonic()
         while publisher.p.poll() is None and time.monotonic() - t0 < 90:
             rss.append((time.monotonic() - t0, proc.memory_info().rss / 2**20))
@@ -144,7 +146,9 @@ def test_overload_real_pipeline(tmp_path: Path, port: int, client: zenoh.Session
     )
     print("\noverload: " + summary)
     assert offered >= 5 * sustainable, summary
-    assert dropped > 0 and mb["stereo"]["high_water"] <= 2 and mb["depth"]["high_water"] <= 4
+    assert dropped > 0
+    assert mb["stereo"]["high_water"] <= mb["stereo"]["maxsize"] == 2
+    assert mb["depth"]["high_water"] <= mb["depth"]["maxsize"] == 32
     assert c.get("paired", 0) >= integrated + mb["stereo"]["dropped"] + mb["depth"]["dropped"]
     # fresh frames keep flowing: the frame that reaches the model is at most a few stage times old
     assert lat["frame_age_at_integrate"]["p95_ms"] < 10_000, summary
