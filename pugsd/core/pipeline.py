@@ -70,12 +70,13 @@ class Proposal:
 
 @dataclass(frozen=True)
 class CubatureJob:
-    """Algorithm 1 with lines 1-2 done: the fused Gaussians (Eq. 5-6) of the query points and a
-    frozen copy of the SVGP (``PugsPipeline.cubature_job``). ``run`` does lines 3-6."""
+    """Algorithm 1 with lines 1-2 done: the fused Gaussians (Eq. 5-6) of the query points and the
+    SVGP to push their sigma points through: a frozen copy (``PugsPipeline.cubature_job``) or the
+    live model (``sigma2_occ``). ``run`` does lines 3-6."""
 
     mean_W: np.ndarray  # (Q, 3)
     cov_W: np.ndarray  # (Q, 3, 3)
-    model: SvgpSnapshot
+    model: SvgpSnapshot | OccupancySVGP
     scale: float  # normalised -> output units (svgp.output_units)
     cfg: CubatureConfig
 
@@ -215,19 +216,23 @@ class PugsPipeline:
 
     # ------------------------------------------------------------------ query
     def sigma2_occ(self, points_W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Algorithm 1 at query points: (mu_occ, sigma2_occ)."""
-        return self.cubature_job(points_W).run()
+        """Algorithm 1 at query points, with the live model: (mu_occ, sigma2_occ)."""
+        return self._cubature(points_W, frozen=False).run()
 
     def cubature_job(self, points_W: np.ndarray) -> CubatureJob:
         """Algorithm 1 lines 1-2 (Eq. 5-6: the fused Gaussian of each query point, read from the
         store) now, and a frozen copy of the SVGP, so that lines 3-6 (``CubatureJob.run``) can run
         later, on another thread, with the model as it is now."""
+        return self._cubature(points_W, frozen=True)
+
+    def _cubature(self, points_W: np.ndarray, frozen: bool) -> CubatureJob:
         if not self.svgp.initialised:
             raise ModelNotReadyError("the SVGP has not been trained")
         cov, mean = self.store.fused_covariance(points_W)  # lines 1-2, Eq. 5-6
         units = self.cfg.svgp.output_units
         scale = float(self._scale or 1.0) if units == "density" else 1.0
-        return CubatureJob(mean, cov, self.svgp.snapshot(), scale, self.cfg.cubature)
+        model = self.svgp.snapshot() if frozen else self.svgp
+        return CubatureJob(mean, cov, model, scale, self.cfg.cubature)
 
     def query_cloud(self) -> np.ndarray:
         cloud = self.recon.cloud(self.seed)

@@ -134,7 +134,8 @@ def test_slow_disk_drops_and_counts_but_never_blocks(tmp_path: Path) -> None:
     assert s.dropped_queue > 0
     assert s.written + s.dropped_queue == s.received == 400
     with open(s.files[0], "rb") as f:
-        seen = [codec.decode_image(m.data).array[0, 0] for _, _, m in make_reader(f).iter_messages()]
+        # by header stamp (1000 + i): the pixel value (i % 256) wraps within the 400 messages
+        seen = [codec.decode_image(m.data).stamp_ns for _, _, m in make_reader(f).iter_messages()]
     assert len(seen) == s.written and seen == sorted(seen)  # kept in order; the oldest dropped
 
 
