@@ -71,8 +71,8 @@ class Reconstruction:
         self._add_view(frame.T_W_C[:3, 3])
 
     def _add_view(self, c_W: np.ndarray) -> None:
-        """Keep camera centres (for normal orientation and the proposer's view preference) at
-        most ``VIEW_MERGE_M`` apart and at most ``MAX_VIEWS`` of them (oldest dropped): a vehicle
+        """Keep camera centres (for normal orientation and the proposer's view preference) more
+        than ``VIEW_MERGE_M`` apart and at most ``MAX_VIEWS`` of them (oldest dropped): a vehicle
         hovering for hours would otherwise add ten a second."""
         if self.camera_centers_W:
             d2 = ((np.asarray(self.camera_centers_W) - c_W) ** 2).sum(1)

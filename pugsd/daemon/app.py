@@ -224,6 +224,7 @@ class Daemon:
         self._changed = False  # model changed since the last compute
         self._frame_unpublished = False  # a frame was integrated since the last compute started
         self._grasps_urgent = False  # computing grasps for a newly integrated frame
+        self._last_cloud_published_s = -math.inf
         self._steps_since_frame = 0  # training steps since the newest frame was integrated
         self._last_frame_s: float | None = None  # monotonic time of the last integrated frame
         self._newest_recv_s: float | None = None  # receive time of the newest integrated frame
@@ -803,7 +804,8 @@ class Daemon:
         ``on_grasps`` at once; then, if ``with_cloud``, still under that lock, the fused
         covariances of the rest of the query cloud and a frozen copy of the same model, through
         which Algorithm 1 for the PointCloud2 runs without the lock, in chunks: it gives way (the
-        cloud is not published) as soon as grasps for a newer frame are due (``_grasps_wanted``).
+        cloud is not published) as soon as grasps for a newer frame are due, unless clouds are
+        overdue (``_cloud_gives_way``).
         Returns "discarded" if a reset while this ran discarded the result ("cloud discarded" if
         it came after the grasps), "preempted" if the cloud gave way, else "published"."""
         with self._model_lock:
@@ -821,7 +823,7 @@ class Daemon:
             on_grasps(result, out)
             job = self.pipeline.cloud_job(result) if with_cloud else None
         if job is not None:
-            result = self.pipeline.finish_cloud(job, self._grasps_wanted)
+            result = self.pipeline.finish_cloud(job, self._cloud_gives_way)
             if result is None:
                 return "preempted"
             if generation != self._generation:
@@ -840,6 +842,8 @@ class Daemon:
         """On the loop: publish what ``_compute_and_encode`` handed over (grasps, then the cloud)."""
         for role, data in payloads.items():
             self._publishers[role].put(data)
+        if "cloud" in payloads:
+            self._last_cloud_published_s = time.monotonic()
         if result is None:
             return
         self._grasps_urgent = False
@@ -867,11 +871,18 @@ class Daemon:
             self._last_frame_s is not None and now - self._last_frame_s < self.cfg.daemon.pause_publish_s
         )
 
-    def _grasps_wanted(self) -> bool:
+    def _cloud_gives_way(self) -> bool:
         """A frame was integrated since the running grasp computation began and the input has
-        paused: fresh grasps now matter more than that computation's cloud. (Called from the
-        grasp thread; reads flags that only the loop writes.)"""
-        return self._frame_unpublished and not self._streaming(time.monotonic())
+        paused: fresh grasps now matter more than that computation's cloud, as long as a cloud
+        was published within ``cloud_interval_s``. (Without that bound a camera slower than
+        1 / pause_publish_s, whose every gap looks like a pause, would never let a cloud finish.)
+        Called from the grasp thread; reads values that only the loop writes."""
+        now = time.monotonic()
+        return (
+            self._frame_unpublished
+            and not self._streaming(now)
+            and now - self._last_cloud_published_s < self.cfg.daemon.cloud_interval_s
+        )
 
     def _grasps_due(self, now: float, last_start: float) -> bool:
         """Every 1 / grasp_rate_hz while the model changes; and at once when the input pauses:

@@ -27,6 +27,7 @@ class TimedPipeline(FakePipeline):
 
     propose_s: float = 0.0
     cloud_s: float = 0.0  # finish_cloud runs this long unless should_stop says stop
+    # (cloud_started: set when a call longer than 1 s begins)
     calls: list[tuple[str, float, float]] = field(default_factory=list)
     inside: set[str] = field(default_factory=set)
     overlaps: list[tuple[str, str]] = field(default_factory=list)
@@ -75,9 +76,11 @@ class TimedPipeline(FakePipeline):
 
     def finish_cloud(self, result: Result, should_stop: Any = None) -> Result | None:
         t0 = self._enter("finish_cloud")
-        self.cloud_started.set()
+        duration_s = self.cloud_s  # this call's; a test may change later ones
+        if duration_s > 1.0:
+            self.cloud_started.set()
         try:
-            while time.monotonic() - t0 < self.cloud_s:
+            while time.monotonic() - t0 < duration_s:
                 if should_stop is not None and should_stop():
                     return None
                 time.sleep(0.01)
@@ -143,9 +146,10 @@ def test_frames_are_integrated_while_grasps_are_proposed(port: int, client: zeno
 
 
 def test_the_cloud_gives_way_to_grasps_for_a_newer_frame(port: int, client: zenoh.Session) -> None:
-    """While the whole-cloud Algorithm 1 (here 20 s) runs, a new frame arrives and the input
-    pauses: the cloud is abandoned (counted) and that frame's grasps come within seconds."""
-    pipe = TimedPipeline(cloud_s=20.0, ready_after=1)
+    """A cloud was published lately; while the next whole-cloud Algorithm 1 (here 20 s) runs, a
+    new frame arrives and the input pauses: the cloud is abandoned (counted) and that frame's
+    grasps come within seconds."""
+    pipe = TimedPipeline(cloud_s=0.0, ready_after=1)
     dt, src = _start(port, client, pipe, grasp_rate_hz=2.0, publish_cloud=True, pause_publish_s=0.15)
     stamps: list[int] = []
     sub = client.declare_subscriber(
@@ -154,7 +158,9 @@ def test_the_cloud_gives_way_to_grasps_for_a_newer_frame(port: int, client: zeno
     )
     try:
         _frame(src, 10**9)
-        assert pipe.cloud_started.wait(10.0), "the cloud computation did not start"
+        wait_for(lambda: len(pipe.intervals("finish_cloud")) >= 1, 10.0, "a first (quick) cloud")
+        pipe.cloud_s = 20.0
+        assert pipe.cloud_started.wait(10.0), "the slow cloud computation did not start"
         t_new = time.monotonic()
         _frame(src, 2 * 10**9, seed=1)
         wait_for(lambda: 2 * 10**9 in stamps, 5.0, "grasps stamped with the newer frame")
@@ -169,6 +175,33 @@ def test_the_cloud_gives_way_to_grasps_for_a_newer_frame(port: int, client: zeno
     assert st["counts"].get("clouds_preempted", 0) >= 1
     clouds = pipe.intervals("finish_cloud")
     assert clouds and min(b - a for a, b in clouds) < 5.0
+
+
+def test_clouds_keep_coming_from_a_slow_camera(port: int, client: zenoh.Session) -> None:
+    """At 5 Hz every gap between frames (200 ms) is longer than pause_publish_s, so each frame
+    looks like the end of the input and would pre-empt the running cloud: a cloud still finishes
+    whenever none was published within cloud_interval_s."""
+    pipe = TimedPipeline(cloud_s=0.4, ready_after=1)
+    dt, src = _start(
+        port, client, pipe, grasp_rate_hz=2.0, publish_cloud=True, pause_publish_s=0.15,
+        cloud_interval_s=1.0,
+    )  # fmt: skip
+    clouds: list[float] = []
+    sub = client.declare_subscriber(key_for(src.topics, "cloud"), lambda s: clouds.append(time.monotonic()))
+    try:
+        t0 = time.monotonic()
+        for i in range(25):  # 5 s at 5 Hz
+            _frame(src, 10**9 + i * 2 * 10**8, seed=i % 4)
+            time.sleep(0.2)
+        t_end = time.monotonic()
+        st = query_json(client, "pugs/status")
+    finally:
+        sub.undeclare()
+        src.close()
+        dt.stop()
+    during = [t for t in clouds if t0 < t <= t_end]
+    assert len(during) >= 2, f"{len(during)} clouds in 5 s of 5 Hz input ({st['counts']})"
+    assert st["counts"].get("grasps_published", 0) >= 4
 
 
 def test_a_reset_during_a_proposal_discards_its_grasps(port: int, client: zenoh.Session) -> None:
