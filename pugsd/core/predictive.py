@@ -453,7 +453,7 @@ class OccupancySVGP:
         model.load_state_dict(self.model.state_dict())
         lik = gpytorch.likelihoods.GaussianLikelihood().to(device=self.device, dtype=self.dtype)
         lik.load_state_dict(self.likelihood.state_dict())
-        return SvgpSnapshot(model, lik, self.cfg, self._t, self.version)
+        return SvgpSnapshot(model, lik, self.cfg, self._t)
 
 
 class SvgpSnapshot:
@@ -465,10 +465,8 @@ class SvgpSnapshot:
         likelihood: gpytorch.likelihoods.GaussianLikelihood,
         cfg: SvgpConfig,
         to_tensor: Any,
-        version: int,
     ) -> None:
         self._model, self._likelihood, self._cfg, self._t = model, likelihood, cfg, to_tensor
-        self.version = version
 
     def predict(self, x: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Eq. 7-8, as ``OccupancySVGP.predict``."""

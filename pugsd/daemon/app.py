@@ -846,7 +846,7 @@ class Daemon:
             self._last_cloud_published_s = time.monotonic()
         if result is None:
             return
-        self._grasps_urgent = False
+        self._grasps_urgent = False  # the grasps are out: idle training need not wait for the cloud
         self.latest_grasps = payloads["grasps"]
         self.latest_result = result
         self.model_version = int(result.model_version)
