@@ -8,6 +8,7 @@ CLI (nothing prints below the CLI layer).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import os
 import platform
@@ -256,10 +257,11 @@ def svgp_thread_sweep(run: StreamRun, threads: Sequence[int], repeats: int) -> d
 # ---------------------------------------------------------------------------------- paper mode
 def run_paper(
     core: CoreConfig, frames: list[StereoFrame], cloud_W: np.ndarray, opts: BenchOptions
-) -> tuple[PipelineResult, float, int]:
+) -> tuple[PipelineResult, float, int, PugsPipeline]:
     """The paper's batch pipeline on the same frames: ingest everything (no training while frames
     arrive), then after the last frame a fresh SVGP, Adam lr 1e-3, ``paper_epochs`` epochs, and
-    compute on the given query cloud. Returns (result, last frame -> grasps [s], SVGP steps)."""
+    compute on the given query cloud. Returns (result, last frame -> grasps [s], SVGP steps, the
+    pipeline)."""
     pipe = PugsPipeline(core, seed=opts.seed)
     for f in frames[:-1]:
         pipe.add_stereo(f)
@@ -268,7 +270,31 @@ def run_paper(
     stats = pipe.fit_paper(opts.paper_epochs)
     res = pipe.compute(cloud_W=cloud_W, full_cloud=False)  # the same grasps-first path
     elapsed = time.perf_counter() - t_arrival
-    return pipe.complete_cloud(res), elapsed, int(stats.steps)
+    return pipe.complete_cloud(res), elapsed, int(stats.steps), pipe
+
+
+@dataclasses.dataclass
+class OptimalQ:
+    """A fitted model's q(u) set to its closed-form optimum (same hyperparameters and Z)."""
+
+    elbo_before: float  # full-data ELBO per point, as fitted
+    elbo_after: float  # at the optimal q(u)
+    sigma2_occ: np.ndarray  # Algorithm 1 on the query cloud with the optimal q(u)
+
+
+def optimal_q(pipe: PugsPipeline, cloud_W: np.ndarray, restore: bool = False) -> OptimalQ:
+    """Converge ``pipe``'s q(u) in closed form and take sigma2_occ on ``cloud_W``. With
+    ``restore`` the model is put back as it was afterwards (its state dict)."""
+    sv = pipe.svgp
+    assert sv.model is not None and sv.likelihood is not None
+    saved = copy.deepcopy(sv.model.state_dict()) if restore else None
+    before, after = pipe.set_optimal_q()
+    _, s2 = pipe.sigma2_occ(cloud_W)
+    if saved is not None:
+        sv.model.load_state_dict(saved)
+        sv.model.variational_strategy._memoize_cache = {}
+        sv.version += 1
+    return OptimalQ(before, after, s2)
 
 
 def spearman(a: np.ndarray, b: np.ndarray) -> float | None:

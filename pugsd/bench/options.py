@@ -27,6 +27,8 @@ class BenchOptions:
     # extra SVGP steps after the first publish (cumulative), as the daemon's idle training
     # does: agreement with the paper's fit after each
     refine_steps: tuple[int, ...] = (100, 400)
+    # the paper fit (and the streaming model) again with q(u) at its closed-form optimum
+    optimal_q: bool = True
     ready_timeout_s: float = 60.0  # streaming: give up waiting for the readiness criterion
     thread_sweep: tuple[int, ...] = (1, 2)  # torch threads for the SVGP-step sweep (empty: skip)
     # sustained throughput through the daemon: input rates tried, highest first

@@ -179,16 +179,47 @@ def run_bench(
             f"whole cloud {run.last_frame_to_cloud_s:.2f} s)"
         )
         refined = m.idle_refinement(run, opts.refine_steps)
+        # the streaming model (after its idle training) against its own closed-form optimum
+        stream_opt = (
+            m.optimal_q(run.pipe, stream_res.cloud_W, restore=True) if opts.optimal_q else None
+        )
+        s2_refined = refined[-1][2] if refined else stream_res.sigma2_occ
         m.steady_state_cycles(run, frames[traj], opts, d.train_steps_per_frame)
         if opts.thread_sweep and traj == opts.trajectories[0]:
             result["svgp_step_by_torch_threads"] = m.svgp_thread_sweep(
                 run, opts.thread_sweep, opts.svgp_step_repeats
             )
         write(f"[{traj}] paper mode ({result['settings']['paper_epochs']} epochs)...")
-        paper_res, paper_s, paper_steps = m.run_paper(core, frames[traj], stream_res.cloud_W, opts)
+        paper_res, paper_s, paper_steps, paper_pipe = m.run_paper(
+            core, frames[traj], stream_res.cloud_W, opts
+        )
         rho = m.spearman(stream_res.sigma2_occ, paper_res.sigma2_occ)
         same = m.same_top_grasp(stream_res, paper_res)
         rho_floor = None
+        conv: dict[str, Any] | None = None
+        if opts.optimal_q:
+            # a converged reference: the paper fit with q(u) at its closed-form optimum
+            p_opt = m.optimal_q(paper_pipe, stream_res.cloud_W)
+            conv = {
+                "paper_elbo_per_point": round(p_opt.elbo_before, 4),
+                "paper_optimal_q_elbo_per_point": round(p_opt.elbo_after, 4),
+                "spearman_paper_vs_its_optimal_q": m.spearman(paper_res.sigma2_occ, p_opt.sigma2_occ),
+                "spearman_streaming_vs_paper_optimal_q": m.spearman(
+                    stream_res.sigma2_occ, p_opt.sigma2_occ
+                ),
+                "spearman_streaming_refined_vs_paper_optimal_q": m.spearman(
+                    s2_refined, p_opt.sigma2_occ
+                ),
+            }
+            if stream_opt is not None:
+                conv.update(
+                    streaming_refined_elbo_per_point=round(stream_opt.elbo_before, 4),
+                    streaming_optimal_q_elbo_per_point=round(stream_opt.elbo_after, 4),
+                    spearman_streaming_refined_vs_its_optimal_q=m.spearman(
+                        s2_refined, stream_opt.sigma2_occ
+                    ),
+                )
+        del paper_pipe
         if opts.paper_reference_seed is not None:
             # the reference's own repeatability: the same batch fit with another SVGP seed
             # (inducing-point FPS start, q(u) initial noise, minibatch order)
@@ -196,9 +227,14 @@ def run_bench(
             core2 = dataclasses.replace(
                 core, svgp=dataclasses.replace(core.svgp, seed=opts.paper_reference_seed)
             )
-            paper2, _, _ = m.run_paper(core2, frames[traj], stream_res.cloud_W, opts)
+            paper2, _, _, paper2_pipe = m.run_paper(core2, frames[traj], stream_res.cloud_W, opts)
             rho_floor = m.spearman(paper_res.sigma2_occ, paper2.sigma2_occ)
-            del paper2
+            if conv is not None:
+                p2_opt = m.optimal_q(paper2_pipe, stream_res.cloud_W)
+                conv["spearman_paper_optimal_q_vs_other_seed_optimal_q"] = m.spearman(
+                    p_opt.sigma2_occ, p2_opt.sigma2_occ
+                )
+            del paper2, paper2_pipe
         comparison[traj] = {
             "streaming_last_frame_to_grasps_s": round(run.last_frame_to_grasps_s, 4),
             "streaming_last_frame_to_cloud_s": round(run.last_frame_to_cloud_s, 4),
@@ -211,6 +247,7 @@ def run_bench(
                 {"steps": k, "train_s": round(t, 2), "spearman": m.spearman(s2, paper_res.sigma2_occ)}
                 for k, t, s2 in refined
             ],
+            "converged_reference": conv,
             "top_grasp_same": same,
             "top5_overlap": m.topk_overlap(stream_res, paper_res),
             "query_points": len(stream_res.cloud_W),

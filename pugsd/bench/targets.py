@@ -37,6 +37,12 @@ def evaluate_targets(r: dict[str, Any]) -> list[dict[str, Any]]:
         if refined:
             x = refined[-1]
             fnote += f"; after +{x['steps']} idle steps ({x['train_s']:.0f} s): {x['spearman']:.3f}"
+        cv = c.get("converged_reference") or {}
+        if cv.get("spearman_paper_optimal_q_vs_other_seed_optimal_q") is not None:
+            fnote += (
+                "; paper fits at optimal q(u), seed vs seed: "
+                f"{cv['spearman_paper_optimal_q_vs_other_seed_optimal_q']:.3f}"
+            )
         rows.append(_row(f"Spearman sigma2_occ vs paper ({traj})", ">= 0.9", rho,
                          None if rho is None else rho >= 0.9, quick_note or fnote))  # fmt: skip
     tp = r.get("throughput")
@@ -162,6 +168,24 @@ def format_table(r: dict[str, Any]) -> list[str]:
                     for x in refined
                 )
             )
+        cv = c.get("converged_reference")
+        if cv:
+            out.append(
+                f"{'':<11} paper fit with q(u) at its optimum (ELBO/point "
+                f"{_fmt(cv['paper_elbo_per_point'], 2)} -> {_fmt(cv['paper_optimal_q_elbo_per_point'], 2)}): "
+                f"spearman vs streaming {_fmt(cv['spearman_streaming_vs_paper_optimal_q'], 3)} "
+                f"(after idle training {_fmt(cv['spearman_streaming_refined_vs_paper_optimal_q'], 3)}), "
+                f"vs the other seed's optimum "
+                f"{_fmt(cv.get('spearman_paper_optimal_q_vs_other_seed_optimal_q'), 3)}, "
+                f"vs the paper fit {_fmt(cv['spearman_paper_vs_its_optimal_q'], 3)}"
+            )
+            if "streaming_optimal_q_elbo_per_point" in cv:
+                out.append(
+                    f"{'':<11} streaming model after idle training vs its own optimum: ELBO/point "
+                    f"{_fmt(cv['streaming_refined_elbo_per_point'], 2)} -> "
+                    f"{_fmt(cv['streaming_optimal_q_elbo_per_point'], 2)}, spearman "
+                    f"{_fmt(cv['spearman_streaming_refined_vs_its_optimal_q'], 3)}"
+                )
     tp = r.get("throughput")
     if tp is not None:
         sus = tp["sustained_hz"]

@@ -429,6 +429,70 @@ class OccupancySVGP:
             vs._memoize_cache = {}
         model.train()
 
+    def set_optimal_q(self, x: np.ndarray, y: np.ndarray, chunk: int = 4096) -> float:
+        """Set q(u) to its exact optimum given the current hyperparameters, inducing points Z and
+        all the data ``(x, y)`` (Titsias 2009; what full-batch NGD with lr 1 reaches in one step).
+
+        Whitened, u = L v with L L^T = K_ZZ (+ the strategy's jitter), A = L^-1 K_ZX:
+        S = (I + A A^T / sigma_n^2)^-1 and m = S A y / sigma_n^2 maximise the ELBO over q(v).
+        Used as a converged reference (benchmark): the batch fit's Adam leaves q(u) far from it.
+        Returns the full-data ELBO per point afterwards. Float64 inside; O(N M^2 + M^3)."""
+        if self.model is None or self.likelihood is None:
+            raise ModelNotReadyError("the SVGP has not been trained")
+        if len(x) == 0:
+            raise EmptyCloudError("no training points")
+        model = self.model
+        vs = model.variational_strategy
+        f64 = torch.float64
+        with torch.no_grad():
+            Z = vs.inducing_points.detach()
+            kern = model.covar_module
+            m = len(Z)
+            eye = torch.eye(m, dtype=f64, device=Z.device)
+            Kzz = kern(Z).to_dense().to(f64) + float(vs.jitter_val) * eye
+            L = torch.linalg.cholesky(Kzz)
+            AAt = torch.zeros(m, m, dtype=f64, device=Z.device)
+            Ay = torch.zeros(m, dtype=f64, device=Z.device)
+            for i in range(0, len(x), chunk):
+                xb = self._t(x[i : i + chunk])
+                yb = torch.as_tensor(y[i : i + chunk], dtype=f64, device=Z.device)
+                A = torch.linalg.solve_triangular(L, kern(Z, xb).to_dense().to(f64), upper=False)
+                AAt += A @ A.mT
+                Ay += A @ (yb - model.mean_module(xb).to(f64))
+            noise = float(self.likelihood.noise.detach().to(f64).reshape(-1)[0])
+            prec = eye + AAt / noise  # S^-1
+            S = torch.cholesky_inverse(torch.linalg.cholesky(prec))
+            S = 0.5 * (S + S.mT)
+            mean = S @ Ay / noise
+            vd = vs._variational_distribution
+            if isinstance(vd, gpytorch.variational.NaturalVariationalDistribution):
+                vd.natural_vec.data.copy_((prec @ mean).to(self.dtype))
+                vd.natural_mat.data.copy_((-0.5 * prec).to(self.dtype))
+            else:
+                vd.variational_mean.data.copy_(mean.to(self.dtype))
+                vd.chol_variational_covar.data.copy_(torch.linalg.cholesky(S).to(self.dtype))
+            vs._memoize_cache = {}
+        self.version += 1
+        return self.elbo_per_point(x, y, chunk)
+
+    def elbo_per_point(self, x: np.ndarray, y: np.ndarray, chunk: int = 4096) -> float:
+        """The ELBO of the current model on all of ``(x, y)``, per point (full data, no minibatch
+        noise): (sum of expected log-likelihoods - KL(q(u) || p(u))) / N."""
+        if self.model is None or self.likelihood is None:
+            raise ModelNotReadyError("the SVGP has not been trained")
+        n = len(x)
+        mll = gpytorch.mlls.VariationalELBO(self.likelihood, self.model, num_data=n)
+        self.model.train()
+        self.likelihood.train()
+        total = 0.0
+        with torch.no_grad():
+            for i in range(0, n, chunk):
+                xb, yb = self._t(x[i : i + chunk]), self._t(y[i : i + chunk])
+                # each chunk's value is sum(ell_b) / B - KL / N; weighted by B they sum to the ELBO
+                total += float(mll(self.model(xb), yb)) * len(xb)
+        self.model.variational_strategy._memoize_cache = {}
+        return total / n
+
     # ------------------------------------------------------------------ prediction
     def predict(self, x: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Eq. 7-8 at points x (N, 3): (mu_z, sigma_z^2, sigma_pred^2).

@@ -104,7 +104,14 @@ def test_quick_paper_vs_streaming(quick_json: dict[str, Any]) -> None:
         assert [x["steps"] for x in refined] == [4]
         assert _finite_nonneg(refined[0]["train_s"])
         assert refined[0]["spearman"] is None or -1.0 <= refined[0]["spearman"] <= 1.0
+        # the converged reference: q(u) at its closed-form optimum can only raise the ELBO
+        cv = c["converged_reference"]
+        assert cv["paper_optimal_q_elbo_per_point"] >= cv["paper_elbo_per_point"] - 1e-4
+        assert cv["streaming_optimal_q_elbo_per_point"] >= cv["streaming_refined_elbo_per_point"] - 1e-4
+        for k in ("spearman_streaming_vs_paper_optimal_q", "spearman_paper_vs_its_optimal_q"):
+            assert cv[k] is None or -1.0 <= cv[k] <= 1.0
     assert any("then idle training: +4 steps" in line for line in quick_json["table"])
+    assert any("paper fit with q(u) at its optimum" in line for line in quick_json["table"])
 
 
 def test_quick_throughput_replay_memory(quick_json: dict[str, Any]) -> None:

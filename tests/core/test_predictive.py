@@ -204,3 +204,80 @@ def test_paper_mode_uses_its_own_inducing_count() -> None:
     s = OccupancySVGP(cfg)
     s.update(x, np.ones(len(x)), np.arange(len(x)), steps=1)
     assert len(s.model.variational_strategy.inducing_points) == 20  # type: ignore[union-attr]
+
+
+def _exact_gp(m: OccupancySVGP, x: np.ndarray, y: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exact GP regression (zero mean, ScaleKernel(RBF-ARD), Gaussian noise) with the model's
+    hyperparameters, in numpy: the reference for an SVGP whose inducing points are the data."""
+    assert m.model is not None and m.likelihood is not None
+    ls = m.model.covar_module.base_kernel.lengthscale.detach().double().numpy().reshape(-1)
+    os_ = float(m.model.covar_module.outputscale.detach())
+    noise = float(m.likelihood.noise.detach().reshape(-1)[0])
+
+    def k(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        d2 = (((a[:, None, :] - b[None, :, :]) / ls) ** 2).sum(-1)
+        return os_ * np.exp(-0.5 * d2)
+
+    kxx = k(x, x) + noise * np.eye(len(x))
+    kqx = k(q, x)
+    mean = kqx @ np.linalg.solve(kxx, y)
+    var = os_ - np.einsum("ij,ji->i", kqx, np.linalg.solve(kxx, kqx.T))
+    return mean, var
+
+
+@pytest.mark.parametrize("natural", [False, True])
+def test_optimal_q_with_inducing_points_at_the_data_is_the_exact_gp(natural: bool) -> None:
+    """Closed form: with Z = X, the SVGP at its optimal q(u) is exact GP regression (Titsias)."""
+    rng = np.random.default_rng(7)
+    x = rng.uniform(-0.05, 0.05, (40, 3))
+    y = _field(x)
+    cfg = SvgpConfig(
+        num_inducing=40, paper_num_inducing=40, inducing_lr=0.0, dtype="float64",
+        lengthscale_init_m=0.03, batch_size=40,
+    )  # fmt: skip
+    m = OccupancySVGP(cfg)
+    if natural:
+        m.update(x, y, np.arange(len(x)), steps=2)  # Z fixed (inducing_lr 0); q(u) not converged
+    else:
+        m.fit_paper(x, y, epochs=0)  # Z = the data, q(u) at its initial value
+    Z = m.model.variational_strategy.inducing_points.detach().numpy()  # type: ignore[union-attr]
+    np.testing.assert_allclose(np.sort(Z, axis=0), np.sort(x, axis=0))
+    q = rng.uniform(-0.06, 0.06, (25, 3))
+    mean_ref, var_ref = _exact_gp(m, x, y, q)
+    mu0, _, _ = m.predict(q)
+    assert np.abs(mu0 - mean_ref).max() > 1e-2  # before: not the exact GP, so the test can fail
+    m.set_optimal_q(x, y)
+    mu, var, _ = m.predict(q)
+    np.testing.assert_allclose(mu, mean_ref, atol=2e-4 * np.abs(mean_ref).max())
+    np.testing.assert_allclose(var, var_ref, rtol=1e-3, atol=1e-5 * var_ref.max())
+
+
+def test_optimal_q_maximises_the_elbo() -> None:
+    """The ELBO over all data at the closed-form q(u) beats the batch fit's q(u) and any
+    perturbation of it; more NGD steps on it gain (almost) nothing."""
+    rng = np.random.default_rng(8)
+    x = rng.uniform(-0.1, 0.1, (1500, 3))
+    x[:, 2] *= 0.1
+    y = _field(x)
+    cfg = SvgpConfig(num_inducing=48, paper_num_inducing=48, paper_epochs=3, batch_size=256, seed=1)
+    m = OccupancySVGP(cfg)
+    m.fit_paper(x, y)
+    before = m.elbo_per_point(x, y)
+    best = m.set_optimal_q(x, y)
+    assert best > before
+    vd = m.model.variational_strategy._variational_distribution  # type: ignore[union-attr]
+    mean0 = vd.variational_mean.detach().clone()
+    with torch.no_grad():
+        vd.variational_mean.add_(0.05 * torch.randn_like(mean0))
+    m.model.variational_strategy._memoize_cache = {}  # type: ignore[union-attr]
+    assert m.elbo_per_point(x, y) < best
+    with torch.no_grad():
+        vd.variational_mean.copy_(mean0)
+    m.model.variational_strategy._memoize_cache = {}  # type: ignore[union-attr]
+    assert m.elbo_per_point(x, y) == pytest.approx(best, rel=1e-6, abs=1e-6)
+    # the natural-gradient streaming model: its optimum is a fixed point of further NGD steps
+    s = OccupancySVGP(SvgpConfig(num_inducing=48, inducing_lr=0.0, adam_lr=0.0, seed=1))
+    s.update(x, y, np.arange(len(x)), steps=3)
+    e_opt = s.set_optimal_q(x, y)
+    s.update(x, y, np.zeros(0, dtype=np.int64), steps=20)
+    assert s.elbo_per_point(x, y) <= e_opt + 1e-3 * abs(e_opt)
