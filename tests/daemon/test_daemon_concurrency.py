@@ -14,11 +14,10 @@ import numpy as np
 import zenoh
 
 from pugsd.config import load_config_dict
-from pugsd.daemon.app import Daemon
 from pugsd.wire import codec
 from pugsd.wire.topics import key_for
 from tests.daemon.conftest import FakePipeline, Result, Source, daemon_config_dict, query_json, wait_for
-from tests.daemon.test_daemon_inprocess import DaemonThread, RecordingNotifier
+from tests.daemon.test_daemon_inprocess import DaemonThread, start_with_source
 
 
 @dataclass
@@ -97,20 +96,7 @@ def _start(
     port: int, client: zenoh.Session, pipe: FakePipeline, **daemon: Any
 ) -> tuple[DaemonThread, Source]:
     """The daemon on ``pipe`` and a camera source whose subscriptions have matched."""
-    cfg = load_config_dict(daemon_config_dict(port, **daemon))
-    notifier = RecordingNotifier()
-    dt = DaemonThread(Daemon(cfg, pipe, notifier=notifier)).start()
-    src = Source(client)
-    try:
-        wait_for(lambda: "READY=1" in notifier.sent, 10.0, "READY")
-        src.wait_matching()
-        src.infos()
-        time.sleep(0.1)
-    except BaseException:
-        src.close()
-        dt.stop()
-        raise
-    return dt, src
+    return start_with_source(load_config_dict(daemon_config_dict(port, **daemon)), client, pipe, 0.1)
 
 
 def _frame(src: Source, stamp_ns: int, seed: int = 0) -> None:

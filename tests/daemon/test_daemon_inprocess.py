@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from pugsd.config import load_config_dict
+from pugsd.config import PugsdConfig, load_config_dict
 from pugsd.daemon.app import Daemon
 from pugsd.daemon.notify import Notifier
 from pugsd.wire import codec
@@ -61,6 +61,26 @@ class DaemonThread:
         if self.error is not None:
             raise self.error
         return time.monotonic() - t0
+
+
+def start_with_source(
+    cfg: PugsdConfig, client: zenoh.Session, pipe: FakePipeline, settle_s: float = 0.0
+) -> tuple[DaemonThread, Source]:
+    """The daemon on ``pipe`` (notifying READY) and a camera source whose subscriptions have
+    matched and whose CameraInfo is out; both are closed again if the start fails."""
+    notifier = RecordingNotifier()
+    dt = DaemonThread(Daemon(cfg, pipe, notifier=notifier)).start()
+    src = Source(client)
+    try:
+        wait_for(lambda: "READY=1" in notifier.sent, 10.0, "READY")
+        src.wait_matching()
+        src.infos()
+        time.sleep(settle_s)
+    except BaseException:
+        src.close()
+        dt.stop()
+        raise
+    return dt, src
 
 
 @pytest.fixture

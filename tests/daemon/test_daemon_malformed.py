@@ -15,12 +15,11 @@ import pytest
 import zenoh
 
 from pugsd.config import load_config_dict
-from pugsd.daemon.app import Daemon
 from pugsd.wire import codec
 from pugsd.wire.codec import serialize
 from pugsd.wire.types import IMAGE, POSE_COV_STAMPED, msg_class
-from tests.daemon.conftest import FakePipeline, Source, daemon_config_dict, query_json, wait_for
-from tests.daemon.test_daemon_inprocess import DaemonThread, RecordingNotifier
+from tests.daemon.conftest import FakePipeline, daemon_config_dict, query_json, wait_for
+from tests.daemon.test_daemon_inprocess import start_with_source
 
 
 def _header(stamp_ns: int) -> object:
@@ -62,13 +61,8 @@ def test_each_kind_of_bad_input_is_rejected_and_counted(
     caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
     cfg = load_config_dict(daemon_config_dict(port))
     pipe = FakePipeline()
-    notifier = RecordingNotifier()
-    dt = DaemonThread(Daemon(cfg, pipe, notifier=notifier)).start()
-    src = Source(client)
+    dt, src = start_with_source(cfg, client, pipe)
     try:
-        wait_for(lambda: "READY=1" in notifier.sent, 10.0, "READY")
-        src.wait_matching()
-        src.infos()
         good_img = codec.encode_image(np.zeros((48, 64), np.uint8), 10**9, "left")
         good_pose = codec.encode_pose_with_covariance(10**9, np.eye(4), np.eye(6) * 1e-6)
         neg = -np.eye(6)

@@ -16,11 +16,9 @@ import pytest
 import zenoh
 
 from pugsd.config import load_config_dict
-from pugsd.daemon.app import Daemon
 from pugsd.wire import codec
 from tests.daemon.conftest import (
     FakePipeline,
-    Source,
     daemon_config_dict,
     query_json,
     start_daemon,
@@ -28,7 +26,7 @@ from tests.daemon.conftest import (
     wait_alive,
     wait_for,
 )
-from tests.daemon.test_daemon_inprocess import DaemonThread, RecordingNotifier
+from tests.daemon.test_daemon_inprocess import start_with_source
 
 
 def test_overload_in_process_drops_oldest_and_stays_bounded(port: int, client: zenoh.Session) -> None:
@@ -38,14 +36,8 @@ def test_overload_in_process_drops_oldest_and_stays_bounded(port: int, client: z
         daemon_config_dict(port, grasp_rate_hz=10.0, idle_train_steps=0) | {"queues": {"depth": 4}}
     )
     pipe = FakePipeline(depth_delay_s=0.1, train_delay_s=0.1)
-    notifier = RecordingNotifier()
-    dt = DaemonThread(Daemon(cfg, pipe, notifier=notifier)).start()
-    src = Source(client)
+    dt, src = start_with_source(cfg, client, pipe, settle_s=0.2)
     try:
-        wait_for(lambda: "READY=1" in notifier.sent, 10.0, "READY")
-        src.wait_matching()
-        src.infos()
-        time.sleep(0.2)
         n = 60
         puts = []
         t0 = time.monotonic()
