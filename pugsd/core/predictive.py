@@ -415,19 +415,28 @@ class OccupancySVGP:
             tmp = torch.linalg.solve_triangular(L, S, upper=False)
             S_w = torch.linalg.solve_triangular(L, tmp.mT, upper=False).mT
             S_w = 0.5 * (S_w + S_w.mT) + 1e-6 * eye
-            vs = model.variational_strategy
-            vs.inducing_points.data.copy_(Z_new)
-            vd = vs._variational_distribution
-            if isinstance(vd, gpytorch.variational.NaturalVariationalDistribution):
-                S_inv = torch.linalg.inv(S_w)
-                vd.natural_vec.data.copy_(S_inv @ m_w)
-                vd.natural_mat.data.copy_(-0.5 * S_inv)
-            else:
-                vd.variational_mean.data.copy_(m_w)
-                vd.chol_variational_covar.data.copy_(torch.linalg.cholesky(S_w))
-            # cached Cholesky factors of Kzz depend on Z: drop them
-            vs._memoize_cache = {}
+            model.variational_strategy.inducing_points.data.copy_(Z_new)
+            self._write_whitened_q(m_w, S_w)  # also drops the cached factors of Kzz (Z changed)
         model.train()
+
+    def _write_whitened_q(
+        self, m_w: torch.Tensor, S_w: torch.Tensor, S_inv: torch.Tensor | None = None
+    ) -> None:
+        """Write the whitened q(v) = N(m_w, S_w) into the variational distribution, in its own
+        parametrisation (natural: S^-1 m and -S^-1 / 2; else mean and Cholesky factor), and drop
+        the strategy's memoised factors. ``S_inv``: S_w^-1 where the caller has it."""
+        assert self.model is not None
+        vs = self.model.variational_strategy
+        vd = vs._variational_distribution
+        with torch.no_grad():
+            if isinstance(vd, gpytorch.variational.NaturalVariationalDistribution):
+                P = torch.linalg.inv(S_w) if S_inv is None else S_inv
+                vd.natural_vec.data.copy_((P @ m_w).to(self.dtype))
+                vd.natural_mat.data.copy_((-0.5 * P).to(self.dtype))
+            else:
+                vd.variational_mean.data.copy_(m_w.to(self.dtype))
+                vd.chol_variational_covar.data.copy_(torch.linalg.cholesky(S_w).to(self.dtype))
+        vs._memoize_cache = {}
 
     def set_optimal_q(self, x: np.ndarray, y: np.ndarray, chunk: int = 4096) -> float:
         """Set q(u) to its exact optimum given the current hyperparameters, inducing points Z and
@@ -463,15 +472,7 @@ class OccupancySVGP:
             prec = eye + AAt / noise  # S^-1
             S = torch.cholesky_inverse(torch.linalg.cholesky(prec))
             S = 0.5 * (S + S.mT)
-            mean = S @ Ay / noise
-            vd = vs._variational_distribution
-            if isinstance(vd, gpytorch.variational.NaturalVariationalDistribution):
-                vd.natural_vec.data.copy_((prec @ mean).to(self.dtype))
-                vd.natural_mat.data.copy_((-0.5 * prec).to(self.dtype))
-            else:
-                vd.variational_mean.data.copy_(mean.to(self.dtype))
-                vd.chol_variational_covar.data.copy_(torch.linalg.cholesky(S).to(self.dtype))
-            vs._memoize_cache = {}
+            self._write_whitened_q(S @ Ay / noise, S, prec)
         self.version += 1
         return self.elbo_per_point(x, y, chunk)
 
