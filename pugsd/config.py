@@ -142,6 +142,9 @@ class SvgpConfig:
     paper_epochs: int = opt(100, "epochs in paper mode (paper: 100)", ge=1)
     batch_size: int = opt(1024, "minibatch size", ge=16)
     lengthscale_init_m: float = opt(0.02, "initial ARD lengthscale", unit="m", gt=0.0)
+    noise_init: float = opt(
+        0.02, "initial likelihood noise variance, in squared units of the scaled target", gt=0.0
+    )
     natural_gradient: bool = opt(True, "streaming: NGD on q(u) plus Adam on the rest")
     ngd_lr: float = opt(0.1, "natural-gradient step size", gt=0.0, le=1.0)
     adam_lr: float = opt(0.01, "Adam rate for kernel and likelihood hyperparameters", gt=0.0)
@@ -166,8 +169,15 @@ class SvgpConfig:
     ready_move_window: int = opt(
         4, "streaming: steps over which inducing-point moves count against readiness", ge=1
     )
-    ready_elbo_tol: float = opt(
-        0.05, "streaming: and the relative change of the ELBO EMA falls below this", gt=0.0
+    ready_elbo_slope: float = opt(
+        0.05,
+        "streaming: and the minibatch ELBO changes by less than this per point and per step "
+        "(mean of the last ready_elbo_window steps against the window before)",
+        unit="nats",
+        gt=0.0,
+    )
+    ready_elbo_window: int = opt(
+        10, "streaming: steps in each of the two windows that ready_elbo_slope compares", ge=1
     )
     inducing_policy: str = opt(
         "spread",

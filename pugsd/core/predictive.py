@@ -103,7 +103,7 @@ class OccupancySVGP:
         self.total_steps = 0
         self.steps_since_init = 0
         self._moves: collections.deque[tuple[int, int]] = collections.deque()  # (step, points moved)
-        self.elbo_ema: float | None = None
+        self._elbos: collections.deque[float] = collections.deque(maxlen=2 * cfg.ready_elbo_window)
         self.last_elbo = float("nan")
         self.version = 0
         self._ngd: gpytorch.optim.NGD | None = None
@@ -127,14 +127,18 @@ class OccupancySVGP:
             model.variational_strategy._variational_distribution.initialize_variational_distribution(
                 model.variational_strategy.prior_distribution
             )
+            # else gpytorch initialises q(u) again at the first training call, from the global
+            # torch RNG, and the seed no longer fixes the fit
+            model.variational_strategy.variational_params_initialized.fill_(1)
         lik = gpytorch.likelihoods.GaussianLikelihood()
-        lik.noise = 1e-3
+        lik.noise = self.cfg.noise_init
         self.model = model.to(device=self.device, dtype=self.dtype)
         self.likelihood = lik.to(device=self.device, dtype=self.dtype)
         self._mll = gpytorch.mlls.VariationalELBO(self.likelihood, self.model, num_data=len(x))
         self._make_optimizers(len(x))
         self.steps_since_init = 0
         self._moves.clear()
+        self._elbos.clear()
         self.version += 1
         self._save_good_state()
 
@@ -189,7 +193,7 @@ class OccupancySVGP:
         self.model = None
         self.likelihood = None
         self.total_steps = 0
-        self.elbo_ema = None
+        self._elbos.clear()
         self.version += 1
 
     # ------------------------------------------------------------------ training
@@ -211,10 +215,7 @@ class OccupancySVGP:
         self.steps_since_init += 1
         elbo = -float(loss.detach())
         self.last_elbo = elbo
-        if self.elbo_ema is None:
-            self.elbo_ema = elbo
-        else:
-            self.elbo_ema = 0.9 * self.elbo_ema + 0.1 * elbo
+        self._elbos.append(elbo)
         return elbo
 
     def fit_paper(self, x: np.ndarray, y: np.ndarray, epochs: int | None = None) -> TrainStats:
@@ -264,7 +265,6 @@ class OccupancySVGP:
         bs = min(self.cfg.batch_size, n)
         n_new = round(bs * (1.0 - self.cfg.replay_fraction)) if len(new_idx) else 0
         elbo = float("nan")
-        prev = self.elbo_ema
         steps = self.cfg.steps_per_update if steps is None else steps
         for _ in range(steps):
             parts = []
@@ -287,7 +287,7 @@ class OccupancySVGP:
         self.consecutive_failures = 0
         self._save_good_state()
         self.version += 1
-        return TrainStats(self.total_steps, elbo, self.is_ready(prev), moved, n)
+        return TrainStats(self.total_steps, elbo, self.is_ready(), moved, n)
 
     def moved_recently(self) -> int:
         """Inducing points moved within the last ``ready_move_window`` steps."""
@@ -296,11 +296,27 @@ class OccupancySVGP:
             self._moves.popleft()
         return sum(k for _, k in self._moves)
 
-    def is_ready(self, prev_ema: float | None = None) -> bool:
+    def elbo_slope(self) -> float | None:
+        """Change of the minibatch ELBO per point and per step: the mean of the last
+        ``ready_elbo_window`` steps minus the mean of the window before, over the window length.
+        None until the model has had two windows of steps since it was created."""
+        w = self.cfg.ready_elbo_window
+        if len(self._elbos) < 2 * w:
+            return None
+        e = np.fromiter(self._elbos, dtype=np.float64, count=2 * w)
+        return float(e[w:].mean() - e[:w].mean()) / w
+
+    def is_ready(self) -> bool:
         """Ready once the model has had ``ready_min_steps`` steps since it was created, at most
         ``ready_max_moved_fraction`` of the inducing points moved within the last
-        ``ready_move_window`` steps, and the ELBO moving average changes by less than
-        ``ready_elbo_tol`` (relative) between updates (or 4 x ``ready_min_steps`` steps passed).
+        ``ready_move_window`` steps, and the ELBO per point changes by less than
+        ``ready_elbo_slope`` nats per step (``elbo_slope``; or 4 x ``ready_min_steps`` steps
+        passed).
+
+        The ELBO test is absolute, in nats per point: a relative change is ill-posed near an ELBO
+        of 0, where a well-fitted model lives. It compares two windows of raw minibatch ELBOs, so
+        the first steps after the model is created (q(u) at its prior) weigh only until they
+        leave the window.
 
         A few inducing points moved into a new view do not reset readiness: the move re-projects
         q(u) so that the field is (nearly) unchanged; what is not yet fitted is the new data, as
@@ -313,10 +329,10 @@ class OccupancySVGP:
         m = len(self.model.variational_strategy.inducing_points)
         if self.moved_recently() > self.cfg.ready_max_moved_fraction * m:
             return False
-        if prev_ema is None or self.elbo_ema is None:
-            return self.steps_since_init >= 2 * n
-        rel = abs(self.elbo_ema - prev_ema) / max(abs(prev_ema), 1e-6)
-        return rel < self.cfg.ready_elbo_tol or self.steps_since_init >= 4 * n
+        if self.steps_since_init >= 4 * n:
+            return True
+        slope = self.elbo_slope()
+        return slope is not None and abs(slope) < self.cfg.ready_elbo_slope
 
     def _cover_new_region(self, x: np.ndarray, new_idx: np.ndarray) -> int:
         """Swap inducing points into newly observed regions and re-project q(u) (Sec. 5.1).

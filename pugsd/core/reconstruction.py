@@ -8,6 +8,8 @@ fixed budget and cleaned by statistical outlier removal (paper: std ratio 0.01).
 
 from __future__ import annotations
 
+import atexit
+import weakref
 from typing import Any
 
 import numpy as np
@@ -21,6 +23,19 @@ from pugsd.errors import EmptyCloudError
 o3d: Any = _o3d
 
 
+# open3d ends the process with status 1 at exit when tensor memory is still allocated then (its
+# MemoryManagerStatistic counts it as a leak): a grid still referenced at exit (by a worker thread,
+# a zenoh callback, a reference cycle) would make a cleanly stopped service look failed to systemd.
+# Every grid is therefore freed at exit, after the threads are joined and before open3d checks.
+_LIVE: weakref.WeakSet[Reconstruction] = weakref.WeakSet()
+
+
+@atexit.register
+def _close_all() -> None:
+    for r in list(_LIVE):
+        r.close()
+
+
 VIEW_MERGE_M = 0.01  # camera centres closer than this to a kept one are not kept again
 MAX_VIEWS = 2048
 
@@ -31,9 +46,10 @@ class Reconstruction:
     def __init__(self, cfg: ReconstructionConfig) -> None:
         self.cfg = cfg
         self.reset()
+        _LIVE.add(self)
 
     def reset(self) -> None:
-        self._vbg = o3d.t.geometry.VoxelBlockGrid(
+        self._vbg: Any = o3d.t.geometry.VoxelBlockGrid(
             attr_names=("tsdf", "weight", "color"),
             attr_dtypes=(o3d.core.float32, o3d.core.float32, o3d.core.float32),
             attr_channels=((1), (1), (3)),
@@ -45,7 +61,15 @@ class Reconstruction:
         self.frames = 0
         self.camera_centers_W: list[np.ndarray] = []
 
+    def close(self) -> None:
+        """Free the voxel grid now (also done for every grid at exit, see ``_LIVE``); the next
+        ``integrate`` starts a new, empty one."""
+        self._vbg = None
+        self.frames = 0
+
     def integrate(self, frame: DepthFrame) -> None:
+        if self._vbg is None:
+            self.reset()
         depth = np.nan_to_num(frame.depth_m, nan=0.0).astype(np.float32)
         if frame.mask is not None:
             depth[~frame.mask] = 0.0  # the query cloud is the object

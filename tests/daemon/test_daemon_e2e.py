@@ -95,7 +95,11 @@ def test_end_to_end_stereo_to_grasps(
         g = codec.decode_grasp_array(data)
         z = np.load(sequence_npz)
         d = distance_to_mesh(g.contact_W[:1], z["mesh_vertices"], z["mesh_faces"])
-        assert d[0] < 0.01, f"top grasp contact {g.contact_W[0]} is {d[0]:.4f} m off the mug"
+        assert d[0] < 0.01, (
+            f"top grasp contact {g.contact_W[0]} is {d[0]:.4f} m off the mug "
+            f"(array of {len(g)} grasps; publisher: "
+            f"{pub_stats.read_text() if pub_stats.exists() else 'running'}):\n" + daemon.log()[-3000:]
+        )
         assert g.pugs_confidence[0] == pytest.approx(np.max(g.pugs_confidence))
 
         # 2. the same bytes through mcap_ros2's independent CDR decoder
