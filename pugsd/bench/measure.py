@@ -8,7 +8,6 @@ CLI (nothing prints below the CLI layer).
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import os
 import platform
@@ -285,15 +284,11 @@ class OptimalQ:
 def optimal_q(pipe: PugsPipeline, cloud_W: np.ndarray, restore: bool = False) -> OptimalQ:
     """Converge ``pipe``'s q(u) in closed form and take sigma2_occ on ``cloud_W``. With
     ``restore`` the model is put back as it was afterwards (its state dict)."""
-    sv = pipe.svgp
-    assert sv.model is not None and sv.likelihood is not None
-    saved = copy.deepcopy(sv.model.state_dict()) if restore else None
+    saved = pipe.svgp.state() if restore else None
     before, after = pipe.set_optimal_q()
     _, s2 = pipe.sigma2_occ(cloud_W)
     if saved is not None:
-        sv.model.load_state_dict(saved)
-        sv.model.variational_strategy._memoize_cache = {}
-        sv.version += 1
+        pipe.svgp.load_state(saved)
     return OptimalQ(before, after, s2)
 
 

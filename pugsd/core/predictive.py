@@ -165,12 +165,25 @@ class OccupancySVGP:
                 [*self.model.parameters(), *self.likelihood.parameters()], lr=self.cfg.paper_lr
             )
 
-    def _save_good_state(self) -> None:
+    def state(self) -> tuple[dict[str, Any], dict[str, Any]]:
+        """A copy of the model's and the likelihood's parameters (``load_state`` puts it back)."""
         assert self.model is not None and self.likelihood is not None
-        self._good_state = (
+        return (
             copy.deepcopy(self.model.state_dict()),
             copy.deepcopy(self.likelihood.state_dict()),
         )
+
+    def load_state(self, state: tuple[dict[str, Any], dict[str, Any]]) -> None:
+        """Restore parameters taken by ``state`` (same inducing count), dropping gpytorch's
+        memoised factorisations of the old ones."""
+        assert self.model is not None and self.likelihood is not None
+        self.model.load_state_dict(state[0])
+        self.likelihood.load_state_dict(state[1])
+        self.model.variational_strategy._memoize_cache = {}
+        self.version += 1
+
+    def _save_good_state(self) -> None:
+        self._good_state = self.state()
 
     def _recover(self, exc: Exception, n: int) -> None:
         """A numerical failure (e.g. NotPSDError) must not poison later steps: restore the last
@@ -180,9 +193,7 @@ class OccupancySVGP:
         self.consecutive_failures += 1
         log.warning("SVGP step failed (%s: %s); restoring the last good state", type(exc).__name__, exc)
         if self._good_state is not None:
-            self.model.load_state_dict(self._good_state[0])
-            self.likelihood.load_state_dict(self._good_state[1])
-            self.model.variational_strategy._memoize_cache = {}
+            self.load_state(self._good_state)
         self._make_optimizers(n)
 
     @property
