@@ -99,6 +99,14 @@ def test_link_cut_mid_motion_stops_arm(kind: str) -> None:
             sim.tx_enabled = False  # the link is cut: no more feedback
             rep = await asyncio.wait_for(task, 3.0)
             assert not rep.ok and "watchdog" in rep.reason
+            # the stop frames are sent before the execution returns, but the simulated arm reads
+            # them on its own task: wait for them there; the timing is checked on its clock below
+            await wait_until(
+                lambda: sim.first_event_after(t_cut, ["VELOCITY"]) is not None
+                and sim.first_event_after(t_cut, ["MODE"]) is not None,
+                2.0,
+                "the stop frames at the arm",
+            )
             t_vel = sim.first_event_after(t_cut, ["VELOCITY"])
             t_mode = sim.first_event_after(t_cut, ["MODE"])
             assert t_vel is not None and t_mode is not None
