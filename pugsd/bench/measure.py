@@ -361,13 +361,17 @@ def daemon_feed(
     sim_period_s: float = 0.1,
     rss: _RssTrace | None = None,
     grasps_timeout_s: float = 0.0,
+    cloud_timeout_s: float = 0.0,
 ) -> dict[str, Any]:
     """Run the real daemon in-process (loopback zenoh), offer ``n_offer`` stereo frames (cycling
     ``frames`` with fresh stamps) every ``interval_s`` (0: as fast as possible), wait for the
     pipeline to drain, and return the daemon's counters and latencies. With ``grasps_timeout_s``
     the run also subscribes to the daemon's GraspArray and waits that long for the grasps of the
     last frame offered (header stamp = that frame's stamp): ``last_frame_to_grasps_s`` is the
-    time from publishing that frame to receiving them (None if they did not come)."""
+    time from publishing that frame to receiving them (None if they did not come). With
+    ``cloud_timeout_s`` as well it then waits that long for the PointCloud2 stamped with that
+    frame (sigma2_occ over the daemon's query cloud, from the model that scored those grasps):
+    ``last_frame_cloud`` (a decoded ``CloudMsg`` or None) and ``last_frame_to_cloud_s``."""
     import asyncio
     import threading
 
@@ -383,7 +387,8 @@ def daemon_feed(
     out: dict[str, Any] = {}
 
     async def main() -> None:
-        daemon = Daemon(cfg, PugsPipeline(core_of(cfg)), notifier=Notifier(""))
+        pipe = PugsPipeline(core_of(cfg))
+        daemon = Daemon(cfg, pipe, notifier=Notifier(""))
         stop = asyncio.Event()
         serve = asyncio.create_task(daemon.run(stop), name="daemon")
         t_start = time.monotonic()
@@ -401,6 +406,7 @@ def daemon_feed(
         t_feed = [0.0, 0.0]
         last_sent: list[tuple[float, int]] = []  # (monotonic time, stamp) of the last frame
         grasps_rx: list[tuple[float, int]] = []
+        steps_rx: list[int] = []  # the model's training steps so far, at each receipt
         sub = None
         if grasps_timeout_s > 0:
             from pugsd.wire import codec
@@ -409,8 +415,19 @@ def daemon_feed(
             def on_grasps(sample: Any) -> None:
                 stamp = codec.decode_grasp_array(sample.payload.to_bytes()).stamp_ns
                 grasps_rx.append((time.monotonic(), stamp))
+                steps_rx.append(pipe.svgp.total_steps)  # a plain int read
 
             sub = peer.declare_subscriber(key_for(cfg.topics, "grasps"), on_grasps)
+        clouds_rx: list[tuple[float, Any]] = []
+        sub_cloud = None
+        if grasps_timeout_s > 0 and cloud_timeout_s > 0:
+            from pugsd.wire import codec
+            from pugsd.wire.topics import key_for
+
+            def on_cloud(sample: Any) -> None:
+                clouds_rx.append((time.monotonic(), codec.decode_cloud(sample.payload.to_bytes())))
+
+            sub_cloud = peer.declare_subscriber(key_for(cfg.topics, "cloud"), on_cloud)
 
         def feed() -> None:
             if not camera.wait_matching(10.0):
@@ -465,9 +482,22 @@ def daemon_feed(
                 await asyncio.sleep(0.01)
             hits = [t for t, s in grasps_rx if s >= stamp_last]
             out["last_frame_to_grasps_s"] = (min(hits) - t_last) if hits else None
+            first = next((i for i, (_, s) in enumerate(grasps_rx) if s >= stamp_last), None)
+            out["train_steps_at_grasps"] = None if first is None else steps_rx[first]
             out["grasps_received"] = len(grasps_rx)
+            if sub_cloud is not None:
+                t_w = time.monotonic()
+                while time.monotonic() - t_w < cloud_timeout_s:
+                    if any(c.stamp_ns >= stamp_last for _, c in clouds_rx):
+                        break
+                    await asyncio.sleep(0.01)
+                got = [(t, c) for t, c in clouds_rx if c.stamp_ns >= stamp_last]
+                out["last_frame_cloud"] = got[0][1] if got else None
+                out["last_frame_to_cloud_s"] = (got[0][0] - t_last) if got else None
         if sub is not None:
             sub.undeclare()
+        if sub_cloud is not None:
+            sub_cloud.undeclare()
         st = daemon.status()
         out["status"] = st
         out["sent"] = sent[0]
@@ -497,18 +527,64 @@ def _drop_counts(st: dict[str, Any]) -> dict[str, int]:
     }
 
 
+def match_points(
+    a_W: np.ndarray, b_W: np.ndarray, tol_m: float = 1e-4
+) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (ia, ib) of points of ``a_W`` and ``b_W`` that coincide within ``tol_m``
+    (nearest neighbour, each point of ``b_W`` used once)."""
+    from scipy.spatial import cKDTree
+
+    if len(a_W) == 0 or len(b_W) == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    d, ib = cKDTree(np.asarray(b_W, dtype=np.float64)).query(np.asarray(a_W, dtype=np.float64))
+    ok = np.isfinite(d) & (d <= tol_m)
+    ia, ib = np.flatnonzero(ok), ib[ok]
+    _, first = np.unique(ib, return_index=True)
+    return ia[first], ib[first]
+
+
 def daemon_last_frame(
-    base: PugsdConfig, frames: list[StereoFrame], opts: BenchOptions, write: Writer
+    base: PugsdConfig,
+    frames: list[StereoFrame],
+    opts: BenchOptions,
+    write: Writer,
+    reference: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """The streaming target end to end: a fresh daemon fed one sequence (``n_frames`` at
     ``rate_hz``) over loopback zenoh; the time from publishing the last stereo pair to receiving
-    the GraspArray stamped with it (the daemon's own readiness, latch and training schedule)."""
+    the GraspArray stamped with it (the daemon's own readiness, latch and training schedule).
+
+    ``reference`` (query cloud [m, world], sigma2_occ of the paper's fit there): the agreement of
+    what the daemon published for the last frame, i.e. the PointCloud2 stamped with it, whose
+    sigma2_occ comes from the model that scored those grasps, with the reference on the points the
+    two clouds share (the same frames give the same query cloud)."""
     r = daemon_feed(
         base, frames, len(frames), 1.0 / opts.rate_hz, opts.drain_timeout_s,
         grasps_timeout_s=opts.ready_timeout_s,
+        cloud_timeout_s=opts.ready_timeout_s if reference is not None else 0.0,
     )  # fmt: skip
     st = r["status"]
     lat = r.get("last_frame_to_grasps_s")
+    agreement: dict[str, Any] | None = None
+    if reference is not None:
+        cloud = r.get("last_frame_cloud")
+        agreement = {"cloud_received": cloud is not None, "spearman_sigma2_occ": None}
+        if cloud is not None:
+            f = cloud.fields
+            pts = np.stack([f["x"], f["y"], f["z"]], axis=1)
+            ia, ib = match_points(pts, reference[0])
+            share = len(ia) / max(len(reference[0]), 1)
+            lc = r.get("last_frame_to_cloud_s")
+            agreement.update(
+                last_frame_to_cloud_s=None if lc is None else round(lc, 4),
+                points=len(pts),
+                reference_points=len(reference[0]),
+                shared_fraction=round(share, 4),
+            )
+            if "sigma2_occ" in f and share >= 0.95:
+                agreement["spearman_sigma2_occ"] = spearman(
+                    f["sigma2_occ"][ia].astype(np.float64), reference[1][ib]
+                )
     out = {
         "frames": r["sent"],
         "integrated": int(st["counts"].get("integrated", 0)),
@@ -516,11 +592,16 @@ def daemon_last_frame(
         "last_frame_to_grasps_s": None if lat is None else round(lat, 4),
         "grasps_received": r.get("grasps_received", 0),
         "train_steps": int(st["counts"].get("train_steps", 0)),
+        # SVGP steps done when the last frame's grasps arrived (those that scored them, or a few more)
+        "train_steps_at_grasps": r.get("train_steps_at_grasps"),
         "ready": bool(st.get("ready")),
+        "agreement_with_paper": agreement,
     }
+    rho = None if agreement is None else agreement["spearman_sigma2_occ"]
     write(
         f"  daemon, {r['sent']} frames at {opts.rate_hz:g} Hz: last frame -> its grasps "
         f"{'not received' if lat is None else f'{lat:.2f} s'}"
+        + ("" if rho is None else f", its sigma2_occ vs the paper fit: spearman {rho:.3f}")
     )
     return out
 
