@@ -36,7 +36,7 @@ class BenchOptions:
     thread_sweep: tuple[int, ...] = (1, 2)  # torch threads for the SVGP-step sweep (empty: skip)
     # sustained throughput through the daemon: input rates tried, highest first; the ladder
     # starts above the 10 Hz target so that the highest rate held is measured, not capped
-    throughput_rates_hz: tuple[float, ...] = (20.0, 15.0, 10.0, 5.0, 2.5, 1.25)
+    throughput_rates_hz: tuple[float, ...] = (30.0, 25.0, 20.0, 15.0, 10.0, 5.0, 2.5, 1.25)
     throughput_trial_s: float = 10.0  # each rate is offered for max(this, n_frames / rate) s
     throughput_min_frames: int = 30
     drain_timeout_s: float = 15.0
