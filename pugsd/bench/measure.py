@@ -379,7 +379,9 @@ def daemon_feed(
     from pugsd.daemon.app import Daemon
     from pugsd.daemon.demo import SyntheticCamera
     from pugsd.daemon.notify import Notifier
+    from pugsd.wire import codec
     from pugsd.wire.session import close_session, free_tcp_port, loopback_config, open_session
+    from pugsd.wire.topics import key_for
 
     port = free_tcp_port()
     cfg = daemon_config(base, port)
@@ -409,8 +411,6 @@ def daemon_feed(
         steps_rx: list[int] = []  # the model's training steps so far, at each receipt
         sub = None
         if grasps_timeout_s > 0:
-            from pugsd.wire import codec
-            from pugsd.wire.topics import key_for
 
             def on_grasps(sample: Any) -> None:
                 stamp = codec.decode_grasp_array(sample.payload.to_bytes()).stamp_ns
@@ -421,8 +421,6 @@ def daemon_feed(
         clouds_rx: list[tuple[float, Any]] = []
         sub_cloud = None
         if grasps_timeout_s > 0 and cloud_timeout_s > 0:
-            from pugsd.wire import codec
-            from pugsd.wire.topics import key_for
 
             def on_cloud(sample: Any) -> None:
                 clouds_rx.append((time.monotonic(), codec.decode_cloud(sample.payload.to_bytes())))
