@@ -181,7 +181,8 @@ def format_table(r: dict[str, Any]) -> list[str]:
         ag = dm.get("agreement_with_paper")
         if dm and ag is not None:
             out.append(
-                f"{'':<11} the daemon itself (10 Hz, its own schedule; "
+                f"{'':<11} the daemon itself ({_fmt((r.get('settings') or {}).get('rate_hz'), 0)} Hz, "
+                f"its own schedule; "
                 f"{dm.get('train_steps_at_grasps')} SVGP steps at the grasps): last frame -> grasps "
                 f"{_fmt(dm.get('last_frame_to_grasps_s'), 2)} s, "
                 f"its cloud {_fmt(ag.get('last_frame_to_cloud_s'), 2)} s, spearman of that cloud's "
