@@ -20,10 +20,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 from scipy.spatial import cKDTree
 
 from pugsd.config import FofConfig
-from pugsd.errors import EmptyCloudError
+from pugsd.errors import ConfigError, EmptyCloudError
 
 _LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -96,10 +97,77 @@ class FofSnapshot:
     scale: float
 
 
+def fused_at_torch(
+    x: np.ndarray,
+    mu: np.ndarray,
+    prec: np.ndarray,
+    logdet: np.ndarray,
+    k: int,
+    information: bool,
+    device: torch.device,
+    chunk_bytes: int = 1 << 28,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Algorithm 1 lines 1-2 in torch (float64) on ``device``: the K nearest of the N stored
+    Gaussians (mu (N,3), precision (N,3,3), log|Sigma| (N,)) by brute force, then Eq. 5-6 as in
+    ``fused_at`` and the optional information-form mean. Returns (Sigma_pz (Q,3,3), mean (Q,3)).
+
+    The same values as ``FofStore.fused_covariance`` with its KD-tree (tested); on a GPU it is an
+    order of magnitude faster for 20k query points. Queries go in chunks whose distance matrix
+    (chunk x N float64) stays under ``chunk_bytes``."""
+    f64 = torch.float64
+    centre = mu.mean(axis=0)  # distances from centred coordinates: less cancellation
+    mu_t = torch.as_tensor(mu - centre, dtype=f64, device=device)
+    prec_t = torch.as_tensor(prec, dtype=f64, device=device)
+    logdet_t = torch.as_tensor(logdet, dtype=f64, device=device)
+    x_t = torch.as_tensor(x - centre, dtype=f64, device=device)
+    mu_sq = (mu_t * mu_t).sum(1)
+    step = max(1, chunk_bytes // (8 * max(len(mu), 1)))
+    covs, means = [], []
+    for i in range(0, len(x_t), step):
+        xq = x_t[i : i + step]
+        d2 = (xq * xq).sum(1)[:, None] + mu_sq[None, :] - 2.0 * (xq @ mu_t.T)
+        nb = torch.topk(d2, k, dim=1, largest=False, sorted=True).indices  # (q, K)
+        diff = xq[:, None, :] - mu_t[nb]
+        p_nb = prec_t[nb]  # (q, K, 3, 3)
+        maha = torch.einsum("qki,qkij,qkj->qk", diff, p_nb, diff)
+        log_pdf = -0.5 * (maha + logdet_t[nb] + 3.0 * _LOG_2PI)  # Eq. 6 in log space
+        m = log_pdf.max(dim=1, keepdim=True).values
+        m = torch.where(torch.isfinite(m), m, torch.zeros_like(m))
+        e = torch.exp(log_pdf - m)
+        gamma = e / e.sum(dim=1, keepdim=True)
+        info = torch.einsum("qk,qkij->qij", gamma, p_nb)  # Eq. 5
+        info = 0.5 * (info + info.transpose(-1, -2))
+        cov = torch.linalg.inv(info)
+        if information:
+            s = torch.einsum("qk,qkij,qkj->qi", gamma, p_nb, mu_t[nb])
+            means.append((torch.einsum("qij,qj->qi", cov, s)).cpu().numpy() + centre)
+        covs.append(cov.cpu().numpy())
+    cov_out = np.concatenate(covs) if covs else np.zeros((0, 3, 3))
+    mean_out = np.concatenate(means) if information and means else np.array(x, dtype=np.float64)
+    return cov_out, mean_out
+
+
+def resolve_query_device(query_device: str, svgp_device: str) -> str:
+    """``fof.query_device`` with auto resolved: where the SVGP runs."""
+    if query_device != "auto":
+        return query_device
+    return "cuda" if svgp_device.startswith("cuda") else "cpu"
+
+
+def resolve_query_workers(query_workers: int, svgp_device: str) -> int:
+    """``fof.query_workers`` with 0 (auto) resolved: all cores (-1) when the SVGP runs on CUDA,
+    whose host CPU is otherwise idle while it trains, else 1."""
+    if query_workers != 0:
+        return query_workers
+    return -1 if svgp_device.startswith("cuda") else 1
+
+
 class FofStore:
     """Voxel-hashed Gaussian store with incremental Eq. 4-6 targets (dirty regions only)."""
 
     def __init__(self, cfg: FofConfig) -> None:
+        if cfg.query_device == "cuda" and not torch.cuda.is_available():
+            raise ConfigError("fof.query_device = cuda, but torch sees no CUDA device")
         self.cfg = cfg
         self.reset()
 
@@ -263,11 +331,26 @@ class FofStore:
         if self._tree is None or self._n == 0:
             raise EmptyCloudError("the occupancy field is empty")
         k = min(k or self.cfg.k_neighbours, self._n)
-        _, idx = self._tree.query(x, k=k, workers=1)
+        _, idx = self._tree.query(x, k=k, workers=self.cfg.query_workers or 1)
         return np.asarray(idx).reshape(len(x), k)
 
     def fused_covariance(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Algorithm 1 lines 1-2 at arbitrary points: (Sigma_pz (Q,3,3), fused mean (Q,3))."""
+        """Algorithm 1 lines 1-2 at arbitrary points: (Sigma_pz (Q,3,3), fused mean (Q,3)).
+        With ``fof.query_device = cuda``: ``fused_at_torch`` on the GPU (auto is resolved by
+        ``PugsPipeline``; left unresolved it means the CPU)."""
+        if self.cfg.query_device == "cuda":
+            if self._tree is None or self._n == 0:
+                raise EmptyCloudError("the occupancy field is empty")
+            n = self._n
+            return fused_at_torch(
+                np.asarray(x, dtype=np.float64),
+                self._mu[:n],
+                self._prec[:n],
+                self._logdet[:n],
+                min(self.cfg.k_neighbours, n),
+                self.cfg.fused_mean == "information",
+                torch.device("cuda"),
+            )
         nb = self.neighbours(x)
         cov, gamma = fused_at(x, self._mu[nb], self._prec[nb], self._logdet[nb])
         if self.cfg.fused_mean == "information":

@@ -23,7 +23,7 @@ import numpy as np
 
 from pugsd.config import CoreConfig, CubatureConfig
 from pugsd.core.cubature import algorithm1
-from pugsd.core.fof import FofStore
+from pugsd.core.fof import FofStore, resolve_query_device, resolve_query_workers
 from pugsd.core.grasp.proposer import GraspSet, make_proposer
 from pugsd.core.grasp.scoring import rank_grasps, reweight
 from pugsd.core.observation import Observation
@@ -127,8 +127,16 @@ class PugsPipeline:
         self.seed = seed
         self.stereo = StereoDepth(self.cfg.stereo)
         self.observation = Observation(self.cfg.observation, self.cfg.stereo.sigma_d2_m2, seed)
-        self.store = FofStore(self.cfg.fof)
         self.svgp = OccupancySVGP(self.cfg.svgp)
+        dev = self.svgp.device.type
+        fof = self.cfg.fof
+        self.store = FofStore(
+            dataclasses.replace(
+                fof,
+                query_workers=resolve_query_workers(fof.query_workers, dev),
+                query_device=resolve_query_device(fof.query_device, dev),
+            )
+        )
         self.recon = Reconstruction(self.cfg.reconstruction)
         self.proposer = make_proposer(self.cfg.grasp, seed)
         self._pending: list[np.ndarray] = []

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from pugsd.config import SvgpConfig
-from pugsd.errors import EmptyCloudError, ModelNotReadyError
+from pugsd.errors import ConfigError, EmptyCloudError, ModelNotReadyError
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +94,8 @@ class OccupancySVGP:
             self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
         else:
             self.device = torch.device(cfg.device)
+        if self.device.type == "cuda" and not torch.cuda.is_available():
+            raise ConfigError(f"svgp.device = {cfg.device}, but torch sees no CUDA device")
         self.dtype = torch.float64 if cfg.dtype == "float64" else torch.float32
         self.natural = cfg.natural_gradient if natural is None else natural
         self._gen = torch.Generator().manual_seed(cfg.seed)
@@ -578,9 +580,11 @@ def _predict(
     model.eval()
     likelihood.eval()
     mus, vs = [], []
+    on_cuda = next(model.parameters()).device.type == "cuda"
+    chunk = cfg.predict_chunk_cuda if on_cuda else cfg.predict_chunk
     with torch.no_grad(), gpytorch.settings.fast_pred_var():
-        for i in range(0, len(x), cfg.predict_chunk):
-            xt = to_tensor(x[i : i + cfg.predict_chunk])
+        for i in range(0, len(x), chunk):
+            xt = to_tensor(x[i : i + chunk])
             f = model(xt)
             if cfg.variance == "observed":
                 f = likelihood(f)

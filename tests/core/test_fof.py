@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.stats import multivariate_normal
 
 from pugsd.config import FofConfig
@@ -121,3 +122,91 @@ def test_store_cap_evicts_oldest() -> None:
     assert np.sum(store.mu_W[:, 1] > 0.5) == 80
     store.update_targets()
     assert np.all(np.isfinite(store.raw_density()))
+
+
+def test_query_workers_give_the_same_neighbours_and_fused_covariance() -> None:
+    """fof.query_workers only spreads Algorithm 1 lines 1-2 over threads: same results."""
+    rng = np.random.default_rng(8)
+    a = rng.normal(0.0, 1e-3, (600, 3, 3))
+    cov = a @ np.swapaxes(a, -1, -2) + 1e-7 * np.eye(3)
+    pts = rng.uniform(0.0, 0.05, (600, 3))
+    q = rng.uniform(0.0, 0.05, (5000, 3))
+    out = []
+    for workers in (1, -1):
+        store = FofStore(FofConfig(k_neighbours=8, query_workers=workers))
+        store.insert(pts, cov)
+        store.update_targets()
+        out.append((store.neighbours(q), *store.fused_covariance(q)))
+    np.testing.assert_array_equal(out[0][0], out[1][0])
+    np.testing.assert_array_equal(out[0][1], out[1][1])
+    np.testing.assert_array_equal(out[0][2], out[1][2])
+
+
+def test_query_workers_auto_uses_all_cores_only_beside_a_cuda_svgp() -> None:
+    from pugsd.core.fof import resolve_query_workers
+
+    assert resolve_query_workers(0, "cuda") == -1
+    assert resolve_query_workers(0, "cpu") == 1
+    assert resolve_query_workers(3, "cuda") == 3
+    assert resolve_query_workers(-1, "cpu") == -1
+
+
+def _random_store(cfg: FofConfig, seed: int = 11) -> tuple[FofStore, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    a = rng.normal(0.0, 1e-3, (900, 3, 3))
+    cov = a @ np.swapaxes(a, -1, -2) + 1e-7 * np.eye(3)
+    store = FofStore(cfg)
+    store.insert(rng.uniform(0.3, 0.35, (900, 3)), cov)  # away from the origin, as in use
+    store.update_targets()
+    return store, rng.uniform(0.29, 0.36, (3000, 3))
+
+
+@pytest.mark.parametrize("fused_mean", ["query", "information"])
+def test_torch_lines_1_2_equal_the_kd_tree_path(fused_mean: str) -> None:
+    """fused_at_torch (what fof.query_device = cuda runs), here on torch's CPU device and in
+    small chunks, gives the numpy/KD-tree Sigma_pz and mean."""
+    import torch
+
+    from pugsd.core.fof import fused_at_torch
+
+    store, q = _random_store(FofConfig(k_neighbours=8, fused_mean=fused_mean))
+    cov_ref, mean_ref = store.fused_covariance(q)
+    n = len(store)
+    cov, mean = fused_at_torch(
+        q, store.mu_W[:n], store._prec[:n], store._logdet[:n], 8,
+        fused_mean == "information", torch.device("cpu"), chunk_bytes=8 * n * 700,
+    )  # fmt: skip
+    np.testing.assert_allclose(cov, cov_ref, rtol=1e-9, atol=1e-18)
+    np.testing.assert_allclose(mean, mean_ref, rtol=0, atol=1e-12)
+    assert np.ptp(cov_ref[:, 0, 0]) > 0.1 * cov_ref[:, 0, 0].mean()  # not a constant field
+
+
+def test_query_device_auto_follows_the_svgp() -> None:
+    from pugsd.core.fof import resolve_query_device
+
+    assert resolve_query_device("auto", "cuda") == "cuda"
+    assert resolve_query_device("auto", "cpu") == "cpu"
+    assert resolve_query_device("cpu", "cuda") == "cpu"
+
+
+@pytest.mark.gpu
+def test_cuda_lines_1_2_equal_the_kd_tree_path() -> None:
+    """fof.query_device = cuda gives what the CPU store gives."""
+    cpu, q = _random_store(FofConfig(k_neighbours=10))
+    gpu, _ = _random_store(FofConfig(k_neighbours=10, query_device="cuda"))
+    for a, b in zip(cpu.fused_covariance(q), gpu.fused_covariance(q), strict=True):
+        np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.skipif(
+    __import__("torch").cuda.is_available(), reason="checks the error raised without CUDA"
+)
+def test_cuda_settings_without_cuda_are_a_clear_config_error() -> None:
+    from pugsd.config import SvgpConfig
+    from pugsd.core.predictive import OccupancySVGP
+    from pugsd.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"fof\.query_device = cuda"):
+        FofStore(FofConfig(query_device="cuda"))
+    with pytest.raises(ConfigError, match=r"svgp\.device = cuda"):
+        OccupancySVGP(SvgpConfig(device="cuda"))

@@ -226,3 +226,13 @@ def test_core_is_pure() -> None:
             for n in names:
                 assert not any(n == f or n.startswith(f + ".") for f in forbidden), f"{path}: {n}"
         assert "open(" not in path.read_text().replace("open3d", ""), f"{path} does file I/O"
+
+
+def test_pipeline_resolves_auto_query_settings_for_a_cpu_svgp() -> None:
+    """fof.query_workers = 0 and query_device = auto (the defaults) keep lines 1-2 on one CPU
+    thread beside a CPU SVGP."""
+    pipe = PugsPipeline(CoreConfig(svgp=SvgpConfig(device="cpu")))
+    assert CoreConfig().fof.query_workers == 0
+    assert pipe.store.cfg.query_workers == 1
+    assert CoreConfig().fof.query_device == "auto"
+    assert pipe.store.cfg.query_device == "cpu"

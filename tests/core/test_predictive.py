@@ -198,22 +198,101 @@ def test_fps_spreads_points() -> None:
     assert 100 in idx
 
 
-@pytest.mark.gpu
-def test_cuda_matches_cpu() -> None:
-    """The CUDA path (svgp.device = auto) predicts what the CPU path predicts for the same model."""
+def _cpu_and_cuda_models(
+    steps: int = 50,
+) -> tuple[OccupancySVGP, OccupancySVGP, np.ndarray, np.random.Generator]:
+    """A model trained on the CPU and a CUDA model with the same parameters (float64)."""
     rng = np.random.default_rng(3)
     x = rng.uniform(-0.1, 0.1, (2000, 3))
     cpu = OccupancySVGP(SvgpConfig(num_inducing=64, seed=0, dtype="float64"))
-    cpu.update(x, _field(x), np.arange(len(x)), steps=50)
+    cpu.update(x, _field(x), np.arange(len(x)), steps=steps)
     gpu = OccupancySVGP(SvgpConfig(num_inducing=64, seed=0, dtype="float64", device="cuda"))
-    gpu.update(x[:10], _field(x[:10]), np.arange(10), steps=1)
+    gpu.update(x, _field(x), np.arange(len(x)), steps=1)  # same x: same M = 64 inducing points
     assert gpu.model is not None and cpu.model is not None
-    gpu.model.load_state_dict(cpu.model.state_dict())
+    gpu.load_state(cpu.state())
+    return cpu, gpu, x, rng
+
+
+@pytest.mark.gpu
+def test_cuda_matches_cpu() -> None:
+    """The CUDA path (svgp.device = cuda) predicts what the CPU path predicts for the same model,
+    live and from a frozen snapshot."""
+    cpu, gpu, _, rng = _cpu_and_cuda_models()
     q = rng.uniform(-0.1, 0.1, (500, 3))
-    mu_c, v_c, _ = cpu.predict(q)
-    mu_g, v_g, _ = gpu.predict(q)
+    mu_c, v_c, p_c = cpu.predict(q)
+    for model in (gpu, gpu.snapshot()):
+        mu_g, v_g, p_g = model.predict(q)
+        np.testing.assert_allclose(mu_g, mu_c, atol=1e-6)
+        np.testing.assert_allclose(v_g, v_c, atol=1e-6)
+        np.testing.assert_allclose(p_g, p_c, atol=1e-6)
+    assert v_c.std() > 1e-4  # the comparison is not between constants
+
+
+@pytest.mark.gpu
+def test_cuda_algorithm1_matches_cpu() -> None:
+    """Algorithm 1 (Eq. 9-12) through a CUDA model gives the CPU's sigma2_occ."""
+    from pugsd.core.cubature import algorithm1
+
+    cpu, gpu, _, rng = _cpu_and_cuda_models()
+    mean = rng.uniform(-0.08, 0.08, (300, 3))
+    a = rng.normal(0.0, 0.004, (300, 3, 3))
+    cov = a @ np.swapaxes(a, -1, -2) + 1e-6 * np.eye(3)
+
+    def via(model: OccupancySVGP) -> tuple[np.ndarray, np.ndarray]:
+        def predict(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            mu, _, var_pred = model.predict(p)
+            return mu, var_pred
+
+        return algorithm1(mean, cov, predict)
+
+    (mu_c, s2_c), (mu_g, s2_g) = via(cpu), via(gpu)
     np.testing.assert_allclose(mu_g, mu_c, atol=1e-6)
-    np.testing.assert_allclose(v_g, v_c, atol=1e-6)
+    np.testing.assert_allclose(s2_g, s2_c, rtol=1e-5, atol=1e-9)
+
+
+@pytest.mark.gpu
+def test_cuda_training_learns_the_field() -> None:
+    """Streaming updates on CUDA (float32, the default dtype) fit the field as the CPU does."""
+    rng = np.random.default_rng(5)
+    x = rng.uniform(-0.1, 0.1, (3000, 3))
+    x[:, 2] *= 0.1
+    m = OccupancySVGP(SvgpConfig(num_inducing=64, seed=0, device="cuda"))
+    stats = m.update(x, _field(x), np.arange(len(x)), steps=250)
+    assert np.isfinite(stats.elbo) and m.total_steps == 250 and m.failures == 0
+    q = rng.uniform(-0.08, 0.08, (200, 3))
+    q[:, 2] *= 0.1
+    mu, _, _ = m.predict(q)
+    assert np.median(np.abs(mu - _field(q))) < 0.05
+
+
+def test_prediction_chunks_do_not_change_values(trained: tuple[OccupancySVGP, np.ndarray]) -> None:
+    """svgp.predict_chunk (CPU) only splits the work: the same values in 7 calls as in one."""
+    import dataclasses
+
+    m, _ = trained
+    q = np.random.default_rng(9).uniform(-0.1, 0.1, (1800, 3))
+    whole = m.predict(q)
+    cfg = m.cfg
+    try:
+        m.cfg = dataclasses.replace(cfg, predict_chunk=256)
+        parts = m.predict(q)
+    finally:
+        m.cfg = cfg
+    for a, b in zip(whole, parts, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.gpu
+def test_cuda_prediction_chunks_do_not_change_values() -> None:
+    """svgp.predict_chunk_cuda only splits the work on CUDA."""
+    import dataclasses
+
+    _, gpu, _, rng = _cpu_and_cuda_models(steps=5)
+    q = rng.uniform(-0.1, 0.1, (3000, 3))
+    whole = gpu.predict(q)
+    gpu.cfg = dataclasses.replace(gpu.cfg, predict_chunk_cuda=256)
+    for a, b in zip(whole, gpu.predict(q), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
 
 
 def test_numerical_failure_restores_last_good_state(monkeypatch: pytest.MonkeyPatch) -> None:
