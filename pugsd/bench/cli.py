@@ -30,8 +30,13 @@ def _bench(args: argparse.Namespace) -> int:
     from pugsd.bench.targets import format_table
 
     opts = BenchOptions.quick_preset() if args.quick else BenchOptions.full()
+    if args.no_daemon and args.no_pipeline:
+        sys.stderr.write("pugsd bench: --no-daemon and --no-pipeline leave nothing to measure\n")
+        return 2
     if args.no_daemon:
         opts = opts.replace(use_daemon=False)
+    if args.no_pipeline:
+        opts = opts.replace(use_pipeline=False)
 
     def write(line: str) -> None:
         sys.stdout.write(line + "\n")
@@ -81,6 +86,11 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument(
         "--no-daemon", action="store_true",
         help="skip the daemon-based throughput and long-replay measurements",
+    )  # fmt: skip
+    p.add_argument(
+        "--no-pipeline", action="store_true",
+        help="skip the per-trajectory pipeline measurements (stage latencies, paper vs "
+        "streaming); the daemon sections then run alone, without the paper fit to agree with",
     )  # fmt: skip
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="config override")
     p.set_defaults(func=_bench)

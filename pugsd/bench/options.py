@@ -45,7 +45,10 @@ class BenchOptions:
     replay_window_min: tuple[float, float] = (5.0, 30.0)
     replay_wall_s: float = 240.0  # offer pacing: the simulated minutes are spread over this
     replay_wall_cap_s: float = 360.0  # stop early (and say so) if the replay takes longer
-    use_daemon: bool = True  # False: measure throughput and replay with the pipeline's own loop
+    use_daemon: bool = True  # False: skip the daemon's last frame, throughput and long replay
+    # False: skip the per-trajectory pipeline measurements (stage latencies, paper vs streaming),
+    # e.g. to run the daemon sections alone where one command has a time limit
+    use_pipeline: bool = True
 
     @classmethod
     def full(cls) -> BenchOptions:

@@ -63,6 +63,11 @@ def evaluate_targets(r: dict[str, Any]) -> list[dict[str, Any]]:
             )
         rows.append(_row(f"Spearman streaming sigma2_occ vs paper ({traj})", ">= 0.9", rho,
                          None if rho is None else rho >= 0.9, quick_note or fnote))  # fmt: skip
+    for traj, dm in (r.get("daemon_alone") or {}).items():  # --no-pipeline
+        dl = dm.get("last_frame_to_grasps_s")
+        rows.append(_row(f"daemon last frame -> its grasps ({traj})", "<= 1.0 s", dl,
+                         None if dl is None else dl <= 1.0,
+                         quick_note or ("" if dl is not None else "grasps not received")))  # fmt: skip
     tp = r.get("throughput")
     if tp is not None:
         at10 = [t for t in tp["trials"] if t["rate_hz"] >= 10.0]
@@ -91,7 +96,15 @@ def evaluate_targets(r: dict[str, Any]) -> list[dict[str, Any]]:
     cu = r.get("cuda")
     if cu is not None:
         sp = cu["speedup_steps_per_s"]
-        rows.append(_row("CUDA SVGP steps/s vs CPU", ">= 5x", sp, sp >= 5.0))
+        m_cuda = cu.get("num_inducing_cuda")
+        others = ", ".join(
+            f"M = {k[1:]}: {v['speedup_steps_per_s']}x"
+            for k, v in cu.items()
+            if k.startswith("M") and isinstance(v, dict) and k != f"M{m_cuda}"
+        )
+        note = f"at M = {m_cuda}, the daemon's on CUDA" + (f"; {others}" if others else "")
+        rows.append(_row("CUDA SVGP steps/s vs CPU", ">= 5x", sp, sp >= 5.0,
+                         note if m_cuda else ""))  # fmt: skip
         a = cu["algorithm1_20k_cuda"]["median_ms"]
         rows.append(_row("CUDA Algorithm 1, 20k query points", "< 100 ms", a, a < 100.0))
     else:
@@ -147,9 +160,9 @@ def format_table(r: dict[str, Any]) -> list[str]:
         f"B={st['batch_size']}, {st['train_steps_per_frame']} SVGP steps/frame, "
         f"paper epochs {st['paper_epochs']}; load avg {mi['load_average_at_start']} -> "
         f"{mi.get('load_average_at_end')}",
-        "",
-        f"{'stage':<40} {'median ms':>10} {'p95 ms':>10} {'n':>5}",
     ]
+    if r.get("stages"):
+        out += ["", f"{'stage':<40} {'median ms':>10} {'p95 ms':>10} {'n':>5}"]
     for k, label in STAGE_LABELS.items():
         s = (r.get("stages") or {}).get(k)
         if s is None:
@@ -161,12 +174,13 @@ def format_table(r: dict[str, Any]) -> list[str]:
             "one SVGP step by torch threads (median ms): "
             + ", ".join(f"{t}: {_fmt(v['median_ms'])}" for t, v in sweep.items())
         )
-    out += [
-        "",
-        "paper mode vs streaming (same frames; last frame -> scored grasps)",
-        f"{'trajectory':<11} {'stream s':>9} {'paper s':>9} {'ratio':>7} {'spearman':>9} "
-        f"{'top same':>9} {'top5':>5} {'Q':>6} {'ready':>6} {'idle st':>7} {'cloud s':>8}",
-    ]
+    if r.get("paper_vs_streaming"):
+        out += [
+            "",
+            "paper mode vs streaming (same frames; last frame -> scored grasps)",
+            f"{'trajectory':<11} {'stream s':>9} {'paper s':>9} {'ratio':>7} {'spearman':>9} "
+            f"{'top same':>9} {'top5':>5} {'Q':>6} {'ready':>6} {'idle st':>7} {'cloud s':>8}",
+        ]
     for traj, c in (r.get("paper_vs_streaming") or {}).items():
         out.append(
             f"{traj:<11} {_fmt(c['streaming_last_frame_to_grasps_s'], 2):>9} "
@@ -224,6 +238,14 @@ def format_table(r: dict[str, Any]) -> list[str]:
                     f"{_fmt(cv['streaming_optimal_q_elbo_per_point'], 2)}, spearman "
                     f"{_fmt(cv['spearman_streaming_refined_vs_its_optimal_q'], 3)}"
                 )
+    if r.get("daemon_alone"):  # --no-pipeline
+        out += ["", "the daemon alone (no paper fit in this run; last frame -> its grasps)"]
+    for traj, dm in (r.get("daemon_alone") or {}).items():
+        out.append(
+            f"{traj:<11} {_fmt(dm.get('last_frame_to_grasps_s'), 2)} s ({_fmt(st.get('rate_hz'), 0)} "
+            f"Hz, its own schedule; {dm.get('train_steps_at_grasps')} SVGP steps at the grasps, "
+            f"{dm.get('integrated')} of {dm.get('frames')} frames integrated)"
+        )
     tp = r.get("throughput")
     if tp is not None:
         sus = tp["sustained_hz"]
@@ -256,10 +278,15 @@ def format_table(r: dict[str, Any]) -> list[str]:
         )
     cu = r.get("cuda")
     if cu is not None:
+        per_m = [(k, v) for k, v in cu.items() if k.startswith("M") and isinstance(v, dict)]
+        for k, v in per_m or [("", cu)]:
+            out.append(
+                f"CUDA{f' (M = {k[1:]})' if k else ''}: SVGP steps/s {v['svgp_steps_per_s_cuda']} vs "
+                f"CPU {v['svgp_steps_per_s_cpu']} ({v['speedup_steps_per_s']}x)"
+            )
         out.append(
-            f"CUDA: SVGP steps/s {cu['svgp_steps_per_s_cuda']} vs CPU {cu['svgp_steps_per_s_cpu']} "
-            f"({cu['speedup_steps_per_s']}x); Algorithm 1 at 20k points "
-            f"{_fmt(cu['algorithm1_20k_cuda']['median_ms'])} ms"
+            f"CUDA: Algorithm 1 at 20k points {_fmt(cu['algorithm1_20k_cuda']['median_ms'])} ms"
+            + (f" (M = {cu['num_inducing_cuda']})" if cu.get("num_inducing_cuda") else "")
         )
     for k, v in (r.get("errors") or {}).items():
         out.append(f"ERROR in {k}: {v}")

@@ -36,6 +36,19 @@ from pugsd.errors import ConfigError, EmptyCloudError, ModelNotReadyError
 log = logging.getLogger(__name__)
 
 
+NUM_INDUCING_AUTO_CPU = 250
+NUM_INDUCING_AUTO_CUDA = 500
+
+
+def resolve_num_inducing(num_inducing: int, device_type: str) -> int:
+    """``svgp.num_inducing`` with 0 (auto) resolved: 250 on the CPU, where one step costs O(M^3)
+    and 250 keeps a 2-core computer real-time at 10 Hz; 500 (the paper's M) on CUDA, where a step
+    is launch-bound and costs what 250 costs (docs/performance.md, "CUDA")."""
+    if num_inducing > 0:
+        return num_inducing
+    return NUM_INDUCING_AUTO_CUDA if device_type == "cuda" else NUM_INDUCING_AUTO_CPU
+
+
 def farthest_point_sample(points: np.ndarray, m: int, seed: int = 0) -> np.ndarray:
     """Indices of ``m`` farthest-point samples (greedy, O(N m))."""
     n = len(points)
@@ -96,6 +109,7 @@ class OccupancySVGP:
             self.device = torch.device(cfg.device)
         if self.device.type == "cuda" and not torch.cuda.is_available():
             raise ConfigError(f"svgp.device = {cfg.device}, but torch sees no CUDA device")
+        self.num_inducing = resolve_num_inducing(cfg.num_inducing, self.device.type)
         self.dtype = torch.float64 if cfg.dtype == "float64" else torch.float32
         self.natural = cfg.natural_gradient if natural is None else natural
         self._gen = torch.Generator().manual_seed(cfg.seed)
@@ -120,7 +134,7 @@ class OccupancySVGP:
         return torch.as_tensor(a, dtype=self.dtype, device=self.device)
 
     def _init_model(self, x: np.ndarray, y: np.ndarray, num_inducing: int | None = None) -> None:
-        m = self.cfg.num_inducing if num_inducing is None else num_inducing
+        m = self.num_inducing if num_inducing is None else num_inducing
         zi = farthest_point_sample(x, m, self.cfg.seed)
         Z = self._t(x[zi])
         with torch.random.fork_rng(devices=[]):

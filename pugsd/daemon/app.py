@@ -258,6 +258,9 @@ class Daemon:
                 t0 = time.monotonic()
                 await asyncio.to_thread(self._locked, warm_up)
                 log.info("pipeline warmed up in %.1f s", time.monotonic() - t0)
+            svgp = getattr(self.pipeline, "svgp", None)
+            if svgp is not None:  # the automatic M depends on the device (svgp.num_inducing = 0)
+                log.info("SVGP on %s with M = %d inducing points", svgp.device, svgp.num_inducing)
             self._declare_inputs()
             self._start_recorder()
             log.info(

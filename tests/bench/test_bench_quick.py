@@ -236,6 +236,27 @@ def test_targets_on_a_synthetic_result() -> None:
     assert rows["sustained input without drops (daemon)"] is True
 
 
+def test_the_cuda_target_is_judged_at_the_daemons_m_on_cuda() -> None:
+    """The CUDA section times both automatic M; the row is judged at CUDA's and names the other."""
+
+    def step(cpu: float, cuda: float) -> dict[str, Any]:
+        return {"svgp_steps_per_s_cpu": cpu, "svgp_steps_per_s_cuda": cuda,
+                "speedup_steps_per_s": round(cuda / cpu, 2),
+                "svgp_step_cpu": {}, "svgp_step_cuda": {}}  # fmt: skip
+
+    cu: dict[str, Any] = {"M250": step(20.0, 80.0), "M500": step(5.0, 75.0), "num_inducing_cuda": 500,
+                          "algorithm1_20k_cuda": {"median_ms": 45.0}}  # fmt: skip
+    cu.update({k: cu["M500"][k] for k in cu["M500"]})
+    r: dict[str, Any] = {"quick": False, "machine": {"cuda_available": True}, "cuda": cu}
+    row = next(t for t in evaluate_targets(r) if t["target"] == "CUDA SVGP steps/s vs CPU")
+    assert row["measured"] == 15.0 and row["pass"] is True
+    assert row["note"] == "at M = 500, the daemon's on CUDA; M = 250: 4.0x"
+    cu["num_inducing_cuda"] = 250
+    cu.update({k: cu["M250"][k] for k in cu["M250"]})
+    row = next(t for t in evaluate_targets(r) if t["target"] == "CUDA SVGP steps/s vs CPU")
+    assert row["measured"] == 4.0 and row["pass"] is False and "M = 500: 15.0x" in row["note"]
+
+
 def test_the_full_throughput_ladder_starts_above_the_target() -> None:
     rates = BenchOptions.full().throughput_rates_hz
     assert max(rates) > 10.0 and 10.0 in rates
@@ -314,3 +335,34 @@ def test_the_daemon_agreement_is_taken_on_the_shared_points(monkeypatch: pytest.
 def test_tools_bench_is_executable() -> None:
     p = Path(__file__).resolve().parents[2] / "tools" / "bench"
     assert p.is_file() and p.stat().st_mode & 0o111
+
+
+def test_no_pipeline_runs_the_daemon_sections_alone(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--no-pipeline`` (for machines with a per-command time limit): no stage latencies and no
+    paper fit, but the daemon's last-frame latency, throughput and replay are measured and judged."""
+    path = tmp_path / "bench.json"
+    mp = pytest.MonkeyPatch()
+    mp.setattr(
+        BenchOptions, "quick_preset", classmethod(lambda cls: _tiny().replace(trajectories=("partial",)))
+    )
+    try:
+        rc = main(["bench", "--quick", "--no-pipeline", "--json", str(path)])
+    finally:
+        mp.undo()
+    assert rc == 0
+    r = json.loads(path.read_text())
+    assert "stages" not in r and r["paper_vs_streaming"] == {}
+    dm = r["daemon_alone"]["partial"]
+    assert dm["frames"] == 3 and dm["integrated"] == 3
+    assert dm["agreement_with_paper"] is None
+    assert r["throughput"]["trials"] and r["replay"]["frames_offered"] > 0
+    names = [t["target"] for t in r["targets"]]
+    assert "daemon last frame -> its grasps (partial)" in names
+    assert not any("Spearman" in n or "paper / streaming" in n for n in names)
+    assert any(line.startswith("the daemon alone") for line in r["table"])
+    assert not any(line.startswith(("stage", "paper mode")) for line in r["table"])
+    capsys.readouterr()
+    assert main(["bench", "--quick", "--no-pipeline", "--no-daemon"]) == 2
+    assert "leave nothing to measure" in capsys.readouterr().err

@@ -414,3 +414,33 @@ def test_optimal_q_maximises_the_elbo() -> None:
     e_opt = s.set_optimal_q(x, y)
     s.update(x, y, np.zeros(0, dtype=np.int64), steps=20)
     assert s.elbo_per_point(x, y) <= e_opt + 1e-3 * abs(e_opt)
+
+
+def test_num_inducing_auto_is_250_on_the_cpu_and_500_on_cuda() -> None:
+    """svgp.num_inducing = 0 (the default) resolves by device; an explicit M always wins."""
+    from pugsd.core.predictive import resolve_num_inducing
+    from pugsd.errors import ConfigError
+
+    assert SvgpConfig().num_inducing == 0
+    assert resolve_num_inducing(0, "cpu") == 250 and resolve_num_inducing(0, "cuda") == 500
+    assert resolve_num_inducing(300, "cpu") == 300 and resolve_num_inducing(300, "cuda") == 300
+    rng = np.random.default_rng(3)
+    x = rng.uniform(0.0, 0.05, (600, 3))
+    s = OccupancySVGP(SvgpConfig(device="cpu", batch_size=128))
+    assert s.num_inducing == 250
+    s.update(x, np.ones(len(x)), np.arange(len(x)), steps=1)
+    assert len(s.model.variational_strategy.inducing_points) == 250  # type: ignore[union-attr]
+    for bad in (1, 7):
+        with pytest.raises(ConfigError, match="num_inducing: 0 \\(auto\\) or at least 8"):
+            SvgpConfig(num_inducing=bad)
+
+
+@pytest.mark.gpu
+def test_num_inducing_auto_on_cuda_is_the_papers_m() -> None:
+    rng = np.random.default_rng(3)
+    x = rng.uniform(0.0, 0.05, (1200, 3))
+    s = OccupancySVGP(SvgpConfig(device="cuda", batch_size=256))
+    s.update(x, np.ones(len(x)), np.arange(len(x)), steps=2)
+    assert s.num_inducing == 500
+    assert len(s.model.variational_strategy.inducing_points) == 500  # type: ignore[union-attr]
+    assert s.model.variational_strategy.inducing_points.device.type == "cuda"  # type: ignore[union-attr]
