@@ -520,6 +520,8 @@ def _drop_counts(st: dict[str, Any]) -> dict[str, int]:
         "depth_mailbox": int(st["mailboxes"]["depth"]["dropped"]),
         "ingress": int(st["ingress"]["dropped"]),
         "unpaired": int(st["waiting"]["unpaired_dropped"]),
+        "unpaired_waiting": int(st["waiting"]["unpaired"]),  # halves whose partner never came
+        "lost_before_daemon": sum(st["upstream"]["lost"].values()),  # sequence gaps
         "pose_wait_and_other": int(c.get("dropped", 0)),
         "rejected": int(c.get("rejected", 0)),
     }

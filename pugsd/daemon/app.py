@@ -45,6 +45,7 @@ from pugsd.daemon.notify import Notifier, watchdog_interval_s
 from pugsd.daemon.timesync import ExactPairer, PoseBuffer, PoseGate, PoseSample
 from pugsd.errors import DecodeError, PugsdError
 from pugsd.wire import codec
+from pugsd.wire.attachment import SequenceTracker
 from pugsd.wire.keys import parse_key
 from pugsd.wire.publisher import Publisher
 from pugsd.wire.session import close_session, open_session
@@ -121,6 +122,7 @@ class Inbound:
     key: str
     payload: bytes
     recv_s: float  # time.monotonic()
+    lost_before: int = 0  # messages of the same publisher missing just before this one
 
 
 @dataclass(frozen=True, slots=True)
@@ -198,6 +200,7 @@ class Daemon:
         self._last_std_s: float | None = None
         self._frame_id = d.world_frame
         self.ingress = IngressGate(d.ingress_limit)
+        self.upstream = SequenceTracker()  # messages lost before they reached pugsd
         self._model_lock = threading.Lock()
         # one thread for depth estimation, one for ingest and training, one for grasp computations
         self._depth_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pugsd-depth")
@@ -437,13 +440,16 @@ class Daemon:
     def _bridge_sample(self, role: str) -> Callable[[Any], None]:
         loop = self._loop
         assert loop is not None
-        gate = self.ingress
+        gate, upstream = self.ingress, self.upstream
 
         def on_sample(sample: Any) -> None:  # zenoh thread: copy bytes, hand over, never block
+            # before the ingress bound, so that what that bound drops is not also counted as lost
+            att = sample.attachment
+            lost = upstream.observe(role, None if att is None else att.to_bytes())
             if not gate.enter():
                 return
             try:
-                item = Inbound(role, str(sample.key_expr), sample.payload.to_bytes(), time.monotonic())
+                item = Inbound(role, str(sample.key_expr), sample.payload.to_bytes(), time.monotonic(), lost)
                 loop.call_soon_threadsafe(self._on_inbound, item)
             except Exception:  # loop closed during shutdown
                 gate.leave()
@@ -509,6 +515,15 @@ class Daemon:
     def _on_inbound(self, item: Inbound) -> None:
         self.ingress.leave()
         self.health.count(f"received.{item.role}")
+        if item.lost_before:  # counted by self.upstream; logged like rejections
+            self.health.count(f"upstream_gaps.{item.role}")
+            n = self.health.counts[f"upstream_gaps.{item.role}"]
+            if n <= 5 or n % 100 == 0:
+                log.warning(
+                    "%s: %d message(s) lost before pugsd (rmw_zenoh sequence gap #%d): the "
+                    "publisher's congestion control or the link dropped them",
+                    item.role, item.lost_before, n,
+                )  # fmt: skip
         if self._stopping:
             return
         try:
@@ -999,6 +1014,7 @@ class Daemon:
             **snap,
             "mailboxes": {b.name: b.stats() for b in (self.stereo_box, self.depth_box, self.commands)},
             "ingress": {"pending": self.ingress.pending, "dropped": self.ingress.dropped},
+            "upstream": self.upstream.snapshot(),
             "waiting": {
                 "pose_gate": len(self.gate),
                 "unpaired": self.pairer.pending(),

@@ -9,8 +9,11 @@ from __future__ import annotations
 
 import os
 import struct
+import threading
 import time
+from collections import Counter, OrderedDict
 from dataclasses import dataclass
+from typing import Any
 
 from pugsd.errors import DecodeError
 
@@ -55,3 +58,60 @@ def decode_attachment(data: bytes | bytearray | memoryview | None) -> Attachment
 
 def now_ns() -> int:
     return time.time_ns()
+
+
+class SequenceTracker:
+    """Counts messages lost before they reached us, from rmw_zenoh sequence numbers.
+
+    Each publisher numbers its messages 1, 2, 3, ... under its own GID. Per ``(source, GID)`` the
+    tracker keeps the highest number seen: a jump from n to n + k counts k - 1 messages as
+    ``lost`` (dropped by the publisher's congestion control, a slow link or a restarted router);
+    a number at or below the highest counts as ``late`` (zenoh delivers one publisher's samples
+    in order, so this should stay 0). Samples without a valid attachment (plain zenoh
+    publishers, zenoh-bridge-ros2dds keys) are counted as ``untracked``. At most ``max_publishers``
+    GIDs are remembered per source (least recently seen forgotten); a forgotten publisher that
+    returns starts afresh. Thread-safe: zenoh may call subscribers from several threads.
+    """
+
+    def __init__(self, max_publishers: int = 32) -> None:
+        self.max_publishers = max_publishers
+        self._last: dict[str, OrderedDict[bytes, int]] = {}
+        self.lost: Counter[str] = Counter()
+        self.late: Counter[str] = Counter()
+        self.untracked: Counter[str] = Counter()
+        self._lock = threading.Lock()
+
+    def observe(self, source: str, attachment: bytes | None) -> int:
+        """Record one sample of ``source``; returns how many of its publisher's messages went
+        missing just before it (0 when none, or when it carries no valid attachment)."""
+        try:
+            att = decode_attachment(attachment)
+        except DecodeError:
+            with self._lock:
+                self.untracked[source] += 1
+            return 0
+        seq = att.sequence_number
+        with self._lock:
+            seen = self._last.setdefault(source, OrderedDict())
+            last = seen.get(att.gid)
+            if last is not None and seq <= last:
+                self.late[source] += 1
+                seen.move_to_end(att.gid)
+                return 0
+            seen[att.gid] = seq
+            seen.move_to_end(att.gid)
+            while len(seen) > self.max_publishers:
+                seen.popitem(last=False)
+            gap = 0 if last is None else seq - last - 1
+            if gap:
+                self.lost[source] += gap
+            return gap
+
+    def snapshot(self) -> dict[str, Any]:
+        with self._lock:
+            return {
+                "lost": dict(self.lost),
+                "late": dict(self.late),
+                "untracked": dict(self.untracked),
+                "publishers": {k: len(v) for k, v in self._last.items()},
+            }

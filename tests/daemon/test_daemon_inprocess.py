@@ -280,3 +280,65 @@ def test_grasps_follow_a_pause_in_the_input_at_once(port: int, client: zenoh.Ses
     finally:
         sub.undeclare()
         dt.stop()
+
+
+def test_messages_lost_before_the_daemon_are_counted_from_sequence_numbers(
+    running: tuple[DaemonThread, FakePipeline, RecordingNotifier],
+    client: zenoh.Session,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A camera whose right images arrive with rmw_zenoh sequence numbers 1, 2, 5, 6 (3 and 4
+    lost on the way), one without an attachment and one late (3): every frame that arrived
+    whole is integrated, and the status says 2 lost, 1 late, 1 untracked, on right_image only."""
+    import logging
+
+    from pugsd.wire.attachment import encode_attachment
+
+    dt, pipe, _ = running
+    src = Source(client)
+    src.wait_matching()
+    src.infos()
+    time.sleep(0.1)
+    right_key = key_for(src.topics, "right_image")
+    gid = bytes(range(16))
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 255, (RIG.left.height, RIG.left.width), dtype=np.uint8)
+    t0 = 3_000_000_000
+    # (frame, the right image's attachment); frame 5 carries the late sequence number 3
+    plan: list[tuple[int, bytes | None]] = [
+        (0, encode_attachment(1, t0, gid)),
+        (1, encode_attachment(2, t0, gid)),
+        (2, encode_attachment(5, t0, gid)),
+        (3, encode_attachment(6, t0, gid)),
+        (4, None),
+        (5, encode_attachment(3, t0, gid)),
+    ]
+    with caplog.at_level(logging.WARNING, logger="pugsd"):
+        for i, att in plan:
+            stamp = t0 + i * 100_000_000
+            src.put("pose", codec.encode_pose_with_covariance(stamp, pose_at(0.01 * i), np.eye(6) * 1e-6))
+            src.put("left_image", codec.encode_image(img, stamp, "left"))
+            right = codec.encode_image(np.roll(img, -3, axis=1), stamp, "right")
+            if att is None:
+                client.put(right_key, right)
+            else:
+                client.put(right_key, right, attachment=att)
+            time.sleep(0.05)
+        src.put("pose", codec.encode_pose_with_covariance(t0 + 10**9, pose_at(0.1), np.eye(6) * 1e-6))
+        d = dt.daemon
+        wait_for(
+            lambda: len(pipe.integrated) + d.stereo_box.dropped + d.depth_box.dropped == 6,
+            10.0,
+            "all six frames integrated or dropped (drop oldest)",
+        )
+    st = query_json(client, "pugs/status")
+    up = st["upstream"]
+    assert up["lost"] == {"right_image": 2}
+    assert up["late"] == {"right_image": 1}
+    assert up["untracked"] == {"right_image": 1}
+    assert up["publishers"]["right_image"] == 1 and up["publishers"]["left_image"] == 1
+    assert st["counts"]["paired"] == 6 and st["counts"].get("rejected", 0) == 0
+    assert st["counts"]["upstream_gaps.right_image"] == 1
+    warned = [r.getMessage() for r in caplog.records if "lost before pugsd" in r.getMessage()]
+    assert len(warned) == 1 and warned[0].startswith("right_image: 2 message(s)"), warned
+    src.close()

@@ -76,3 +76,44 @@ def test_attachment_layout_matches_zenoh_ext() -> None:
         decode_attachment(None)
     with pytest.raises(ValueError):
         encode_attachment(1, 2, b"short")
+
+
+def test_sequence_tracker_counts_gaps_late_and_untracked_per_publisher() -> None:
+    from pugsd.wire.attachment import SequenceTracker
+
+    a, b = b"A" * 16, b"B" * 16
+    t = SequenceTracker()
+    # the first message of a publisher is its baseline, whatever its number (we may join late)
+    assert t.observe("img", encode_attachment(7, 0, a)) == 0
+    assert t.observe("img", encode_attachment(8, 0, a)) == 0
+    assert t.observe("img", encode_attachment(11, 0, a)) == 2  # 9 and 10 missing
+    # another publisher on the same input is tracked on its own
+    assert t.observe("img", encode_attachment(1, 0, b)) == 0
+    assert t.observe("img", encode_attachment(3, 0, b)) == 1
+    assert t.observe("img", encode_attachment(10, 0, a)) == 0  # late: not a gap, not a reset
+    assert t.observe("img", encode_attachment(12, 0, a)) == 0
+    assert t.observe("img", None) == 0
+    assert t.observe("img", b"\x00" * 12) == 0
+    assert t.observe("pose", encode_attachment(5, 0, a)) == 0  # same GID, other input
+    snap = t.snapshot()
+    assert snap == {
+        "lost": {"img": 3},
+        "late": {"img": 1},
+        "untracked": {"img": 2},
+        "publishers": {"img": 2, "pose": 1},
+    }
+
+
+def test_sequence_tracker_forgets_the_least_recent_publisher() -> None:
+    from pugsd.wire.attachment import SequenceTracker
+
+    t = SequenceTracker(max_publishers=2)
+    g = [bytes([i]) * 16 for i in range(3)]
+    t.observe("x", encode_attachment(1, 0, g[0]))
+    t.observe("x", encode_attachment(1, 0, g[1]))
+    t.observe("x", encode_attachment(1, 0, g[2]))  # forgets g[0]
+    assert t.snapshot()["publishers"] == {"x": 2}
+    assert t.observe("x", encode_attachment(50, 0, g[0])) == 0  # back: a new baseline
+    assert t.observe("x", encode_attachment(5, 0, g[1])) == 0  # g[1] forgotten in turn
+    assert t.snapshot()["lost"] == {}
+
