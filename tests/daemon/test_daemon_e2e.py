@@ -35,15 +35,33 @@ SHUTDOWN_BOUND_S = 5.0 + 5.0  # daemon.shutdown_timeout_s + interpreter/zenoh te
 RMW_KEY = re.compile(r"^(\d+)/(.+)/([a-z0-9_]+)::msg::dds_::([A-Za-z0-9]+)_/(RIHS01_[0-9a-f]{64})$")
 
 
-def distance_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Distance to the surface, from 50k area-weighted surface samples (about 1 mm spacing)."""
+def surface_samples(vertices: np.ndarray, faces: np.ndarray, n: int = 100_000) -> np.ndarray:
+    """Area-weighted samples of the mesh surface (about 1 mm apart on the mug)."""
     import trimesh
-    from scipy.spatial import cKDTree
 
     mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
-    surface, _ = trimesh.sample.sample_surface(mesh, 50000, seed=0)
-    dist, _ = cKDTree(surface).query(np.atleast_2d(points))
-    return np.asarray(dist)
+    surface, _ = trimesh.sample.sample_surface(mesh, n, seed=0)
+    return np.asarray(surface)
+
+
+def pad_distances(
+    pose_W: np.ndarray, contact_W: np.ndarray, width_m: float, surface_W: np.ndarray
+) -> tuple[float, float]:
+    """Distance from the mesh surface to each finger pad of a grasp at closure: the rectangles
+    (finger width along a x b, finger length along a) centred on the contact and on
+    contact + width b, in the planes normal to the closing axis b (GripperConfig defaults)."""
+    from pugsd.config import GripperConfig
+
+    g = GripperConfig()
+    b, y, a = pose_W[:3, 0], pose_W[:3, 1], pose_W[:3, 2]
+    out = []
+    for centre in (contact_W, contact_W + width_m * b):
+        rel = surface_W - centre
+        dx = rel @ b
+        dy = np.maximum(np.abs(rel @ y) - g.finger_width_m / 2, 0.0)
+        dz = np.maximum(np.abs(rel @ a) - g.finger_length_m / 2, 0.0)
+        out.append(float(np.sqrt(dx**2 + dy**2 + dz**2).min()))
+    return out[0], out[1]
 
 
 def test_end_to_end_stereo_to_grasps(
@@ -92,13 +110,22 @@ def test_end_to_end_stereo_to_grasps(
         with lock:
             key, data, att = next((k, b, a) for k, b, a in got if len(codec.decode_grasp_array(b)))
 
-        # 1. the top grasp lies on the object
+        # 1. the top grasp closes on the object: both finger pads touch the mug's surface (within
+        # 5 mm: the jaws close on reconstructed points), and the pose follows from the contact
         g = codec.decode_grasp_array(data)
         z = np.load(sequence_npz)
-        d = distance_to_mesh(g.contact_W[:1], z["mesh_vertices"], z["mesh_faces"])
-        assert d[0] < 0.01, (
-            f"top grasp contact {g.contact_W[0]} is {d[0]:.4f} m off the mug "
-            f"(array of {len(g)} grasps; publisher: "
+        from pugsd.config import GripperConfig
+
+        b0, a0 = g.pose_W[0, :3, 0], g.pose_W[0, :3, 2]
+        wrist = g.contact_W[0] + 0.5 * g.width_m[0] * b0 - GripperConfig().depth_m * a0
+        assert g.pose_W[0, :3, 3] == pytest.approx(wrist, abs=1e-9)
+        pads = pad_distances(
+            g.pose_W[0], g.contact_W[0], float(g.width_m[0]),
+            surface_samples(z["mesh_vertices"], z["mesh_faces"]),
+        )  # fmt: skip
+        assert max(pads) < 0.005, (
+            f"top grasp (contact {g.contact_W[0]}, width {g.width_m[0]:.4f} m): its finger pads are "
+            f"{pads[0]:.4f} / {pads[1]:.4f} m off the mug (array of {len(g)} grasps; publisher: "
             f"{pub_stats.read_text() if pub_stats.exists() else 'running'}):\n" + daemon.log()[-3000:]
         )
         assert g.pugs_confidence[0] == pytest.approx(np.max(g.pugs_confidence))
