@@ -8,8 +8,8 @@ Eq. 12: ``wi_mu = wi_sigma = 1 / (2 (d + lambda))``.
 With (alpha, beta, kappa) = (1, 0, 0) this is the third-degree spherical-radial cubature rule.
 
 Algorithm 1, line 6, ``sigma^2_occ``:
-  ``total`` (default, law of total variance): ``sum_n w_mu sigma2_n + sum_n w_sigma (mu_n - mu_occ)^2``;
-  ``paper_literal``: ``sum_n w_sigma sigma2_n``.
+  ``paper_literal`` (the default, ``cubature.variance_form``): ``sum_n w_sigma sigma2_n``;
+  ``total`` (law of total variance): ``sum_n w_mu sigma2_n + sum_n w_sigma (mu_n - mu_occ)^2``.
 """
 
 from __future__ import annotations

@@ -165,6 +165,9 @@ def resolve_query_workers(query_workers: int, svgp_device: str) -> int:
 class FofStore:
     """Voxel-hashed Gaussian store with incremental Eq. 4-6 targets (dirty regions only)."""
 
+    # the per-voxel arrays (first axis = voxel slot), grown and compacted together
+    _PER_VOXEL = ("_count", "_sum_prec", "_sum_prec_mu", "_last_seen", "_fused", "_density", "_dirty")
+
     def __init__(self, cfg: FofConfig) -> None:
         if cfg.query_device == "cuda" and not torch.cuda.is_available():
             raise ConfigError("fof.query_device = cuda, but torch sees no CUDA device")
@@ -209,15 +212,7 @@ class FofStore:
         if need <= cap:
             return
         new = max(need, 2 * cap)
-        for name in (
-            "_count",
-            "_sum_prec",
-            "_sum_prec_mu",
-            "_last_seen",
-            "_fused",
-            "_density",
-            "_dirty",
-        ):
+        for name in self._PER_VOXEL:
             old = getattr(self, name)
             arr = np.zeros((new, *old.shape[1:]), dtype=old.dtype)
             arr[:cap] = old
@@ -266,15 +261,7 @@ class FofStore:
         self.evicted += n - keep.size
         remap = -np.ones(n, dtype=np.int64)
         remap[keep] = np.arange(keep.size)
-        for name in (
-            "_count",
-            "_sum_prec",
-            "_sum_prec_mu",
-            "_last_seen",
-            "_fused",
-            "_density",
-            "_dirty",
-        ):
+        for name in self._PER_VOXEL:
             arr = getattr(self, name)
             arr[: keep.size] = arr[keep]
         self._index = {k: int(remap[s]) for k, s in self._index.items() if remap[s] >= 0}
