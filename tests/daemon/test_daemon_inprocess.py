@@ -288,8 +288,9 @@ def test_messages_lost_before_the_daemon_are_counted_from_sequence_numbers(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     """A camera whose right images arrive with rmw_zenoh sequence numbers 1, 2, 5, 6 (3 and 4
-    lost on the way), one without an attachment and one late (3): every frame that arrived
-    whole is integrated, and the status says 2 lost, 1 late, 1 untracked, on right_image only."""
+    lost on the way), one without an attachment and one late (3): every frame is still paired
+    and passed on (integrated, or dropped by a mailbox as any frame may be), and the status says
+    2 lost, 1 late, 1 untracked, on right_image only."""
     import logging
 
     from pugsd.wire.attachment import encode_attachment
