@@ -333,7 +333,8 @@ def run_demo(
         f"frames sent {extra['frames_sent']}, integrated {c.get('integrated', 0)}, dropped "
         f"{mb['stereo']['dropped'] + mb['depth']['dropped'] + c.get('dropped', 0)} (newest frame "
         f"wins: stereo queue {mb['stereo']['dropped']}, depth queue {mb['depth']['dropped']}, "
-        f"no pose {c.get('dropped', 0)}), rejected {c.get('rejected', 0)}, grasp updates "
+        f"no pose {c.get('dropped', 0)}), rejected {c.get('rejected', 0)}, lost before the "
+        f"daemon {sum(st['upstream']['lost'].values())}, grasp updates "
         f"{daemon.grasps_published}; slowest zenoh put {1e3 * extra['max_put_s']:.2f} ms"
     )
     lat = st["latency"]

@@ -40,4 +40,11 @@ def test_demo_shows_grasps_within_a_minute(tmp_path: Path) -> None:
     first = float(m.group(1))
     print(f"\ndemo: first scored grasps {first:.1f} s after start; whole run {took:.0f} s")
     assert first < 60.0, text[-3000:]
+    # the summary accounts for the frames: none counted twice, losses before the daemon reported
+    m = re.search(
+        r"frames sent (\d+), integrated (\d+), dropped (\d+) .*lost before the daemon (\d+),", text
+    )
+    assert m, text[-3000:]
+    sent, integrated, dropped, _lost = (int(g) for g in m.groups())
+    assert integrated >= 1 and integrated + dropped <= sent, m.group(0)
     assert list(out.glob("*.mcap")) and (out / "grasps.png").stat().st_size > 10_000
