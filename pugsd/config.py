@@ -84,9 +84,10 @@ class ObservationConfig:
     )
     regulariser_m: float = opt(
         0.0005,
-        "isotropic std eps added as eps^2 I so every covariance is invertible",
+        "isotropic std eps added as eps^2 I so every covariance is invertible (> 0: a pose "
+        "reported without covariance leaves the needle of Eq. 2 rank 1)",
         unit="m",
-        ge=0.0,
+        gt=0.0,
     )
     max_points_per_frame: int = opt(
         20000, "random subsample of back-projected points per frame (0 keeps all)", ge=0

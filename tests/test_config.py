@@ -49,6 +49,7 @@ def test_every_key_is_documented() -> None:
         ({"cubature": {"variance_form": "B"}}, "cubature.variance_form: 'B' is not one of"),
         ({"stereo": {"block_size": 4}}, "block_size: must be odd"),
         ({"svgp": {"ngd_lr": True}}, "svgp.ngd_lr: expected a number"),
+        ({"observation": {"regulariser_m": 0}}, "observation.regulariser_m: 0.0 must be greater"),
     ],
 )
 def test_bad_values_name_the_dotted_path(data: dict, message: str) -> None:  # type: ignore[type-arg]

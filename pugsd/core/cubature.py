@@ -48,6 +48,8 @@ def sigma_points(mean: np.ndarray, cov: np.ndarray, alpha: float, kappa: float) 
     """Eq. 9 for Q Gaussians: mean (Q, d), cov (Q, d, d) -> points (Q, 2d+1, d)."""
     d = mean.shape[-1]
     lam = alpha**2 * (d + kappa) - d
+    if not (np.isfinite(cov).all() and np.isfinite(mean).all()):
+        raise CovarianceError("cubature: non-finite mean or covariance")  # cholesky would pass NaN
     try:
         L = np.linalg.cholesky((d + lam) * cov)
     except np.linalg.LinAlgError as exc:

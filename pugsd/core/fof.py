@@ -202,6 +202,8 @@ class FofStore:
         self._nb_r: np.ndarray = np.zeros(0)
         self.last_touched = np.zeros(0, dtype=np.int64)
         self.evicted = 0
+        # old slot -> new slot (-1: evicted) of the last compaction, for callers holding indices
+        self.last_remap: np.ndarray = np.zeros(0, dtype=np.int64)
 
     def __len__(self) -> int:
         return self._n
@@ -264,6 +266,8 @@ class FofStore:
         for name in self._PER_VOXEL:
             arr = getattr(self, name)
             arr[: keep.size] = arr[keep]
+            arr[keep.size : n] = 0  # freed slots: a new voxel placed there starts from nothing
+        self.last_remap = remap
         self._index = {k: int(remap[s]) for k, s in self._index.items() if remap[s] >= 0}
         self._n = keep.size
         self._dirty[: self._n] = True  # neighbourhoods changed near evicted voxels

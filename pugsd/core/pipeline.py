@@ -158,7 +158,11 @@ class PugsPipeline:
         t0 = time.perf_counter()
         batch = self.observation.backproject(depth)
         t1 = time.perf_counter()
+        evicted = self.store.evicted
         touched = self.store.insert(batch.points_W, batch.cov_W)
+        if self.store.evicted != evicted:  # the store compacted: the pending indices moved
+            remap = self.store.last_remap
+            self._pending = [r[r >= 0] for r in (remap[p] for p in self._pending)]
         self.store.update_targets()
         t2 = time.perf_counter()
         self.recon.integrate(depth)
@@ -182,9 +186,14 @@ class PugsPipeline:
 
     # ------------------------------------------------------------------ training
     def _targets(self) -> tuple[np.ndarray, np.ndarray]:
-        """Training inputs and targets; the target scale is kept unless it drifts by > 25 %."""
+        """Training inputs and targets; the target scale is kept unless it drifts by > 25 %. When
+        it changes, the SVGP is rescaled with it (``OccupancySVGP.rescale_outputs``): its
+        predictions stay the same field in the new units, so a frame that grows the field does
+        not shift every prediction by the ratio of the scales."""
         s = self.store.compute_scale()
         if self._scale is None or abs(s / self._scale - 1.0) > 0.25:
+            if self._scale is not None:
+                self.svgp.rescale_outputs(self._scale / s)
             self._scale = s
         snap = self.store.snapshot(self._scale)
         return snap.mu_W, snap.target

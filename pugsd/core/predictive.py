@@ -212,6 +212,42 @@ class OccupancySVGP:
             self.load_state(self._good_state)
         self._make_optimizers(n)
 
+    def rescale_outputs(self, ratio: float) -> None:
+        """The targets were divided by a new scale, ``y' = ratio * y``: scale the model with them
+        so that it predicts the same field in the new units (``f' = ratio * f``).
+
+        With a zero mean, that takes the output scale and the noise variance times ``ratio^2``
+        and the inducing variables ``u' = ratio u``; q(u') is written whitened with the new
+        factor (``u = L v``, ``L L^T = K_ZZ + j I``). The noise is kept above its constraint's
+        lower bound. The ELBO per point
+        shifts by ``-log(ratio)`` (a change of variables), and the readiness window's ELBOs are
+        shifted with it so that ``elbo_slope`` does not see a jump."""
+        if self.model is None or ratio == 1.0:
+            return
+        if not (math.isfinite(ratio) and ratio > 0.0):
+            raise ValueError(f"target scale ratio must be finite and positive, got {ratio}")
+        assert self.likelihood is not None
+        r2 = ratio * ratio
+        vs = self.model.variational_strategy
+        with torch.no_grad():
+            L_old = self._inducing_factor64()
+            m_w, S_w = self._whitened_q64()
+            kern = self.model.covar_module
+            kern.outputscale = kern.outputscale * r2
+            lik = self.likelihood
+            floor = float(lik.noise_covar.raw_noise_constraint.lower_bound) * (1.0 + 1e-6)
+            lik.noise = torch.clamp(lik.noise * r2, min=floor)
+            # u' = ratio u, whitened with the new factor: the jitter does not scale with the
+            # kernel, so q(v) is not exactly unchanged (it is where K_ZZ >> jitter)
+            T = ratio * torch.linalg.solve_triangular(self._inducing_factor64(), L_old, upper=False)
+            self._write_whitened_q(T @ m_w, T @ S_w @ T.mT)
+        vs._memoize_cache = {}
+        shift = -math.log(ratio)
+        self._elbos = collections.deque((e + shift for e in self._elbos), maxlen=self._elbos.maxlen)
+        self.last_elbo += shift
+        self.version += 1
+        self._save_good_state()
+
     @property
     def initialised(self) -> bool:
         return self.model is not None
@@ -286,8 +322,9 @@ class OccupancySVGP:
         assert self._mll is not None
         self._mll.num_data = n
         if self._ngd is not None:
-            for g in self._ngd.param_groups:
-                g["num_data"] = n
+            # gpytorch's NGD scales its step by its own ``num_data`` attribute (not a param-group
+            # key): it must follow the store, or the natural-gradient rate shrinks as N0 / N
+            self._ngd.num_data = n
         xt, yt = self._t(x), self._t(y)
         bs = min(self.cfg.batch_size, n)
         n_new = round(bs * (1.0 - self.cfg.replay_fraction)) if len(new_idx) else 0
@@ -346,8 +383,9 @@ class OccupancySVGP:
         leave the window.
 
         A few inducing points moved into a new view do not reset readiness: the move re-projects
-        q(u) so that the field is (nearly) unchanged; what is not yet fitted is the new data, as
-        after any new frame. Many moves at once (a new object, a large unseen region) do."""
+        q(u) so that the posterior at the new inducing points is kept (the field changes only
+        near the points that moved); what is not yet fitted is the new data, as after any new
+        frame. Many moves at once (a new object, a large unseen region) do."""
         if self.model is None:
             return False
         n = self.cfg.ready_min_steps
@@ -367,8 +405,9 @@ class OccupancySVGP:
         New points farther than ``coverage_lengthscales`` lengthscales (Mahalanobis in the ARD
         metric) from every inducing point are covered by FPS samples, replacing the inducing
         points with the least posterior influence (smallest |m| of the whitened mean). The
-        variational distribution is re-projected so the predictive field is unchanged at the moment
-        of the swap: m = mu_f(Z_new), S = Sigma_f(Z_new), whitened with the new Cholesky factor.
+        variational distribution is re-projected so that the posterior at the new inducing points
+        is kept at the moment of the swap: m = mu_f(Z_new), S = Sigma_f(Z_new), whitened with the
+        new Cholesky factor (``_reproject``).
         """
         assert self.model is not None
         if len(new_idx) == 0:
@@ -442,25 +481,70 @@ class OccupancySVGP:
         vd = self.model.variational_strategy._variational_distribution
         return vd().mean.detach()
 
+    def _inducing_factor64(self) -> torch.Tensor:
+        """``L`` with ``L L^T = K_ZZ + j I`` (the strategy's jitter ``j``), in float64."""
+        assert self.model is not None
+        vs = self.model.variational_strategy
+        f64 = torch.float64
+        kern = copy.deepcopy(self.model.covar_module).to(f64)
+        Z = vs.inducing_points.detach().to(f64)
+        eye = torch.eye(len(Z), dtype=f64, device=Z.device)
+        return torch.linalg.cholesky(kern(Z).to_dense() + float(vs.jitter_val) * eye)
+
+    def _whitened_q64(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The whitened q(v) = N(m_w, S_w) in float64, from the distribution's own parameters."""
+        assert self.model is not None
+        vd = self.model.variational_strategy._variational_distribution
+        f64 = torch.float64
+        if isinstance(vd, gpytorch.variational.NaturalVariationalDistribution):
+            P = -2.0 * vd.natural_mat.detach().to(f64)  # natural_mat = -S^-1 / 2
+            P = 0.5 * (P + P.mT)
+            S = torch.cholesky_inverse(torch.linalg.cholesky(P))
+            return S @ vd.natural_vec.detach().to(f64), 0.5 * (S + S.mT)
+        L_S = vd.chol_variational_covar.detach().to(f64).tril()
+        return vd.variational_mean.detach().to(f64), L_S @ L_S.mT
+
     def _reproject(self, Z_new: torch.Tensor) -> None:
-        """Write q(u) for new inducing points so that it matches the current posterior at Z_new."""
+        """Write q(u) for new inducing points ``Z_new`` as the current posterior of their
+        inducing variables (Sec. 5.1): ``q(u_new) = int p(u_new | u) q(u) du``.
+
+        gpytorch's inducing variables are ``u = f(Z) + e`` with the strategy's jitter ``j`` as a
+        nugget ``e`` (``K_ZZ + j I = L L^T``). With a nugget per location, an inducing point that
+        does not move keeps its own: ``C = cov(u, u_new) = K(Z, Z_new) + j [Z_i = Z_new,k]``,
+        ``A = C^T L^-T``, mean ``A m_w``, covariance ``K_nn + j I - A A^T + A S_w A^T``, whitened
+        with the new factor. Onto the same Z this is the identity (exactly, up to float32
+        storage); the points that stay keep their marginal; where points moved, predictions
+        nearby change (the old points no longer pin them).
+
+        Float64 throughout (float32 algebra, without the nugget, changed predictive variances by
+        ~10 % on an identity re-projection). The prior mean is zero (``_SVGP``)."""
         assert self.model is not None
         model = self.model
-        model.eval()
-        with torch.no_grad(), gpytorch.settings.cholesky_jitter(1e-4):
-            post = model(Z_new)
-            m = post.mean - model.mean_module(Z_new)
-            S = post.covariance_matrix
-            Kzz = model.covar_module(Z_new).to_dense()
-            eye = torch.eye(len(Z_new), dtype=Z_new.dtype, device=Z_new.device)
-            L = torch.linalg.cholesky(Kzz + 1e-4 * eye)
-            m_w = torch.linalg.solve_triangular(L, m.unsqueeze(-1), upper=False).squeeze(-1)
-            tmp = torch.linalg.solve_triangular(L, S, upper=False)
-            S_w = torch.linalg.solve_triangular(L, tmp.mT, upper=False).mT
-            S_w = 0.5 * (S_w + S_w.mT) + 1e-6 * eye
-            model.variational_strategy.inducing_points.data.copy_(Z_new)
-            self._write_whitened_q(m_w, S_w)  # also drops the cached factors of Kzz (Z changed)
-        model.train()
+        vs = model.variational_strategy
+        f64 = torch.float64
+        jitter = float(vs.jitter_val)
+        with torch.no_grad():
+            kern = copy.deepcopy(model.covar_module).to(f64)
+            Z_old = vs.inducing_points.detach().to(f64)
+            Z_n = Z_new.detach().to(f64)
+            eye_old = torch.eye(len(Z_old), dtype=f64, device=Z_old.device)
+            eye_new = torch.eye(len(Z_n), dtype=f64, device=Z_n.device)
+            m_w, S_w = self._whitened_q64()
+            L_old = torch.linalg.cholesky(kern(Z_old).to_dense() + jitter * eye_old)
+            # u = f(Z) + a jitter nugget per location: an inducing point that stays keeps its own
+            same = (Z_old[:, None, :] == Z_n[None, :, :]).all(-1).to(f64)
+            C = kern(Z_old, Z_n).to_dense() + jitter * same  # cov(u_old, u_new)
+            A = torch.linalg.solve_triangular(L_old, C, upper=False).mT
+            Kj_new = kern(Z_n).to_dense() + jitter * eye_new
+            mean = A @ m_w
+            cov = Kj_new - A @ A.mT + A @ S_w @ A.mT
+            L_new = torch.linalg.cholesky(Kj_new)
+            m_new = torch.linalg.solve_triangular(L_new, mean.unsqueeze(-1), upper=False).squeeze(-1)
+            tmp = torch.linalg.solve_triangular(L_new, cov, upper=False)
+            S_new = torch.linalg.solve_triangular(L_new, tmp.mT, upper=False).mT
+            S_new = 0.5 * (S_new + S_new.mT) + 1e-10 * eye_new
+            vs.inducing_points.data.copy_(Z_new)
+            self._write_whitened_q(m_new, S_new)  # also drops the cached factors of Kzz (Z changed)
 
     def _write_whitened_q(
         self, m_w: torch.Tensor, S_w: torch.Tensor, S_inv: torch.Tensor | None = None

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from pugsd.core.cubature import algorithm1, combine, sigma_points, sigma_weights
+from pugsd.errors import CovarianceError
 
 
 def test_default_weights_are_spherical_cubature() -> None:
@@ -81,3 +82,17 @@ def test_combine_shapes() -> None:
     mu, var = combine(np.ones((5, 7)), np.zeros((5, 7)), wm, wc, "total")
     np.testing.assert_allclose(mu, 1.0)
     np.testing.assert_allclose(var, 0.0)
+
+
+@pytest.mark.parametrize("bad", ["cov", "mean"])
+def test_non_finite_input_is_rejected_not_propagated(bad: str) -> None:
+    """numpy's Cholesky returns NaN for a NaN matrix without raising: the check must be explicit,
+    or NaN sigma points reach the SVGP and the grasp silently sorts last."""
+    mean = np.zeros((2, 3))
+    cov = np.tile(np.eye(3) * 1e-6, (2, 1, 1))
+    if bad == "cov":
+        cov[1, 0, 0] = np.nan
+    else:
+        mean[1, 2] = np.inf
+    with pytest.raises(CovarianceError, match="non-finite"):
+        sigma_points(mean, cov, 1.0, 0.0)

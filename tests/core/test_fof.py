@@ -124,6 +124,25 @@ def test_store_cap_evicts_oldest() -> None:
     assert np.all(np.isfinite(store.raw_density()))
 
 
+def test_a_voxel_placed_in_an_evicted_slot_starts_from_nothing() -> None:
+    """Eviction compacts the arrays; the freed slots must be cleared, or a new voxel placed there
+    adds onto an evicted voxel's count and information sums."""
+    store = FofStore(FofConfig(voxel_size_m=0.001, max_voxels=100))
+    cov = np.broadcast_to(np.eye(3) * 1e-6, (80, 3, 3)).copy()
+    old = np.c_[np.arange(80) * 0.002, np.zeros(80), np.zeros(80)] + 0.0005
+    store.insert(old, cov)
+    store.insert(old + np.array([0, 1.0, 0]), cov)  # 160 voxels -> 100; slots 100-159 freed
+    # 60 of the 80 older voxels went (ties keep the lowest slots); the 80 newest moved down
+    np.testing.assert_array_equal(store.last_remap[:20], np.arange(20))
+    np.testing.assert_array_equal(store.last_remap[20:80], -1)
+    np.testing.assert_array_equal(store.last_remap[80:], np.arange(20, 100))
+    p = np.array([[5.0005, 5.0005, 5.0005]])
+    slot = store.insert(p, cov[:1])  # placed in slot 100, then one more eviction: slot 99
+    assert len(slot) == 1 and len(store) == 100
+    assert store.weight[slot[0]] == 1.0
+    np.testing.assert_allclose(store.mu_W[slot[0]], p[0], atol=1e-12)
+
+
 def test_query_workers_give_the_same_neighbours_and_fused_covariance() -> None:
     """fof.query_workers only spreads Algorithm 1 lines 1-2 over threads: same results."""
     rng = np.random.default_rng(8)

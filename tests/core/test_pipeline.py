@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pugsd.config import CoreConfig, SvgpConfig
+from pugsd.config import CoreConfig, FofConfig, SvgpConfig
 from pugsd.core.camera import PinholeCamera
 from pugsd.core.pipeline import PipelineResult, PugsPipeline
 from pugsd.errors import EmptyCloudError, ModelNotReadyError
@@ -236,3 +236,52 @@ def test_pipeline_resolves_auto_query_settings_for_a_cpu_svgp() -> None:
     assert pipe.store.cfg.query_workers == 1
     assert CoreConfig().fof.query_device == "auto"
     assert pipe.store.cfg.query_device == "cpu"
+
+
+def _small_orbit(n: int) -> list:  # type: ignore[type-arg]
+    cam = PinholeCamera(150, 150, 79.5, 59.5, 160, 120)
+    meshes = [box_mesh(BOX, (0, 0, 0.06)), box_mesh((1, 1, 0.01), (0, 0, -0.005))]
+    return orbit_frames(meshes, np.array([0, 0, 0.06]), 0.45, 0.25, np.linspace(-60, 60, n), cam)
+
+
+def test_pending_training_indices_follow_an_eviction() -> None:
+    """The voxels a frame touched wait in ``_pending`` for the next training call; when the store
+    evicts and compacts, they must be remapped (or dropped, if evicted), not left pointing at
+    whatever voxel now sits in their old slot."""
+    frames = _small_orbit(3)
+    probe = PugsPipeline(CoreConfig())
+    probe.integrate(frames[0])
+    cap = len(probe.store) + len(probe.store) // 4  # the second frame overflows the store
+    pipe = PugsPipeline(CoreConfig(fof=FofConfig(max_voxels=cap)))
+
+    def voxel_keys(slots: np.ndarray) -> set[int]:
+        wanted = set(slots.tolist())
+        return {k for k, s in pipe.store._index.items() if s in wanted}
+
+    pipe.integrate(frames[0])
+    keys0 = voxel_keys(pipe._pending[0])
+    pipe.integrate(frames[1])
+    assert pipe.store.evicted > 0
+    first = pipe._pending[0]
+    assert 0 < len(first) < len(keys0) and first.max() < len(pipe.store)
+    assert voxel_keys(first) <= keys0  # the same voxels: those that survived
+
+
+def test_a_target_scale_change_keeps_the_predicted_field() -> None:
+    """A frame that grows the field past the 25 % band changes the target scale; the SVGP is
+    rescaled with it, so its prediction in density units does not jump by the ratio."""
+    frames = _small_orbit(2)
+    pipe = PugsPipeline(CoreConfig(svgp=SvgpConfig(num_inducing=64)))
+    pipe.integrate(frames[0])
+    pipe.train_steps(60)
+    q = pipe.store.mu_W[:: max(1, len(pipe.store) // 200)]
+    s0 = pipe._scale
+    assert s0 is not None
+    mu0, _, _ = pipe.svgp.predict(q, scale=s0)
+    for _ in range(3):  # the same view again: counts, and with them the density, grow
+        pipe.integrate(frames[0])
+    pipe._targets()  # where the scale is re-chosen
+    s1 = pipe._scale
+    assert s1 is not None and s1 / s0 > 1.25
+    mu1, _, _ = pipe.svgp.predict(q, scale=s1)
+    np.testing.assert_allclose(mu1, mu0, atol=0.02 * np.abs(mu0).max())
