@@ -64,16 +64,15 @@ def _record(args: argparse.Namespace) -> int:
         metadata={"pugsd.config": {"toml": dump_config(cfg), "keys": json.dumps(keys)}},
     )
     rec.start()
-    if rec.stats.error:
-        close_session(session)
-        raise ConfigError(f"record: {rec.stats.error}")
-    rec.subscribe(session, keys)
-    sys.stderr.write(f"pugsd record: {len(keys)} key expressions -> {rec.directory}\n")
-    sys.stderr.flush()
-    t_end = None if args.duration is None else time.monotonic() + args.duration
-    tick = min(1.0, args.status_interval) if args.status_interval > 0 else 1.0
-    next_status = time.monotonic() + args.status_interval
-    try:
+    try:  # the session is closed and the recorder stopped whatever happens from here
+        if rec.stats.error:
+            raise ConfigError(f"record: {rec.stats.error}")
+        rec.subscribe(session, keys)  # ConfigError naming a key zenoh refuses
+        sys.stderr.write(f"pugsd record: {len(keys)} key expressions -> {rec.directory}\n")
+        sys.stderr.flush()
+        t_end = None if args.duration is None else time.monotonic() + args.duration
+        tick = min(1.0, args.status_interval) if args.status_interval > 0 else 1.0
+        next_status = time.monotonic() + args.status_interval
         while not stop.is_set():
             timeout = tick if t_end is None else min(tick, t_end - time.monotonic())
             if timeout <= 0:
@@ -84,8 +83,8 @@ def _record(args: argparse.Namespace) -> int:
                 s = rec.stats
                 sys.stderr.write(
                     f"pugsd record: status received={s.received} written={s.written} "
-                    f"dropped={s.dropped_queue + s.dropped_error} files={s.files_finished} "
-                    f"error={s.error or '-'}\n"
+                    f"buffered={s.buffered} dropped={s.dropped_queue + s.dropped_error} "
+                    f"files={s.files_finished} error={s.error or '-'}\n"
                 )
                 sys.stderr.flush()
     finally:
@@ -159,6 +158,9 @@ def _replay(args: argparse.Namespace) -> int:
     from pugsd.record.replay import iter_top, replay
 
     cfg = _load(args)
+    for f in args.files:
+        if not Path(f).is_file():
+            raise ConfigError(f"replay: no such file {f}")
     res = replay(args.files, cfg, out_dir=args.out, mode=args.mode, seed=args.seed)
     sys.stdout.write(f"pugsd replay: {res.frames} frames, {len(res.grasps)} grasps\n")
     for line in iter_top(res.grasps):

@@ -9,11 +9,12 @@ import heapq
 import importlib.metadata
 import json
 import logging
+import os
 import platform
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 from mcap.reader import make_reader
 from mcap.records import Channel, Message, Metadata, Schema
@@ -22,7 +23,7 @@ from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
 from mcap.writer import CompressionType, Writer
 
 from pugsd import __version__
-from pugsd.errors import DecodeError
+from pugsd.errors import DecodeError, PugsdError
 from pugsd.wire.types import msgdef
 
 log = logging.getLogger(__name__)
@@ -37,6 +38,18 @@ _COMPRESSION = {
     "lz4": CompressionType.LZ4,
     "none": CompressionType.NONE,
 }
+
+
+def file_error(path: str | Path, exc: OSError, what: str = "cannot read") -> PugsdError:
+    """A one-line error naming the file, for an ``OSError`` (missing file, no directory, ...)."""
+    return PugsdError(f"{what} {path}: {exc.strerror or exc}")
+
+
+def _open_read(path: str | Path) -> IO[bytes]:
+    try:
+        return open(path, "rb")  # the caller closes it
+    except OSError as exc:
+        raise file_error(path, exc) from None
 
 
 def versions() -> dict[str, str]:
@@ -114,7 +127,7 @@ class RecordedMessage:
 def _iter_file(
     path: Path, idx: int, topics: list[str] | None, start_ns: int | None, end_ns: int | None
 ) -> Iterator[tuple[int, int, int, RecordedMessage]]:
-    with open(path, "rb") as f:
+    with _open_read(path) as f:
         try:
             reader = make_reader(f)
             it = reader.iter_messages(
@@ -221,8 +234,12 @@ def scan(path: str | Path) -> FileInfo:
     """Topics, counts, duration and schemas of one file: from the summary when the file is
     complete, otherwise by streaming through it (``complete`` False, ``error`` says why)."""
     p = Path(path)
-    info = FileInfo(str(p), p.stat().st_size, complete=False)
-    with open(p, "rb") as f:
+    with _open_read(p) as f:
+        try:
+            size = os.fstat(f.fileno()).st_size
+        except OSError as exc:
+            raise file_error(p, exc) from None
+        info = FileInfo(str(p), size, complete=False)
         try:
             reader = make_reader(f)
             header = reader.get_header()
@@ -290,12 +307,21 @@ class StreamResult:
     error: str = ""  # why reading stopped before the footer ("" if the file was complete)
 
 
-def _stream(path: Path, on_record: Any) -> StreamResult:
-    """Read records in file order until the footer, end of file or the first bad record."""
+class _Abort(Exception):
+    """Raised by an ``on_record`` callback to end :func:`_stream` with its cause (not a read error)."""
+
+    def __init__(self, cause: BaseException) -> None:
+        super().__init__(str(cause))
+        self.cause = cause
+
+
+def _stream(path: Path, on_record: Any, *, fh: IO[bytes] | None = None) -> StreamResult:
+    """Read records in file order until the footer, end of file or the first bad record (from
+    ``fh`` when given, else by opening ``path``). ``on_record`` may raise :class:`_Abort`."""
     from mcap.records import DataEnd, Footer, Header
 
     res = StreamResult()
-    with open(path, "rb") as f:
+    with contextlib.nullcontext(fh) if fh is not None else _open_read(path) as f:
         reader = StreamReader(f, validate_crcs=True, record_size_limit=1 << 31)
         try:
             for rec in reader.records:
@@ -319,6 +345,8 @@ def _stream(path: Path, on_record: Any) -> StreamResult:
                     return res
                 on_record(rec, res)
             res.error = "end of file before the footer"
+        except _Abort:
+            raise
         except Exception as exc:
             res.error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
     return res
@@ -337,23 +365,51 @@ def recover(src: str | Path, dst: str | Path, *, chunk_size: int = 1 << 20,
             compression: str = "zstd") -> RecoverResult:  # fmt: skip
     """Rebuild a file whose writer died (no footer, or a torn last chunk) from every record that
     can still be read, in file order: schemas, channels, messages and metadata (a new summary
-    and indexes are written). Reading stops at the first unreadable record."""
+    and indexes are written). Reading stops at the first unreadable record. The output is
+    written as ``DST.recovering`` (removed on failure) and renamed; an ``OSError`` of either
+    file becomes a PugsdError naming it."""
     src, dst = Path(src), Path(dst)
     if src.resolve() == dst.resolve():
         raise DecodeError("recover: output must differ from the input")
     tmp = dst.with_name(dst.name + ".recovering")
     if tmp.resolve() == src.resolve():
         raise DecodeError("recover: choose another output name")
-    with open(tmp, "wb") as out:
-        writer: Writer | None = None
-        sid_map: dict[int, int] = {}
-        cid_map: dict[int, int] = {}
-        counts = {"messages": 0, "metadata": 0}
+    with _open_read(src) as src_f:  # the source first: nothing is created when it is missing
+        try:
+            out = open(tmp, "wb")  # noqa: SIM115 (closed by the with below)
+        except OSError as exc:
+            raise file_error(dst, exc, "cannot write") from None
+        done = False
+        try:
+            with out:
+                res, counts = _copy_records(src, src_f, out, chunk_size, compression)
+            tmp.replace(dst)
+            done = True
+        except OSError as exc:
+            raise file_error(dst, exc, "cannot write") from None
+        finally:
+            if not done:
+                with contextlib.suppress(OSError):
+                    tmp.unlink(missing_ok=True)
+    log.info("recovered %d messages from %s (%s)", counts["messages"], src, res.error or "complete")
+    return RecoverResult(counts["messages"], counts["channels"], counts["schemas"],
+                         counts["metadata"], res.error)  # fmt: skip
 
-        def on_record(rec: Any, res: StreamResult) -> None:
-            nonlocal writer
-            from mcap.records import Header
 
+def _copy_records(src: Path, src_f: IO[bytes], out: IO[bytes], chunk_size: int,
+                  compression: str) -> tuple[StreamResult, dict[str, int]]:  # fmt: skip
+    """Stream the records of ``src_f`` into a new writer on ``out`` (finished). An OSError of
+    the output propagates (it is no reason to stop reading)."""
+    from mcap.records import Header
+
+    writer: Writer | None = None
+    sid_map: dict[int, int] = {}
+    cid_map: dict[int, int] = {}
+    counts = {"messages": 0, "metadata": 0}
+
+    def on_record(rec: Any, res: StreamResult) -> None:
+        nonlocal writer
+        try:
             if isinstance(rec, Header):
                 writer = Writer(out, chunk_size=chunk_size, compression=_COMPRESSION[compression])
                 writer.start(profile=rec.profile, library=rec.library or library_string())
@@ -375,17 +431,18 @@ def recover(src: str | Path, dst: str | Path, *, chunk_size: int = 1 << 20,
             elif isinstance(rec, Metadata):
                 writer.add_metadata(rec.name, dict(rec.metadata))
                 counts["metadata"] += 1
+        except OSError as exc:  # writing the output failed
+            raise _Abort(exc) from exc
 
-        res = _stream(src, on_record)
+    try:
+        res = _stream(src, on_record, fh=src_f)
         if writer is None:
-            out.close()
-            tmp.unlink(missing_ok=True)
             raise DecodeError(f"{src}: no readable MCAP header ({res.error or 'empty'})")
         writer.add_metadata("pugsd.recover", {"source": str(src), "stopped": res.error or "complete"})
         writer.finish()
-    tmp.replace(dst)
-    log.info("recovered %d messages from %s (%s)", counts["messages"], src, res.error or "complete")
-    return RecoverResult(counts["messages"], len(cid_map), len(sid_map), counts["metadata"], res.error)
+    except _Abort as exc:
+        raise exc.cause from None
+    return res, {**counts, "channels": len(cid_map), "schemas": len(sid_map)}
 
 
 def metadata_json(obj: Any) -> str:

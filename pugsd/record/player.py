@@ -15,8 +15,8 @@ from typing import Any
 import zenoh
 
 from pugsd.errors import ConfigError, DecodeError
-from pugsd.record.mcapio import RecordedMessage, iter_recording, time_range
-from pugsd.wire.keys import parse_key, strip_topic, topic_key
+from pugsd.record.mcapio import RecordedMessage, iter_recording, scan, time_range
+from pugsd.wire.keys import dds_type_name, parse_key, strip_topic, topic_key
 from pugsd.wire.publisher import Publisher
 
 log = logging.getLogger(__name__)
@@ -26,8 +26,10 @@ log = logging.getLogger(__name__)
 class PlayOptions:
     """``rate``: 1 real time, 0.5 half speed, 0 as fast as possible. ``start_s``/``end_s`` are
     offsets from the first message of the recording. ``topics``: only these ROS topics.
-    ``remap``: ROS topic -> new ROS topic. ``key_style``/``domain_id``/``hash_mode``: when set,
-    keys are rebuilt from topic and type instead of the recorded keys."""
+    ``remap``: ROS topic -> new ROS topic (topic names are normalised to one leading '/').
+    ``key_style``/``domain_id``: when either is set (or a topic is remapped), keys are rebuilt
+    from topic and type instead of the recorded keys; a recorded rmw_zenoh type hash is kept,
+    ``hash_mode`` applies to keys rebuilt without one."""
 
     rate: float = 1.0
     start_s: float = 0.0
@@ -44,6 +46,11 @@ class PlayOptions:
             raise ConfigError(f"--rate must be >= 0, got {self.rate}")
         if self.start_s < 0 or (self.end_s is not None and self.end_s <= self.start_s):
             raise ConfigError(f"bad start/end offsets {self.start_s} .. {self.end_s}")
+        # frozen: normalise in place (`--topic camera_pose` is `/camera_pose`, as for --remap)
+        if self.topics is not None:
+            object.__setattr__(self, "topics", tuple("/" + strip_topic(t) for t in self.topics))
+        remap = {"/" + strip_topic(a): "/" + strip_topic(b) for a, b in self.remap.items()}
+        object.__setattr__(self, "remap", remap)
 
 
 @dataclass
@@ -66,19 +73,27 @@ def parse_remap(items: Iterable[str]) -> dict[str, str]:
 
 
 def output_key(msg: RecordedMessage, opts: PlayOptions) -> str:
-    """The key to publish a recorded message on."""
+    """The key to publish a recorded message on: the recorded key unless the topic is remapped
+    or ``key_style``/``domain_id`` is set; a rebuilt rmw_zenoh key keeps the recorded type hash
+    (e.g. Humble's ``TypeHashNotSupported``) when the recorded key has one for the same type."""
     topic = opts.remap.get(msg.topic, msg.topic)
-    if opts.key_style is None and topic == msg.topic and msg.key:
+    if opts.key_style is None and opts.domain_id is None and topic == msg.topic and msg.key:
         return msg.key
     style, domain = opts.key_style, opts.domain_id
+    recorded_hash = None
     if msg.key:
         try:
             info = parse_key(msg.key)
             style = style or "rmw_zenoh"
             domain = info.domain_id if domain is None else domain
+            if info.typename == msg.typename:
+                recorded_hash = info.type_hash
         except DecodeError:
             style = style or "ros2dds"
-    return topic_key(topic, msg.typename, domain_id=domain or 0, key_style=style or "rmw_zenoh",
+    style = style or "rmw_zenoh"
+    if style == "rmw_zenoh" and recorded_hash is not None:
+        return f"{domain or 0}/{strip_topic(topic)}/{dds_type_name(msg.typename)}/{recorded_hash}"
+    return topic_key(topic, msg.typename, domain_id=domain or 0, key_style=style,
                      hash_mode=opts.hash_mode)  # fmt: skip
 
 
@@ -120,7 +135,8 @@ class Player:
         return pub
 
     def run(self) -> int:
-        """Play (looping if asked) until done or ``stop_event``; returns messages published."""
+        """Play (looping if asked) until done or ``stop_event``; returns messages published.
+        ConfigError ("nothing to play") when a pass selects no message (so ``loop`` cannot spin)."""
         t_first, t_last = time_range(self.files)
         start = t_first + int(self.opts.start_s * 1e9)
         end = None if self.opts.end_s is None else t_first + int(self.opts.end_s * 1e9)
@@ -128,7 +144,10 @@ class Player:
         loop = 0
         try:
             while not self.stop_event.is_set():
+                before = self.published
                 self._play_once(start, end, t_first, duration, loop)
+                if self.published == before and not self.stop_event.is_set():
+                    raise ConfigError(self._nothing_to_play())
                 loop += 1
                 if not self.opts.loop:
                     break
@@ -137,6 +156,15 @@ class Player:
                 pub.undeclare()
             self._pubs.clear()
         return self.published
+
+    def _nothing_to_play(self) -> str:
+        o = self.opts
+        names = ", ".join(str(f) for f in self.files)
+        what = "all topics" if o.topics is None else "topics " + ", ".join(o.topics)
+        window = f"{o.start_s:g} s .. " + ("end" if o.end_s is None else f"{o.end_s:g} s")
+        recorded = sorted({c.topic for f in self.files for c in scan(f).channels})
+        return (f"nothing to play: no message in {names} for {what} in the window {window} "
+                f"(recorded topics: {', '.join(recorded) or 'none'})")  # fmt: skip
 
     def _play_once(self, start: int, end: int | None, t_first: int, duration: float, loop: int) -> None:
         rate = self.opts.rate

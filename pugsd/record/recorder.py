@@ -2,12 +2,14 @@
 """The MCAP recorder: zenoh samples (or in-process messages) -> rotating ``ros2`` MCAP files.
 
 Threading: :meth:`Recorder.put` and the zenoh callback only append to a bounded in-memory queue
-(count and byte bounds; the oldest message is dropped and counted when full), so recording never
-blocks the caller. One writer thread owns the MCAP writer: it writes ZSTD chunks, closes the open
-chunk every ``flush_interval_s``, rotates files by size and duration, writes each file as
-``NAME.mcap.part`` and renames it to ``NAME.mcap`` when finished. An ``OSError`` from the disk
-(``ENOSPC`` included) is logged and reported in :attr:`Recorder.stats`; the recorder then drops
-(and counts) everything instead of crashing its host.
+(count and byte bounds, the message being written included; the oldest message is dropped and
+counted when full), so recording never blocks the caller. One writer thread owns the MCAP writer:
+it takes one message at a time, writes ZSTD chunks, closes the open chunk every
+``flush_interval_s``, rotates files by size and duration, writes each file as ``NAME.mcap.part``
+and renames it to ``NAME.mcap`` when finished. ``stats.written`` counts messages whose chunk
+reached the file; ``stats.buffered`` those in the open chunk. An ``OSError`` from the disk
+(``ENOSPC`` included) is logged and reported in :attr:`Recorder.stats`; the messages of the lost
+chunk and everything after are counted as dropped instead of crashing the host.
 """
 
 from __future__ import annotations
@@ -24,10 +26,11 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import IO, Any
 
+from mcap.opcode import Opcode
 from mcap.writer import Writer
 
 from pugsd.configbase import to_dict
-from pugsd.errors import DecodeError
+from pugsd.errors import ConfigError, DecodeError
 from pugsd.record.config import RecordConfig
 from pugsd.record.mcapio import ChannelTable, metadata_json, new_writer, versions
 from pugsd.wire.attachment import decode_attachment
@@ -46,21 +49,28 @@ def _default_opener(path: Path) -> IO[bytes]:
 
 class _Passthrough:
     """Hands writes straight to the opened file. (mcap's Writer would wrap a raw file in its own
-    BufferedWriter, which it never flushes on ``finish()`` and which a crash would lose.)"""
+    BufferedWriter, which it never flushes on ``finish()`` and which a crash would lose.)
 
-    def __init__(self, f: IO[bytes]) -> None:
+    ``on_chunk`` is called once a whole Chunk record has been written: mcap's Writer hands each
+    chunk record to ``write`` in one call, so from then on its messages are in the file."""
+
+    def __init__(self, f: IO[bytes], on_chunk: Callable[[], None] | None = None) -> None:
         self._f = f
         self._pos = 0
+        self._on_chunk = on_chunk
 
     def write(self, b: Any) -> int:
         view = memoryview(b).cast("B")
         total = len(view)
+        is_chunk = total > 0 and view[0] == Opcode.CHUNK
         while len(view):
             n = self._f.write(view)
             if n is None or n <= 0:
                 raise OSError("short write")
             self._pos += n
             view = view[n:]
+        if is_chunk and self._on_chunk is not None:
+            self._on_chunk()
         return total
 
     def tell(self) -> int:
@@ -89,7 +99,8 @@ class RecorderStats:
     """Counters (read them from any thread; they are updated without locks, monotonically)."""
 
     received: int = 0
-    written: int = 0
+    written: int = 0  # in the file: their chunk was written
+    buffered: int = 0  # in the open chunk, not in the file yet
     dropped_queue: int = 0  # oldest dropped because the writer fell behind
     dropped_error: int = 0  # dropped because the disk failed
     unknown_type: int = 0  # samples whose ROS type could not be determined
@@ -99,10 +110,14 @@ class RecorderStats:
     disk_full: bool = False
     error: str = ""
     current_file: str = ""
-    files: list[str] = field(default_factory=list)
+    files: list[str] = field(default_factory=list)  # every finished file (not in as_dict)
 
     def as_dict(self) -> dict[str, Any]:
-        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+        """The counters for a status message: bounded in size, so ``files`` is replaced by
+        ``last_file`` (``files_finished`` is the count)."""
+        d = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "files"}
+        d["last_file"] = self.files[-1] if self.files else ""
+        return d
 
 
 def default_record_keys(cfg: Any) -> list[str]:
@@ -149,7 +164,9 @@ class Recorder:
         self._clock = clock
         self.stats = RecorderStats()
         self._q: collections.deque[_Item] = collections.deque()
-        self._q_bytes = 0
+        self._q_bytes = 0  # payload bytes in _q
+        self._inflight_bytes = 0  # payload bytes of the message the writer thread holds
+        self._pending = 0  # messages in the open chunk (mirrored in stats.buffered)
         self._cv = threading.Condition()
         self._stop = False
         self._thread: threading.Thread | None = None
@@ -201,7 +218,8 @@ class Recorder:
 
     def stop(self, timeout: float = 10.0) -> list[Path]:
         """Write what is queued (within ``timeout``), finish the file and rename it; returns the
-        finished files of this recorder. Undeclares zenoh subscribers it declared."""
+        finished files of this recorder. Undeclares zenoh subscribers it declared. When the
+        writer does not finish in time, ``stats.error`` says so (the ``.part`` file is left)."""
         self.unsubscribe()
         with self._cv:
             self._stop = True
@@ -209,7 +227,11 @@ class Recorder:
         if self._thread is not None:
             self._thread.join(timeout)
             if self._thread.is_alive():
-                log.error("recorder writer thread did not finish within %.1f s", timeout)
+                part = self._part or self.stats.current_file or "the current .part file"
+                msg = (f"writer did not finish within {timeout:.1f} s; {part} left for "
+                       "`pugsd mcap recover`")  # fmt: skip
+                log.error("recorder: %s", msg)
+                self.stats.error = f"{self.stats.error}; {msg}" if self.stats.error else msg
         return [Path(p) for p in self.stats.files]
 
     # ------------------------------------------------------------------ intake (any thread)
@@ -236,11 +258,18 @@ class Recorder:
                 return False
             self._q.append(item)
             self._q_bytes += len(item.data)
+            limit = self.cfg.queue_max_bytes
             while len(self._q) > self.queue_size or (
-                self._q_bytes > self.cfg.queue_max_bytes and len(self._q) > 1
+                self._q_bytes + self._inflight_bytes > limit and len(self._q) > 1
             ):
                 old = self._q.popleft()
                 self._q_bytes -= len(old.data)
+                self.stats.dropped_queue += 1
+                ok = False
+            if self._inflight_bytes and self._q_bytes + self._inflight_bytes > limit:
+                # only this message is queued and it does not fit next to the one being written
+                self._q.pop()
+                self._q_bytes -= len(item.data)
                 self.stats.dropped_queue += 1
                 ok = False
             self._cv.notify()
@@ -298,9 +327,13 @@ class Recorder:
             log.warning("recorder: dropped a sample: %s", exc)
 
     def subscribe(self, session: Any, key_exprs: Iterable[str]) -> list[Any]:
-        """Declare one subscriber per key expression feeding :meth:`on_sample`."""
+        """Declare one subscriber per key expression feeding :meth:`on_sample`; ConfigError
+        naming the key when zenoh refuses one (those declared before it stay declared)."""
         for k in key_exprs:
-            self._subs.append(session.declare_subscriber(k, self.on_sample))
+            try:
+                self._subs.append(session.declare_subscriber(k, self.on_sample))
+            except Exception as exc:  # zenoh.ZError: invalid key expression, closed session
+                raise ConfigError(f"cannot subscribe to key expression {k!r}: {exc}") from None
         return list(self._subs)
 
     def unsubscribe(self) -> None:
@@ -313,21 +346,33 @@ class Recorder:
     def queued(self) -> int:
         return len(self._q)
 
+    @property
+    def queued_bytes(self) -> int:
+        """Payload bytes held for the writer: queued plus the message being written."""
+        with self._cv:
+            return self._q_bytes + self._inflight_bytes
+
     # ------------------------------------------------------------------ writer thread
     def _run(self) -> None:
         try:
             while True:
+                item: _Item | None = None
                 with self._cv:
                     while not self._q and not self._stop:
                         self._cv.wait(timeout=self._wait_s())
                         if not self._q:
                             break
-                    batch = list(self._q)
-                    self._q.clear()
-                    self._q_bytes = 0
+                    if self._q:  # one at a time: its bytes stay counted until it is written
+                        item = self._q.popleft()
+                        self._q_bytes -= len(item.data)
+                        self._inflight_bytes = len(item.data)
                     stopping = self._stop
-                for item in batch:
-                    self._write(item)
+                if item is not None:
+                    try:
+                        self._write(item)
+                    finally:
+                        with self._cv:
+                            self._inflight_bytes = 0
                 self._maybe_flush()
                 if stopping and not self._q:
                     break
@@ -348,26 +393,48 @@ class Recorder:
             "disk full" if self.stats.disk_full else "disk error",
             exc,
         )
+        self._drop_pending()
         with self._cv:
             self.stats.dropped_error += len(self._q)
             self._q.clear()
             self._q_bytes = 0
 
+    def _commit_chunk(self) -> None:
+        """The open chunk reached the file: its messages count as written."""
+        self.stats.written += self._pending
+        self._pending = 0
+        self.stats.buffered = 0
+
+    def _drop_pending(self) -> None:
+        """The open chunk is lost: its messages count as dropped."""
+        self.stats.dropped_error += self._pending
+        self._pending = 0
+        self.stats.buffered = 0
+
     def _write(self, item: _Item) -> None:
         if self._failed:
             self.stats.dropped_error += 1
             return
+        in_chunk = False
         try:
             self._maybe_rotate()
-            assert self._table is not None and self._writer is not None
+            if self._table is None or self._writer is None:  # failed while rotating
+                self.stats.dropped_error += 1
+                return
             cid = self._table.channel_id(item.topic, item.typename, item.key)
+            self._pending += 1  # before add_message: it may write the chunk (then _commit_chunk)
+            in_chunk = True
             self._writer.add_message(cid, item.log_time, item.data, item.publish_time, item.sequence)
-            self.stats.written += 1
+            self.stats.buffered = self._pending
         except OSError as exc:
-            self.stats.dropped_error += 1
-            self._fail(exc, "write")
+            if not in_chunk:
+                self.stats.dropped_error += 1
+            self._fail(exc, "write")  # the open chunk, this message included, is dropped
             self._close_file(finish=False)
         except Exception as exc:  # a bad message must not kill the writer thread
+            if in_chunk:  # it did not make it into the chunk
+                self._pending = max(0, self._pending - 1)
+                self.stats.buffered = self._pending
             self.stats.dropped_error += 1
             self.stats.error = f"write {item.topic}: {type(exc).__name__}: {exc}"
             log.exception("recorder: dropped a %s message", item.topic)
@@ -382,6 +449,7 @@ class Recorder:
                 self._fail(exc, "flush")
                 self._close_file(finish=False)
                 return
+            self._commit_chunk()  # (already done by the chunk write; kept as a safety net)
             self._last_flush = time.monotonic()
             self._update_size()
 
@@ -399,13 +467,15 @@ class Recorder:
                 return
             log.info("recorder: rotating %s (%d B, %.0f s)", self._part, size, age)
             self._close_file(finish=True)
+        if self._failed:  # finishing the old file failed: open no new one
+            return
         self._open_file()
 
     def _open_file(self) -> None:
         self._file_index += 1
         name = f"{self.cfg.name_prefix}_{self._session_stamp}_{self._file_index:03d}.mcap"
         self._part = self.directory / (name + ".part")
-        self._fh = _Passthrough(self._open(self._part))
+        self._fh = _Passthrough(self._open(self._part), on_chunk=self._commit_chunk)
         self._writer = new_writer(self._fh, self.cfg.chunk_size_bytes, self.cfg.compression)
         self._table = ChannelTable(self._writer)
         v = versions()
@@ -435,8 +505,11 @@ class Recorder:
             try:
                 w.finish()
                 ok = True
+                self._commit_chunk()  # (already done by the chunk write; kept as a safety net)
             except OSError as exc:
                 self._fail(exc, "finish")
+        if not ok:
+            self._drop_pending()
         with contextlib.suppress(OSError, ValueError):
             self._finished_bytes += fh.tell()
         try:

@@ -3,7 +3,9 @@
 
 from __future__ import annotations
 
+import io
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -15,11 +17,17 @@ from typing import Any
 
 import numpy as np
 import pytest
-from mcap.reader import make_reader
+from mcap.reader import breakup_chunk, make_reader
+from mcap.records import Chunk, Message
+from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
 from pugsd.cli import main
+from pugsd.errors import PugsdError
+from pugsd.record import recorder as recorder_mod
 from pugsd.record.mcapio import iter_recording, recover, scan
+from pugsd.record.recorder import Recorder
+from pugsd.record.synth import write_recording
 from pugsd.wire import codec
 from pugsd.wire.keys import topic_key
 from pugsd.wire.publisher import Publisher
@@ -74,6 +82,19 @@ class _Lines:
             time.sleep(0.02)
         return False
 
+    def wait_status(self, received: int, timeout: float) -> tuple[int, int] | None:
+        """(written, buffered) of the first status line where every received message has
+        reached the writer (received == written + buffered), or None."""
+        pat = re.compile(r"received=(\d+) written=(\d+) buffered=(\d+)")
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for ln in list(self.lines):
+                m = pat.search(ln)
+                if m and int(m[1]) == received == int(m[2]) + int(m[3]):
+                    return int(m[2]), int(m[3])
+            time.sleep(0.02)
+        return None
+
 
 def _publish(session: Any, proc: subprocess.Popen[bytes]) -> list[bytes]:
     pub = Publisher(session, topic_key("/crash", IMAGE))
@@ -106,8 +127,11 @@ def test_sigkill_then_recover_loses_at_most_the_open_chunk(
     err = _Lines(proc.stderr)
     try:
         sent = _publish(session, proc)
-        # kill only once the recorder has received everything (its status lines say so)
-        assert err.wait_for(f"received={N_MSGS} written={N_MSGS}", 30), err.lines[-3:]
+        # kill only once everything is in the writer (its status lines say so); `written` counts
+        # the messages of chunks in the file, `buffered` those of the open chunk
+        st = err.wait_status(N_MSGS, 30)
+        assert st is not None, err.lines[-3:]
+        written, _buffered = st
     finally:
         os.kill(proc.pid, signal.SIGKILL)  # the recorder we started, by its pid
         proc.wait(10)
@@ -123,6 +147,7 @@ def test_sigkill_then_recover_loses_at_most_the_open_chunk(
     assert got == sent[: len(got)]  # a prefix, in order, byte-identical
     per_chunk = CHUNK // len(sent[0]) + 1
     assert N_MSGS - per_chunk <= len(got) <= N_MSGS, (len(got), per_chunk)
+    assert len(got) >= written  # what was reported written is in the file
     with open(out, "rb") as f:  # a complete, indexed file again
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         summary = reader.get_summary()
@@ -161,21 +186,46 @@ def test_sigterm_finishes_the_file(daemon_side: tuple[Any, int], tmp_path: Path)
     assert "pugsd.config" in info.metadata and "toml" in info.metadata["pugsd.config"]
 
 
-def test_recover_truncated_files_in_process(synth_recording: Any, tmp_path: Path) -> None:
-    src, _ = synth_recording
-    data = Path(src).read_bytes()
+def _chunk_ends(path: Path) -> list[tuple[int, int]]:
+    """(end offset, messages) of each chunk of a complete file, in file order."""
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    index = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    with open(path, "rb") as f:
+        chunks = [r for r in StreamReader(f, emit_chunks=True).records if isinstance(r, Chunk)]
+    assert len(chunks) == len(index)
+    return [(ci.chunk_start_offset + ci.chunk_length,
+             sum(isinstance(r, Message) for r in breakup_chunk(ch)))
+            for ci, ch in zip(index, chunks, strict=True)]  # fmt: skip
+
+
+def test_recover_truncated_files_in_process(frames_factory: Any, tmp_path: Path) -> None:
+    """Each cut recovers, in order and byte-identical, at least every message of the chunks that
+    ended before the cut (only the torn chunk is lost); a cut at len-1 recovers everything."""
+    src = tmp_path / "src.mcap"
+    write_recording(src, frames_factory(6), chunk_size=16384)  # several chunks
+    data = src.read_bytes()
     full = [m.data for m in iter_recording([src])]
-    for cut in (len(data) - 1, len(data) // 2, 200):
+    ends = _chunk_ends(src)
+    assert len(ends) >= 4 and sum(n for _, n in ends) == len(full)
+    cuts = {len(data) - 1, len(data) // 2, 200}
+    cuts |= {e + d for e, _ in ends for d in (-1, 0, 1)}
+    for cut in sorted(cuts):
         p = tmp_path / f"cut{cut}.mcap.part"
         p.write_bytes(data[:cut])
         out = tmp_path / f"cut{cut}.mcap"
+        complete_before = sum(n for e, n in ends if e <= cut)
         try:
-            recover(p, out)
-        except Exception as exc:  # only when not even the header survived
-            assert cut <= 200, exc
+            res = recover(p, out)
+        except PugsdError as exc:  # only when not even the header survived
+            assert cut <= 200 and complete_before == 0, exc
             continue
         got = [m.data for m in iter_recording([out])]
-        assert got == full[: len(got)]
+        assert got == full[: len(got)], cut
+        assert res.messages == len(got) >= complete_before, (cut, len(got), complete_before)
+        if cut == len(data) - 1:
+            assert len(got) == len(full)
     # recovering a complete file keeps everything
     res = recover(src, tmp_path / "same.mcap")
     assert res.messages == len(full) and res.error == ""
@@ -194,6 +244,128 @@ def test_cli_info_and_recover(synth_recording: Any, tmp_path: Path,
     assert "recovered 24 messages" in capsys.readouterr().out
     assert main(["mcap", "info", "--json", str(part)]) == 0
     assert '"complete": false' in capsys.readouterr().out
+
+
+def test_cli_file_errors_are_one_line(synth_recording: Any, tmp_path: Path,
+                                      capsys: pytest.CaptureFixture[str]) -> None:  # fmt: skip
+    """Missing inputs and unwritable outputs: exit 1 with a one-line error naming the file."""
+    src, _ = synth_recording
+    missing = tmp_path / "missing.mcap"
+    out = tmp_path / "out.mcap"
+    cases = [
+        (["mcap", "info", str(missing)], str(missing)),
+        (["mcap", "recover", str(missing), str(out)], str(missing)),
+        (["mcap", "recover", str(src), str(tmp_path / "nodir" / "x.mcap")], "nodir/x.mcap"),
+        (["replay", str(missing)], str(missing)),
+    ]
+    for argv, name in cases:
+        assert main(argv) == 1, argv
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "error:" in err and name in err, (argv, err)
+    assert not list(tmp_path.glob("**/*.recovering")) and not out.exists()
+    # the library functions raise PugsdError too (not OSError)
+    with pytest.raises(PugsdError, match=r"missing\.mcap"):
+        list(iter_recording([missing]))
+    with pytest.raises(PugsdError, match=r"missing\.mcap"):
+        scan(missing)
+
+
+def test_recover_removes_its_temp_file_when_writing_fails(
+    synth_recording: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from mcap.writer import Writer
+
+    src, _ = synth_recording
+
+    def no_space(self: Any) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Writer, "finish", no_space)
+    out = tmp_path / "out.mcap"
+    with pytest.raises(PugsdError, match=r"cannot write .*out\.mcap: No space left"):
+        recover(src, out)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.fixture
+def restore_signals() -> Iterator[None]:
+    """The CLI installs SIGTERM/SIGINT handlers; put pytest's back."""
+    handlers = (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, handlers[0])
+        signal.signal(signal.SIGINT, handlers[1])
+
+
+def test_cli_record_bad_key_is_an_error_and_closes_the_session(
+    daemon_side: tuple[Any, int], tmp_path: Path, capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch, restore_signals: None,
+) -> None:  # fmt: skip
+    import pugsd.wire.session as ws
+
+    _, port = daemon_side
+    closed: list[Any] = []
+    orig_close = ws.close_session
+
+    def close(session: Any, *a: Any) -> None:
+        closed.append(session)
+        orig_close(session, *a)
+
+    monkeypatch.setattr(ws, "close_session", close)
+    rc = main(["record", "--connect", f"tcp/127.0.0.1:{port}", "--out", str(tmp_path),
+               "--key", "0/ok/**", "--key", "a//b", "--duration", "5"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert rc == 1 and "'a//b'" in err and "Traceback" not in err, err
+    assert len(closed) == 1 and not list(tmp_path.iterdir())
+
+
+class _HangingFile(io.RawIOBase):
+    def __init__(self, path: Path, gate: threading.Event) -> None:
+        self.f = open(path, "wb", buffering=0)  # noqa: SIM115
+        self.gate = gate
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, b: Any) -> int:
+        self.gate.wait(30)
+        return int(self.f.write(b) or 0)
+
+    def close(self) -> None:
+        self.f.close()
+        super().close()
+
+
+def test_cli_record_exits_1_when_the_writer_does_not_finish(
+    daemon_side: tuple[Any, int], tmp_path: Path, capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch, restore_signals: None,
+) -> None:  # fmt: skip
+    _, port = daemon_side
+    gate = threading.Event()
+    recs: list[Recorder] = []
+    orig_start = Recorder.start
+
+    def start(self: Recorder) -> Recorder:
+        orig_start(self)
+        recs.append(self)
+        self.put("/crash", "sensor_msgs/msg/Image", codec.encode_image(np.zeros((4, 4), np.uint8), 1))
+        return self
+
+    monkeypatch.setattr(recorder_mod, "_default_opener", lambda p: _HangingFile(p, gate))
+    monkeypatch.setattr(Recorder, "start", start)
+    monkeypatch.setattr(Recorder.stop, "__defaults__", (0.3,))  # stop(timeout=0.3)
+    try:
+        rc = main(["record", "--connect", f"tcp/127.0.0.1:{port}", "--out", str(tmp_path),
+                   "--key", "0/crash/**", "--duration", "0.2", "--status-interval", "0"])  # fmt: skip
+        err = capsys.readouterr().err
+        assert rc == 1, err
+        assert "error: writer did not finish within 0.3 s" in err and ".mcap.part left" in err
+    finally:
+        gate.set()
+        for r in recs:
+            assert r._thread is not None
+            r._thread.join(30)
 
 
 def test_cli_play_and_synth(daemon_side: tuple[Any, int], synth_recording: Any, tmp_path: Path,

@@ -1,20 +1,24 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Recorder in-process: file format, metadata, rotation, slow disk, full disk."""
+"""Recorder in-process: file format, metadata, rotation, slow disk, full disk, queue bound,
+stop timeout, status size."""
 
 from __future__ import annotations
 
 import errno
 import io
 import json
+import threading
 import time
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
+import pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from pugsd.record.config import RecordConfig
+from pugsd.record.mcapio import recover
 from pugsd.record.recorder import Recorder
 from pugsd.wire import codec
 from pugsd.wire.attachment import encode_attachment
@@ -140,16 +144,17 @@ def test_slow_disk_drops_and_counts_but_never_blocks(tmp_path: Path) -> None:
 
 
 class _FullDisk(io.RawIOBase):
-    def __init__(self, path: Path, limit: int) -> None:
+    def __init__(self, path: Path, limit: int, full: threading.Event | None = None) -> None:
         self.f = open(path, "wb", buffering=0)  # noqa: SIM115
         self.n = 0
         self.limit = limit
+        self.full = full  # when set: every write fails
 
     def writable(self) -> bool:
         return True
 
     def write(self, b: Any) -> int:
-        if self.n + len(b) > self.limit:
+        if self.n + len(b) > self.limit or (self.full is not None and self.full.is_set()):
             raise OSError(errno.ENOSPC, "No space left on device")
         self.n += len(b)
         return int(self.f.write(b) or 0)
@@ -180,7 +185,146 @@ def test_full_disk_is_reported_not_a_crash(tmp_path: Path) -> None:
     s = rec.stats
     assert s.disk_full and "No space left" in s.error
     assert s.written + s.dropped_error + s.dropped_queue == s.received
-    assert s.files == [] and list(tmp_path.glob("*.mcap.part"))  # left for `mcap recover`
+    assert s.files == []
+    (part,) = tmp_path.glob("*.mcap.part")  # left for `mcap recover`
+    # `written` is what reached the file: the messages of the lost chunk are counted as dropped
+    res = recover(part, tmp_path / "recovered.mcap")
+    assert res.messages == s.written > 0, (res.messages, s.written, s.dropped_error)
+    assert s.buffered == 0
+
+
+def test_flush_failure_counts_the_open_chunk_as_dropped(tmp_path: Path) -> None:
+    full = threading.Event()
+
+    def opener(p: Path) -> IO[bytes]:
+        return _FullDisk(p, 1 << 30, full)  # type: ignore[return-value]
+
+    # big chunks, no timed flush: every message stays in the open chunk until stop()
+    rec = Recorder(_cfg(tmp_path, chunk_size_bytes=1 << 20, flush_interval_s=100.0), opener=opener)
+    with rec:
+        for i in range(10):
+            rec.put("/img", IMAGE, _img(i))
+        deadline = time.monotonic() + 10
+        while (rec.queued or not rec.stats.current_file) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.1)  # the last message popped from the queue is in the chunk by now
+        assert rec.stats.written == 0 and rec.stats.buffered == 10  # nothing in the file yet
+        full.set()  # the final chunk write (finish) fails
+    s = rec.stats
+    assert s.disk_full and s.written == 0 and s.dropped_error == 10 == s.received
+    (part,) = tmp_path.glob("*.mcap.part")
+    assert recover(part, tmp_path / "r.mcap").messages == 0
+
+
+def test_failed_rotation_opens_no_new_file(tmp_path: Path) -> None:
+    full = threading.Event()
+    opened: list[Path] = []
+
+    def opener(p: Path) -> IO[bytes]:
+        opened.append(p)
+        return _FullDisk(p, 1 << 30, full)  # type: ignore[return-value]
+
+    rec = Recorder(_cfg(tmp_path, rotate_duration_s=0.2, flush_interval_s=100.0), opener=opener)
+    with rec:
+        rec.put("/img", IMAGE, _img(0))
+        deadline = time.monotonic() + 10
+        while not rec.stats.current_file and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.05)
+        full.set()
+        time.sleep(0.3)
+        rec.put("/img", IMAGE, _img(1))  # rotation: finishing the first file fails
+        while not rec.stats.error and time.monotonic() < deadline:
+            time.sleep(0.01)
+    s = rec.stats
+    assert len(opened) == 1, opened
+    assert s.error.startswith("finish") and s.disk_full
+    assert s.written == 0 and s.dropped_error == 2 == s.received
+    assert [p.name for p in tmp_path.glob("*.part")] == [opened[0].name] and s.files == []
+
+
+def test_queue_bytes_bound_includes_the_message_being_written(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    size, bound = 16 * 1024, 1 << 20
+    rec = Recorder(_cfg(tmp_path, queue_max_bytes=bound), queue_size=100_000)
+    done = [0]
+    peak = [0]
+
+    def held() -> int:
+        """Payload bytes accepted and neither written nor dropped (whatever holds them)."""
+        with rec._cv:
+            s = rec.stats
+            return (s.received - s.dropped_queue - s.dropped_error - done[0]) * size
+
+    orig = rec._write
+
+    def slow_write(item: Any) -> None:
+        peak[0] = max(peak[0], held())
+        time.sleep(0.002)
+        orig(item)
+        done[0] += 1
+
+    monkeypatch.setattr(rec, "_write", slow_write)
+    blob = b"\x00\x01\x00\x00" + bytes(size - 4)
+    with rec:
+        for _ in range(300):
+            rec.put("/img", IMAGE, blob)
+            peak[0] = max(peak[0], held())
+            time.sleep(0.0002)
+    s = rec.stats
+    assert s.dropped_queue > 0 and s.written + s.dropped_queue == s.received == 300
+    assert peak[0] <= bound, (peak[0] / bound, s.dropped_queue)
+    assert rec.queued_bytes == 0
+
+
+class _GatedFile(io.RawIOBase):
+    """Every write waits for ``gate`` (a disk that hangs)."""
+
+    def __init__(self, path: Path, gate: threading.Event) -> None:
+        self.f = open(path, "wb", buffering=0)  # noqa: SIM115
+        self.gate = gate
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, b: Any) -> int:
+        self.gate.wait(30)
+        return int(self.f.write(b) or 0)
+
+    def close(self) -> None:
+        self.f.close()
+        super().close()
+
+
+def test_stop_timeout_is_reported(tmp_path: Path) -> None:
+    gate = threading.Event()
+
+    def opener(p: Path) -> IO[bytes]:
+        return _GatedFile(p, gate)  # type: ignore[return-value]
+
+    rec = Recorder(_cfg(tmp_path), opener=opener).start()
+    try:
+        rec.put("/img", IMAGE, _img(0))
+        assert rec.stop(timeout=0.2) == []
+        assert "did not finish within 0.2 s" in rec.stats.error
+        (part,) = tmp_path.glob("*.mcap.part")
+        assert str(part) in rec.stats.error and "pugsd mcap recover" in rec.stats.error
+    finally:
+        gate.set()
+        assert rec._thread is not None
+        rec._thread.join(30)
+
+
+def test_status_dict_is_bounded(tmp_path: Path) -> None:
+    rec = Recorder(_cfg(tmp_path))
+    rec.stats.files.extend(f"/r/pugsd_{i:03d}.mcap" for i in range(1000))
+    rec.stats.files_finished = 1000
+    d = rec.stats.as_dict()
+    assert "files" not in d and d["files_finished"] == 1000 and d["last_file"] == "/r/pugsd_999.mcap"
+    assert len(json.dumps(d)) < 1000
+    assert len(rec.stats.files) == 1000  # the full list stays on the object
+    assert Recorder(_cfg(tmp_path)).stats.as_dict()["last_file"] == ""
 
 
 def test_unusable_directory_is_reported(tmp_path: Path) -> None:
