@@ -8,6 +8,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import re
 import signal
 import sys
 import time
@@ -58,10 +59,17 @@ def _parse_value(text: str, kind: str, packet_id: int) -> float | int:
         return parse_mode(text)
     if packet_id in (PacketID.REQUEST, PacketID.HEARTBEAT_SET):
         return parse_packet_id(text)
+    return _parse_byte(text)
+
+
+def _parse_byte(text: str) -> int:
     try:
-        return int(text, 0)
+        v = int(text, 0)
     except ValueError:
-        raise ArmError(f"{text!r} is not a byte value") from None
+        raise ArmError(f"{text!r} is not a byte value (0-255, decimal or 0x..)") from None
+    if not 0 <= v <= 0xFF:
+        raise ArmError(f"byte value {v} out of range 0-255")
+    return v
 
 
 def _bpl_encode(args: argparse.Namespace) -> int:
@@ -77,9 +85,8 @@ def _bpl_encode(args: argparse.Namespace) -> int:
     dev = parse_device_id(args.device)
     pid = parse_packet_id(args.packet)
     spec = PACKET_SPECS.get(pid)
-    if spec is None:
-        data = bytes(int(v, 0) for v in args.values)
-        pk = Packet(dev, pid, data)
+    if spec is None:  # an id without a known layout: raw bytes
+        pk = Packet(dev, pid, bytes(_parse_byte(v) for v in args.values))
     elif spec.kind == "ascii":
         pk = make_packet(dev, pid, " ".join(args.values))
     else:
@@ -91,8 +98,9 @@ def _bpl_encode(args: argparse.Namespace) -> int:
 def _bpl_decode(args: argparse.Namespace) -> int:
     from pugsd.arm.protocol import StreamDecoder, packet_to_json
 
-    text = "".join(args.hex).replace(":", "").replace(",", "").replace(" ", "")
-    text = text.removeprefix("0x")
+    # "09 9E ..", "0x09 0x9E ..", "09:9E", "099E..." (a 0x prefix is allowed on every token)
+    tokens = re.split(r"[\s,:]+", " ".join(args.hex).strip())
+    text = "".join(t[2:] if t[:2].lower() == "0x" else t for t in tokens if t)
     try:
         data = bytes.fromhex(text)
     except ValueError as exc:
@@ -198,6 +206,8 @@ def _format_status(st: dict[str, Any]) -> str:
     )
     for j in st["joints"]:
         pos = "   --   " if j["position"] is None else f"{j['position']:8.4f} {j['unit']}"
+        if j.get("invalid"):
+            pos = f"INVALID ({j['invalid']} not finite)"
         flags = ",".join(j["flags"]) or "-"
         lim = j.get("device_limits")
         lims = f"  limits [{lim[0]:.3f}, {lim[1]:.3f}]" if lim else ""

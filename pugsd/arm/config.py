@@ -9,6 +9,9 @@ from dataclasses import dataclass, field
 from pugsd.configbase import opt
 from pugsd.errors import ConfigError
 
+#: devices polled one at a time on RS-485 (the 7 axes, pugsd.arm.protocol.ALL_AXES)
+_N_AXES = 7
+
 
 def _check(cond: bool, msg: str) -> None:
     if not cond:
@@ -30,6 +33,11 @@ class ArmSerialConfig:
         le=1.0,
     )
     rs485_command_gap_s: float = opt(0.002, "RS-485: gap after any other packet", unit="s", ge=0.0, le=1.0)
+    rs485_echo: bool = opt(
+        False,
+        "RS-485: the adapter echoes what the host transmits; discard that echo (our frames are "
+        "expected back in order). When false, a received echo fails the link",
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -175,7 +183,21 @@ class ArmMotionConfig:
     jaw_open_margin_m: float = opt(0.01, "open this much wider than the grasp width", unit="m", ge=0.0)
     jaw_speed_mm_s: float = opt(20.0, "speed of the streamed jaw setpoint", unit="mm/s", gt=0.0)
     jaw_tol_mm: float = opt(0.5, "jaw convergence tolerance", unit="mm", gt=0.0)
-    jaw_stall_s: float = opt(0.3, "closing: jaw not moving this long counts as gripped", unit="s", gt=0.0)
+    jaw_stall_s: float = opt(
+        0.3,
+        "closing: a jaw short of closed that has not moved for this long (after travelling "
+        "jaw_min_travel_mm) counts as gripping",
+        unit="s",
+        gt=0.0,
+    )
+    jaw_min_travel_mm: float = opt(
+        1.0,
+        "closing: the jaw must travel at least this far towards closed before a stall counts as a "
+        "grip; a jaw that stops sooner fails the grasp (dead jaw). Must be below the travel of "
+        "jaw_open_margin_m",
+        unit="mm",
+        gt=0.0,
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -280,4 +302,29 @@ class ArmConfig:
             self.safety.watchdog_s > 1.0 / self.telemetry.rate_hz,
             "safety.watchdog_s must exceed the telemetry period",
         )
-        _check(math.isfinite(self.motion.jaw_open_mm), "motion.jaw_open_mm must be finite")
+        mo = self.motion
+        _check(math.isfinite(mo.jaw_open_mm), "motion.jaw_open_mm must be finite")
+        _check(mo.jaw_open_mm != mo.jaw_closed_mm, "motion.jaw_open_mm must differ from jaw_closed_mm")
+        span_mm = abs(mo.jaw_open_mm - mo.jaw_closed_mm)
+        margin_mm = min(mo.jaw_open_margin_m / mo.jaw_max_width_m, 1.0) * span_mm
+        _check(
+            mo.jaw_min_travel_mm < margin_mm,
+            f"motion.jaw_min_travel_mm ({mo.jaw_min_travel_mm} mm) must be below the jaw travel of "
+            f"motion.jaw_open_margin_m ({margin_mm:.3g} mm), else a good grip could never be accepted",
+        )
+        if self.transport == "serial" and self.serial.rs485:
+            t = self.telemetry
+            gap = self.serial.rs485_request_gap_s
+            _check(
+                t.mode == "poll",
+                "arm.telemetry.mode = 'heartbeat' cannot be used with arm.serial.rs485 = true: every "
+                "device would transmit on its own and the replies collide on the half-duplex bus "
+                "(reach-bpl.md 1.4); use mode = 'poll'",
+            )
+            _check(
+                t.rate_hz * _N_AXES * gap <= 1.0,
+                f"RS-485: polling {_N_AXES} devices one at a time with "
+                f"serial.rs485_request_gap_s = {gap} s takes {_N_AXES * gap:.3f} s, longer than "
+                f"the telemetry period 1/{t.rate_hz} Hz: lower telemetry.rate_hz to at most "
+                f"{1.0 / (_N_AXES * gap) if gap > 0 else float('inf'):.3g} Hz or shorten the gap",
+            )

@@ -17,6 +17,7 @@ Nothing moves unless ``arm.enabled`` is true, and only on an explicit call.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import itertools
 import logging
@@ -40,10 +41,11 @@ from pugsd.arm.protocol import (
     Mode,
     Packet,
     PacketID,
+    has_nonfinite,
     make_packet,
 )
 from pugsd.arm.transport import Transport, make_transport
-from pugsd.errors import ArmError, SafetyError
+from pugsd.errors import ArmError, PugsdError, SafetyError
 
 log = logging.getLogger(__name__)
 
@@ -121,10 +123,31 @@ class AxisState:
     #: POSITION_LIMITS reported by the device as (low, high); the PDF says the floats are
     #: [max, min] and libreach sends [min, max], so the order is taken from the values
     limits: tuple[float, float] | None = None
+    #: the latest POSITION / VELOCITY was NaN or infinite: the axis has no valid feedback
+    position_bad: bool = False
+    velocity_bad: bool = False
+
+    @property
+    def invalid(self) -> str | None:
+        """What is wrong with this axis's feedback (None: nothing)."""
+        if self.position_bad:
+            return "position"
+        if self.velocity_bad:
+            return "velocity"
+        return None
 
 
 class ArmLink:
-    """Telemetry and commands over one transport (host side)."""
+    """Telemetry and commands over one transport (host side).
+
+    Non-finite feedback (NaN or infinite POSITION, VELOCITY, limits, KM_END_POS) is never
+    stored: it is counted in ``nonfinite`` and marks the axis invalid until a finite value comes.
+    In heartbeat mode, HEARTBEAT_SET (lost on a power cycle) is sent again to a device whose
+    position feedback is older than ``stale_s``: at once when other traffic from it shows that
+    it is back, and every ``HEARTBEAT_RESEND_S`` while it stays silent.
+    """
+
+    HEARTBEAT_RESEND_S = 0.5
 
     def __init__(
         self,
@@ -134,15 +157,21 @@ class ArmLink:
         telemetry_mode: str = "poll",
         rate_hz: float = 50.0,
         status_every: int = 25,
+        stale_s: float = 0.25,
     ) -> None:
         self.transport = transport
         self.rs485 = rs485
         self.telemetry_mode = telemetry_mode
         self.rate_hz = rate_hz
         self.status_every = status_every
+        self.stale_s = stale_s
         self.axes: dict[int, AxisState] = {d: AxisState(d) for d in ALL_AXES}
         self.km_end_pos: tuple[float, ...] | None = None
         self.other: dict[tuple[int, int], tuple[float, Packet]] = {}
+        self.nonfinite = 0  # feedback values rejected as NaN or infinite
+        self.heartbeat_resends = 0
+        self._hb_sent: dict[int, float] = {}
+        self._hb_due: set[int] = set()
         self._tasks: list[asyncio.Task[None]] = []
         self._waiters: list[tuple[int, set[int], asyncio.Future[None]]] = []
         self.t_start = time.monotonic()
@@ -172,6 +201,8 @@ class ArmLink:
                 raise SafetyError(f"pugsd never sends {p.name}")
             if self.rs485 and p.packet_id == PacketID.REQUEST and p.device_id == 0xFF:
                 raise SafetyError("RS-485: REQUEST to the broadcast id is not allowed")
+            if has_nonfinite(p):
+                raise SafetyError(f"refusing to send a non-finite value: {p.name} to 0x{p.device_id:02X}")
         if urgent:
             await self.transport.send_urgent(packets)
         else:
@@ -179,13 +210,41 @@ class ArmLink:
 
     async def configure_heartbeat(self) -> None:
         """HEARTBEAT_SET [POSITION, VELOCITY, MODE] and HEARTBEAT_FREQUENCY on every axis."""
+        await self.send(self._heartbeat_packets(ALL_AXES))
+        now = time.monotonic()
+        for d in ALL_AXES:
+            self._hb_sent[d] = now
+
+    def _heartbeat_packets(self, devices: Sequence[int]) -> list[Packet]:
         hz = max(1, min(255, round(self.rate_hz)))
         ids = [PacketID.POSITION, PacketID.VELOCITY, PacketID.MODE] + [0] * 7
         pk: list[Packet] = []
-        for d in ALL_AXES:  # per device: heartbeats are not saved and must be set after power-up
+        for d in devices:  # per device: heartbeats are not saved and must be set after power-up
             pk.append(make_packet(d, PacketID.HEARTBEAT_SET, ids))
             pk.append(make_packet(d, PacketID.HEARTBEAT_FREQUENCY, [hz]))
-        await self.send(pk)
+        return pk
+
+    async def _refresh_heartbeats(self) -> None:
+        """Heartbeat mode: set HEARTBEAT_SET again on devices whose position feedback went stale
+        (a power cycle loses it): at once when the device is heard from again, else periodically."""
+        now = time.monotonic()
+        due: list[int] = []
+        for d, ax in self.axes.items():
+            if now - ax.t_position <= self.stale_s:
+                self._hb_due.discard(d)
+                continue
+            since = now - self._hb_sent.get(d, 0.0)
+            if (d in self._hb_due and since > 0.1) or since >= self.HEARTBEAT_RESEND_S:
+                due.append(d)
+        if not due:
+            return
+        for d in due:
+            self._hb_sent[d] = now
+            self._hb_due.discard(d)
+        self.heartbeat_resends += 1
+        log.info("re-sending HEARTBEAT_SET to %s (feedback stale)", [f"0x{d:02X}" for d in due])
+        with contextlib.suppress(ArmError):
+            await self.send(self._heartbeat_packets(due))
 
     async def _poller(self) -> None:
         period = 1.0 / self.rate_hz
@@ -197,7 +256,11 @@ class ArmLink:
             if n % self.status_every == 0:
                 ids.append(PacketID.HARDWARE_STATUS_FLAGS)
             n += 1
-            if ids and self.transport.backlog() < 16:
+            if self.telemetry_mode == "heartbeat":
+                await self._refresh_heartbeats()
+            # RS-485: poll again only once the previous poll's REQUESTs have gone out, so that
+            # no standing backlog builds up (commands have priority in the paced writer anyway)
+            if ids and self.transport.backlog() < 16 and self.transport.pending_requests() == 0:
                 if self.rs485:
                     pk = [make_packet(d, PacketID.REQUEST, ids) for d in ALL_AXES]
                 else:
@@ -211,34 +274,55 @@ class ArmLink:
             p = await self.transport.rx.get()
             self._ingest(p)
 
+    def _reject(self, p: Packet) -> None:
+        self.nonfinite += 1
+        lvl = logging.WARNING if self.nonfinite <= 10 else logging.DEBUG
+        log.log(lvl, "device 0x%02X sent a non-finite %s %s: rejected", p.device_id, p.name, p.data.hex())
+
     def _ingest(self, p: Packet) -> None:
         now = time.monotonic()
         ax = self.axes.get(p.device_id)
+        if ax is not None and now - ax.t_position > self.stale_s:
+            self._hb_due.add(p.device_id)  # heard from again while its feedback is stale
+        pid = p.packet_id
         try:
-            if ax is not None and p.packet_id == PacketID.POSITION:
-                ax.position = p.floats()[0]
-                ax.t_position = now
-            elif ax is not None and p.packet_id == PacketID.VELOCITY:
-                ax.velocity = p.floats()[0]
-            elif ax is not None and p.packet_id == PacketID.MODE and p.data:
+            bad = has_nonfinite(p)
+            if bad:
+                self._reject(p)
+            if ax is not None and pid == PacketID.POSITION:
+                if bad:
+                    ax.position_bad = True  # not stored, not refreshed: the axis goes stale
+                else:
+                    ax.position = p.floats()[0]
+                    ax.t_position = now
+                    ax.position_bad = False
+            elif ax is not None and pid == PacketID.VELOCITY:
+                if bad:
+                    ax.velocity_bad = True
+                else:
+                    ax.velocity = p.floats()[0]
+                    ax.velocity_bad = False
+            elif ax is not None and pid == PacketID.MODE and p.data:
                 ax.mode = p.data[0]
-            elif ax is not None and p.packet_id == PacketID.HARDWARE_STATUS_FLAGS:
+            elif ax is not None and pid == PacketID.HARDWARE_STATUS_FLAGS:
                 ax.flags = HardwareStatus.from_bytes(p.data)
                 ax.t_flags = now
                 if ax.flags.any():
                     log.warning("device 0x%02X hardware flags: %s", p.device_id, ax.flags.names)
-            elif ax is not None and p.packet_id == PacketID.POSITION_LIMITS:
-                a, b = p.floats()
-                ax.limits = (min(a, b), max(a, b))
-            elif p.device_id == DeviceID.COMPUTE and p.packet_id == PacketID.KM_END_POS:
-                self.km_end_pos = p.floats()
+            elif ax is not None and pid == PacketID.POSITION_LIMITS:
+                if not bad:
+                    a, b = p.floats()
+                    ax.limits = (min(a, b), max(a, b))
+            elif p.device_id == DeviceID.COMPUTE and pid == PacketID.KM_END_POS:
+                if not bad:
+                    self.km_end_pos = p.floats()
             else:
-                self.other[(p.device_id, p.packet_id)] = (now, p)
+                self.other[(p.device_id, pid)] = (now, p)
         except Exception as exc:  # a malformed payload must not kill the reader
             log.debug("bad payload %s: %s", p, exc)
         for dev, pids, fut in list(self._waiters):
-            if dev in (p.device_id, 0xFF) and p.packet_id in pids:
-                pids.discard(p.packet_id)
+            if dev in (p.device_id, 0xFF) and pid in pids:
+                pids.discard(pid)
                 if not pids and not fut.done():
                     fut.set_result(None)
 
@@ -261,16 +345,26 @@ class ArmLink:
         return max(now - self.axes[d].t_position for d in devices)
 
     def have_feedback(self) -> bool:
-        return all(self.axes[d].position is not None for d in ALL_AXES)
+        """Every axis has reported a position and none reports non-finite values."""
+        return all(self.axes[d].position is not None and not self.axes[d].invalid for d in ALL_AXES)
+
+    def invalid_axes(self) -> list[tuple[int, str]]:
+        """(device, what) for every axis whose latest feedback was NaN or infinite."""
+        return [(d, w) for d, ax in self.axes.items() if (w := ax.invalid) is not None]
 
     def raw_positions(self) -> np.ndarray:
         vals = [self.axes[d].position for d in JOINT_DEVICES]
         if any(v is None for v in vals):
             raise ArmError("no joint feedback yet")
+        bad = [(d, w) for d, w in self.invalid_axes() if d in JOINT_DEVICES]
+        if bad:
+            raise ArmError(f"device 0x{bad[0][0]:02X} reports a non-finite {bad[0][1]}")
         return np.array(vals, dtype=float)
 
     def jaw_mm(self) -> float | None:
-        return self.axes[JAW_DEVICE].position
+        """The jaw position (mm), or None when there is none or it is invalid."""
+        ax = self.axes[JAW_DEVICE]
+        return None if ax.invalid else ax.position
 
 
 # ---------------------------------------------------------------- execution
@@ -283,6 +377,7 @@ class PhaseReport:
     converged: bool
     max_joint_error_rad: float
     q_measured: list[float] = field(default_factory=list)  # the joints (DH, rad) that converged
+    jaw_mm: float | None = None  # the jaw position measured at convergence
 
 
 @dataclass(slots=True)
@@ -326,6 +421,9 @@ class GraspPlan:
 class ArmController:
     """Safe grasp execution on a Bravo 7 (real or simulated) over any transport."""
 
+    #: how long stop() waits for its packets to leave a congested link before logging that
+    STOP_FLUSH_S = 0.05
+
     def __init__(
         self,
         cfg: ArmConfig,
@@ -345,6 +443,7 @@ class ArmController:
             telemetry_mode=cfg.telemetry.mode,
             rate_hz=cfg.telemetry.rate_hz,
             status_every=cfg.telemetry.status_every,
+            stale_s=cfg.safety.watchdog_s,
         )
         self._rng = np.random.default_rng(cfg.kinematics.ik_random_seed)
         self.state = "idle"
@@ -395,6 +494,10 @@ class ArmController:
             if self.link.have_feedback() and self.link.feedback_age() < self.cfg.safety.watchdog_s:
                 return
             await asyncio.sleep(0.01)
+        bad = self.link.invalid_axes()
+        if bad:
+            dev, what = bad[0]
+            raise ArmError(f"no valid joint feedback: device 0x{dev:02X} reports a non-finite {what}")
         raise ArmError(f"no joint feedback from the arm within {within_s} s")
 
     # ---------------------------------------------------------------- stop and watchdog
@@ -411,9 +514,20 @@ class ArmController:
     async def stop(self, reason: str = "requested") -> None:
         """Abort any motion; send zero velocity to all devices, then the configured safe mode."""
         self._abort = self._abort or f"stopped: {reason}"
+        await self._send_stop()
+        if await self.link.transport.flush(self.STOP_FLUSH_S):
+            log.warning("arm stop (%s): zero velocity + %s sent", reason, self.cfg.safety.safe_mode)
+        else:
+            log.error(
+                "arm stop (%s): zero velocity + %s queued but not yet written (link congested); "
+                "it goes out as soon as the link takes it",
+                reason,
+                self.cfg.safety.safe_mode,
+            )
+
+    async def _send_stop(self) -> None:
         await self.link.send(self._stop_packets(), urgent=True)
         self._stop_sent_at = time.monotonic()
-        log.warning("arm stop (%s): zero velocity + %s sent", reason, self.cfg.safety.safe_mode)
 
     def _link_errors(self) -> int:
         return self.link.transport.stats.rx_errors
@@ -423,6 +537,9 @@ class ArmController:
         tr = self.link.transport
         if tr.failed.is_set():
             return f"link failed: {tr.error}"
+        bad = self.link.invalid_axes()
+        if bad:
+            return f"device 0x{bad[0][0]:02X} reports a non-finite {bad[0][1]}"
         age = self.link.feedback_age()
         if age > s.watchdog_s:
             return f"joint feedback is {age * 1000:.0f} ms old (bound {s.watchdog_s * 1000:.0f} ms)"
@@ -452,8 +569,7 @@ class ArmController:
                 elif reason is not None and resends < 3 and self._stop_sent_at is not None:
                     if time.monotonic() - self._stop_sent_at > 0.1:
                         resends += 1
-                        await self.link.send(self._stop_packets(), urgent=True)
-                        self._stop_sent_at = time.monotonic()
+                        await self._send_stop()
                 elif reason is None and self.trip_reason is not None:
                     log.warning("arm watchdog re-armed (was: %s)", self.trip_reason)
                     self.trip_reason = None
@@ -466,8 +582,7 @@ class ArmController:
         self.trips.append({"t_monotonic": t, "reason": reason, "state": self.state})
         log.error("arm watchdog tripped: %s", reason)
         self._abort = f"watchdog: {reason}"
-        await self.link.send(self._stop_packets(), urgent=True)
-        self._stop_sent_at = time.monotonic()
+        await self._send_stop()
 
     # ---------------------------------------------------------------- status
 
@@ -475,7 +590,7 @@ class ArmController:
         link = self.link
         joints = []
         q = None
-        with contextlib.suppress(ArmError):
+        with contextlib.suppress(ArmError):  # no feedback yet, or non-finite feedback
             q = self.model.from_device(link.raw_positions())
         for i, d in enumerate(ALL_AXES):
             ax = link.axes[d]
@@ -489,6 +604,7 @@ class ArmController:
                     "velocity": ax.velocity,
                     "mode": _mode_name(ax.mode),
                     "feedback_age_s": time.monotonic() - ax.t_position if ax.position is not None else None,
+                    "invalid": ax.invalid,
                     "flags": ax.flags.names,
                     "device_limits": list(ax.limits) if ax.limits else None,
                     "flags_raw": list(ax.flags.to_bytes()),
@@ -508,6 +624,8 @@ class ArmController:
                 **self.link.transport.stats.as_dict(),
                 "error": self.link.transport.error,
                 "feedback_age_s": self.link.feedback_age(),
+                "rx_nonfinite": self.link.nonfinite,
+                "heartbeat_resends": self.link.heartbeat_resends,
             },
             "watchdog": {
                 "bound_s": self.cfg.safety.watchdog_s,
@@ -651,6 +769,10 @@ class ArmController:
 
     async def _send_setpoint(self, q: np.ndarray, jaw_mm: float) -> None:
         self._check_abort()
+        if not (np.all(np.isfinite(q)) and math.isfinite(jaw_mm)):
+            raise SafetyError(
+                f"refusing a non-finite setpoint (joints {np.asarray(q).tolist()}, jaw {jaw_mm})"
+            )
         pk: list[Packet] = []
         if self.cfg.kinematics.has_km_end_pos:
             pk.append(make_packet(0x0E, PacketID.KM_END_POS, pose_to_km_end_pos(self.model.fk(q))))
@@ -691,6 +813,24 @@ class ArmController:
     def _measured_q(self) -> np.ndarray:
         return self.model.from_device(self.link.raw_positions())
 
+    def _jaw_openness(self, jaw_mm: float) -> float:
+        """How far ``jaw_mm`` is from closed, towards open (mm; either numbering direction)."""
+        mo = self.cfg.motion
+        sign = 1.0 if mo.jaw_open_mm >= mo.jaw_closed_mm else -1.0
+        return (jaw_mm - mo.jaw_closed_mm) * sign
+
+    @staticmethod
+    def _jaw_stalled(
+        hist: collections.deque[tuple[float, float]], now: float, window_s: float, span_mm: float
+    ) -> bool:
+        """The jaw samples of the last ``window_s`` (which must be covered) vary by <= ``span_mm``."""
+        while len(hist) >= 2 and hist[1][0] <= now - window_s:
+            hist.popleft()
+        if not hist or hist[0][0] > now - window_s:
+            return False
+        vals = [j for _, j in hist]
+        return max(vals) - min(vals) <= span_mm
+
     async def _follow(
         self,
         name: str,
@@ -698,14 +838,25 @@ class ArmController:
         jaw_from: float,
         jaw_to: float,
         *,
-        jaw_stall_ok: bool = False,
+        jaw_check: str = "reach",
+        jaw_grip_mm: float | None = None,
     ) -> PhaseReport:
-        """Stream setpoints along ``path`` at the configured speed, then wait for convergence."""
+        """Stream setpoints along ``path`` at the configured speed, then wait for convergence.
+
+        The jaw converges when it is within ``jaw_tol_mm`` of ``jaw_to``. ``jaw_check="close"``
+        also accepts a grip: the jaw travelled at least ``jaw_min_travel_mm`` towards closed
+        since the phase started and then stalled (moved <= ``jaw_tol_mm`` over ``jaw_stall_s``,
+        reported speed < 0.5 mm/s); a jaw that stalls before that travel fails the phase at once.
+        ``jaw_check="hold"`` accepts a stalled jaw that is no more open than ``jaw_grip_mm``
+        (+ tolerance): the object is still held.
+        """
         mo, s = self.cfg.motion, self.cfg.safety
         self.state = name
         t0 = time.monotonic()
         period = 1.0 / mo.setpoint_rate_hz
         q0 = self._measured_q()
+        jaw_start = self.link.jaw_mm()
+        jaw_hist: collections.deque[tuple[float, float]] = collections.deque()
         pts = [q0, *path]
         # time at each waypoint: limited by joint speed and jaw speed
         times = [0.0]
@@ -715,7 +866,8 @@ class ArmController:
         t_total = max(times[-1], t_jaw)
         k = 0
         while True:
-            el = time.monotonic() - t0
+            now = time.monotonic()
+            el = now - t0
             u = min(el, t_total)
             while k < len(times) - 2 and times[k + 1] < u:
                 k += 1
@@ -728,17 +880,36 @@ class ArmController:
             if lead > s.max_setpoint_lead_rad:
                 raise SafetyError(f"{name}: setpoint leads the measured position by {lead:.2f} rad")
             await self._send_setpoint(q_sp, jaw_sp)
+            jaw = self.link.jaw_mm()
+            if jaw is not None:
+                jaw_hist.append((now, jaw))
             if el >= t_total:
                 err = float(np.abs(pts[-1] - qm).max())
-                jaw = self.link.jaw_mm()
                 jaw_ok = jaw is not None and abs(jaw - jaw_to) <= mo.jaw_tol_mm
-                if jaw_stall_ok and not jaw_ok and jaw is not None:
+                if jaw_check != "reach" and not jaw_ok and jaw is not None:
                     jv = self.link.axes[JAW_DEVICE].velocity
-                    jaw_ok = el - t_total > mo.jaw_stall_s and jv is not None and abs(jv) < 0.5
+                    stalled = (
+                        el - t_total >= mo.jaw_stall_s
+                        and self._jaw_stalled(jaw_hist, now, mo.jaw_stall_s, mo.jaw_tol_mm)
+                        and (jv is None or abs(jv) < 0.5)
+                    )
+                    if stalled and jaw_check == "close":
+                        ref = jaw_from if jaw_start is None else jaw_start
+                        travel = self._jaw_openness(ref) - self._jaw_openness(jaw)
+                        if travel < mo.jaw_min_travel_mm:
+                            raise ArmError(
+                                f"{name}: the jaw stopped after {travel:.2f} mm of travel towards "
+                                f"closed (at {jaw:.2f} mm, commanded {jaw_to:.2f} mm; at least "
+                                f"{mo.jaw_min_travel_mm} mm needed): jaw not moving, not gripped"
+                            )
+                        jaw_ok = True
+                    elif stalled and jaw_check == "hold":
+                        grip = jaw_from if jaw_grip_mm is None else jaw_grip_mm
+                        jaw_ok = self._jaw_openness(jaw) <= self._jaw_openness(grip) + mo.jaw_tol_mm
                 vel = [self.link.axes[d].velocity for d in JOINT_DEVICES]
                 at_rest = all(v is None or abs(v) <= mo.settle_velocity_rad_s for v in vel)
                 if err <= mo.convergence_tol_rad and jaw_ok and at_rest:
-                    return PhaseReport(name, time.monotonic() - t0, True, err, qm.tolist())
+                    return PhaseReport(name, time.monotonic() - t0, True, err, qm.tolist(), jaw)
                 if el - t_total > mo.convergence_timeout_s:
                     raise ArmError(
                         f"{name}: no convergence within {mo.convergence_timeout_s} s "
@@ -780,6 +951,11 @@ class ArmController:
                 # IK with many seeds takes up to ~0.5 s: run it off the event loop so that the
                 # watchdog and telemetry keep running meanwhile
                 plan = await asyncio.to_thread(self.plan_grasp, T_B_G, width_m, q_now)
+            except PugsdError:
+                raise
+            except Exception as exc:  # nothing was sent: a refusal, reported as such
+                log.exception("grasp %d: planning failed", grasp_id)
+                raise ArmError(f"planning failed: {type(exc).__name__}: {exc}") from exc
             finally:
                 self.state = "idle"
             if self._abort is not None:  # stopped while planning: nothing was sent
@@ -816,29 +992,36 @@ class ArmController:
                 rep.grasp_pose_error_bound_mm = (1.02 * bp + k.ik_tol_m) * 1000.0
                 rep.grasp_pose_error_bound_deg = math.degrees(1.02 * br) + k.ik_tol_deg
                 rep.state = "close"
-                rep.phases.append(
-                    await self._follow(
-                        "close",
-                        [plan.approach[-1]],
-                        plan.jaw_open_mm,
-                        plan.jaw_closed_mm,
-                        jaw_stall_ok=True,
-                    )
+                closed = await self._follow(
+                    "close",
+                    [plan.approach[-1]],
+                    plan.jaw_open_mm,
+                    plan.jaw_closed_mm,
+                    jaw_check="close",
                 )
+                rep.phases.append(closed)
                 rep.state = "lift"
                 rep.phases.append(
                     await self._follow(
-                        "lift", plan.lift, plan.jaw_closed_mm, plan.jaw_closed_mm, jaw_stall_ok=True
+                        "lift",
+                        plan.lift,
+                        plan.jaw_closed_mm,
+                        plan.jaw_closed_mm,
+                        jaw_check="hold",
+                        jaw_grip_mm=closed.jaw_mm,
                     )
                 )
                 rep.state = "done"
                 rep.ok = True
-            except (ArmError, SafetyError) as exc:
-                rep.reason = str(exc)
-                log.error("grasp %d aborted in %s: %s", grasp_id, rep.state, exc)
-                if self.trip_reason is None:
-                    with contextlib.suppress(Exception):
-                        await self.stop(reason=f"execution failed: {exc}")
+            except Exception as exc:  # ANY failure once motion may have started stops the arm
+                if isinstance(exc, PugsdError):
+                    rep.reason = str(exc)
+                    log.error("grasp %d aborted in %s: %s", grasp_id, rep.state, exc)
+                else:
+                    rep.reason = f"internal error: {type(exc).__name__}: {exc}"
+                    log.exception("grasp %d aborted in %s by an unexpected error", grasp_id, rep.state)
+                with contextlib.suppress(Exception):
+                    await self.stop(reason=f"execution failed: {rep.reason}")
             except asyncio.CancelledError:
                 with contextlib.suppress(Exception):
                     await self.stop(reason="execution cancelled")

@@ -140,8 +140,11 @@ class Bravo7Model:
         return self.wrap_into_limits(q)
 
     def wrap_into_limits(self, q: np.ndarray) -> np.ndarray:
-        """Shift each angle by multiples of 2 pi into [q_min, q_max] when that is possible."""
+        """Shift each angle by multiples of 2 pi into [q_min, q_max] when that is possible.
+        ArmError for non-finite angles (NaN feedback must never reach the planner)."""
         q = np.array(q, dtype=float)
+        if q.shape != (6,) or not np.all(np.isfinite(q)):
+            raise ArmError(f"joint angles must be 6 finite values, got {q.tolist()}")
         two_pi = 2.0 * math.pi
         for i in range(6):
             if self.q_min[i] <= q[i] <= self.q_max[i]:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import enum
 import logging
+import math
 import struct
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -271,10 +272,16 @@ def encode_payload(packet_id: int, values: Values | Sequence[float] | Sequence[i
         )
         raise ArmError(f"{spec.name}: expected {want} values, got {n}")
     if spec.kind == "f32":
-        return struct.pack(f"<{n}f", *(float(v) for v in values))
+        try:
+            return struct.pack(f"<{n}f", *(float(v) for v in values))
+        except (OverflowError, struct.error, TypeError, ValueError) as exc:
+            raise ArmError(f"{spec.name}: {list(values)!r} does not fit binary32 floats ({exc})") from None
     out = []
     for v in values:
-        iv = int(v)
+        try:
+            iv = int(v)
+        except (TypeError, ValueError, OverflowError):
+            raise ArmError(f"{spec.name}: byte value {v!r} is not an integer") from None
         if iv != v or not 0 <= iv <= 0xFF:
             raise ArmError(f"{spec.name}: byte value {v!r} out of range 0-255")
         out.append(iv)
@@ -297,6 +304,14 @@ def decode_payload(packet_id: int, data: bytes) -> Values:
     if spec.kind == "f32":
         return struct.unpack(f"<{n}f", data)
     return tuple(data)
+
+
+def has_nonfinite(packet: Packet) -> bool:
+    """True when a float packet carries NaN or an infinity (never sent, never trusted)."""
+    spec = packet.spec
+    if spec is None or spec.kind != "f32" or len(packet.data) % 4:
+        return False
+    return not all(math.isfinite(v) for v in packet.floats())
 
 
 def make_packet(
@@ -334,6 +349,8 @@ def decode_frame(chunk: bytes) -> Packet:
     length = raw[-2]
     if length >= 0x80:
         raise DecodeError(f"length byte 0x{length:02X} is not a V1 packet")
+    if length > MAX_PACKET_LENGTH:
+        raise DecodeError(f"length byte {length} exceeds the {MAX_PACKET_LENGTH}-byte maximum")
     if length != len(raw):
         raise DecodeError(f"length byte {length} does not match {len(raw)} bytes")
     if crc8(raw[:-1]) != raw[-1]:
@@ -379,6 +396,11 @@ class StreamDecoder:
     stats: DecoderStats = field(default_factory=DecoderStats)
     _buf: bytearray = field(default_factory=bytearray)
     _discarding: bool = False
+
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes of an unfinished frame (no 0x00 seen yet)."""
+        return len(self._buf)
 
     def reset(self) -> None:
         self.stats.bytes_dropped += len(self._buf)
@@ -430,6 +452,7 @@ class StreamDecoder:
             except Exception:  # defensive: a decoder bug must not kill a link
                 log.exception("unexpected error decoding a frame")
                 self.stats.framing_errors += 1
+                self.stats.bytes_dropped += len(chunk) + 1
         return out
 
 

@@ -13,9 +13,11 @@ BPL over CAN for the Bravo arms.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import logging
 import os
+import socket
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -42,11 +44,13 @@ RX_QUEUE_SIZE = 2048
 class LinkStats:
     """Counters of one link (decoder counters included)."""
 
-    tx_packets: int = 0
+    tx_packets: int = 0  # packets completely written
     tx_bytes: int = 0
-    tx_errors: int = 0
+    tx_errors: int = 0  # packets not sent (buffer full, link down, bus error)
     rx_packets: int = 0
     rx_dropped_queue_full: int = 0
+    rx_echo: int = 0  # RS-485: our own frames read back and discarded
+    rx_foreign: int = 0  # UDP: datagrams from an address other than the arm's
     last_rx_monotonic: float = 0.0
     decoder: DecoderStats = field(default_factory=DecoderStats)
 
@@ -61,6 +65,8 @@ class LinkStats:
             "tx_errors": self.tx_errors,
             "rx_packets": self.rx_packets,
             "rx_dropped_queue_full": self.rx_dropped_queue_full,
+            "rx_echo": self.rx_echo,
+            "rx_foreign": self.rx_foreign,
             "rx_age_s": (time.monotonic() - self.last_rx_monotonic) if self.last_rx_monotonic else None,
             **{f"rx_{k}": v for k, v in self.decoder.as_dict().items()},
         }
@@ -100,8 +106,16 @@ class Transport:
         """Send ahead of anything queued (stop commands); same as send_many on most links."""
         await self.send_many(packets)
 
+    async def flush(self, within_s: float = 1.0) -> bool:
+        """Wait until everything queued has been written; False if that took longer."""
+        return True
+
     def backlog(self) -> int:
         """Packets waiting to be written (paced links only)."""
+        return 0
+
+    def pending_requests(self) -> int:
+        """REQUEST packets waiting to be written (paced links only)."""
         return 0
 
     def _fail(self, msg: str) -> None:
@@ -127,11 +141,23 @@ class Transport:
 
 # ---------------------------------------------------------------- byte streams (serial, pty)
 
+#: an entry of the transmit buffer: wire bytes, the packets they hold, the packet (if one)
+_TxEntry = tuple[bytes, int, Packet | None]
+
 
 class FdStreamTransport(Transport):
-    """A byte-stream link on a non-blocking file descriptor, read with ``loop.add_reader``."""
+    """A byte-stream link on a non-blocking file descriptor, read with ``loop.add_reader``.
+
+    Writes never block the event loop: what the fd does not take at once stays in a transmit
+    buffer and is written when the fd becomes writable (``loop.add_writer``). A frame is never
+    split or abandoned once its first byte is out; packets count in ``tx_packets`` only when
+    completely written. New packets are dropped whole (``tx_errors``) while more than
+    ``max_pending_bytes`` wait; urgent packets (stops) replace the frames not yet started.
+    """
 
     name = "fd"
+    max_pending_bytes = 4096
+    _WRITE_CHUNK = 4096
 
     def __init__(self, fd: int | None = None) -> None:
         super().__init__()
@@ -139,6 +165,11 @@ class FdStreamTransport(Transport):
         self._decoder = StreamDecoder(stats=self.stats.decoder)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._reading = False
+        self._tx: collections.deque[_TxEntry] = collections.deque()  # not started
+        self._tx_bytes_queued = 0
+        self._tx_partial = b""  # rest of a frame already partly written: always finished
+        self._tx_partial_packets = 0
+        self._writer_registered = False
 
     @property
     def fd(self) -> int:
@@ -161,6 +192,7 @@ class FdStreamTransport(Transport):
             with contextlib.suppress(Exception):
                 self._loop.remove_reader(self._fd)
         self._reading = False
+        self._want_writable(False)
 
     def _on_readable(self) -> None:
         try:
@@ -177,29 +209,121 @@ class FdStreamTransport(Transport):
             return
         self._deliver(self._decoder.feed(data))
 
-    def write_bytes(self, data: bytes) -> None:
-        """Non-blocking write; a full buffer or a dead link counts as a tx error (never blocks)."""
+    # ---------------------------------------------------------------- transmit buffer
+
+    def tx_pending(self) -> int:
+        """Bytes accepted for sending but not yet written to the fd."""
+        return len(self._tx_partial) + self._tx_bytes_queued
+
+    def _frame_started(self, packet: Packet | None) -> None:
+        """Called when the first byte of a queued packet has been written (RS-485 echo)."""
+
+    def _enqueue(self, entries: Sequence[_TxEntry], *, urgent: bool = False) -> None:
         if self._closed or self._fd is None:
-            self.stats.tx_errors += 1
+            self.stats.tx_errors += sum(max(n, 1) for _, n, _ in entries)
             return
-        try:
-            n = os.write(self._fd, data)
-        except BlockingIOError:
-            self.stats.tx_errors += 1
+        if urgent and self._tx:
+            # stale setpoints must not go out ahead of a stop: drop what has not started
+            self.stats.tx_errors += sum(max(n, 1) for _, n, _ in self._tx)
+            self._tx.clear()
+            self._tx_bytes_queued = 0
+        for entry in entries:
+            data, n, _ = entry
+            if not urgent and self.tx_pending() + len(data) > self.max_pending_bytes:
+                self.stats.tx_errors += max(n, 1)  # dropped whole, never truncated
+                continue
+            self._tx.append(entry)
+            self._tx_bytes_queued += len(data)
+        self._write_pending()
+
+    def _write_pending(self) -> None:
+        """Write as much of the transmit buffer as the fd takes now; the rest waits."""
+        while self._tx_partial or self._tx:
+            if self._closed or self._fd is None:
+                return
+            parts = [self._tx_partial] if self._tx_partial else []
+            size = len(self._tx_partial)
+            for data, _, _ in self._tx:
+                if parts and size + len(data) > self._WRITE_CHUNK:
+                    break
+                parts.append(data)
+                size += len(data)
+            buf = b"".join(parts)
+            try:
+                n = os.write(self._fd, buf)
+            except BlockingIOError:
+                n = 0
+            except OSError as exc:
+                lost = self._tx_partial_packets + sum(max(k, 1) for _, k, _ in self._tx)
+                self.stats.tx_errors += max(lost, 1)
+                self._tx.clear()
+                self._tx_bytes_queued = 0
+                self._tx_partial = b""
+                self._tx_partial_packets = 0
+                self._want_writable(False)
+                self._fail(f"write: {exc}")
+                return
+            self.stats.tx_bytes += n
+            left = n
+            if self._tx_partial:
+                m = min(left, len(self._tx_partial))
+                self._tx_partial = self._tx_partial[m:]
+                left -= m
+                if not self._tx_partial:
+                    self.stats.tx_packets += self._tx_partial_packets
+                    self._tx_partial_packets = 0
+            while left > 0:
+                data, k, pkt = self._tx.popleft()
+                self._tx_bytes_queued -= len(data)
+                self._frame_started(pkt)
+                if left >= len(data):
+                    self.stats.tx_packets += k
+                    left -= len(data)
+                else:
+                    self._tx_partial = data[left:]
+                    self._tx_partial_packets = k
+                    left = 0
+            if n < len(buf):  # the fd is full: continue when it is writable again
+                self._want_writable(True)
+                return
+        self._want_writable(False)
+
+    def _want_writable(self, on: bool) -> None:
+        if on == self._writer_registered:
             return
-        except OSError as exc:
-            self.stats.tx_errors += 1
-            self._fail(f"write: {exc}")
+        if not on:
+            if self._loop is not None and self._fd is not None:
+                with contextlib.suppress(Exception):
+                    self._loop.remove_writer(self._fd)
+            self._writer_registered = False
             return
-        self.stats.tx_bytes += n
-        if n < len(data):
-            self.stats.tx_errors += 1
+        if self._fd is None:
+            return
+        if self._loop is None:
+            try:
+                self._loop = asyncio.get_running_loop()
+            except RuntimeError:
+                return
+        self._loop.add_writer(self._fd, self._write_pending)
+        self._writer_registered = True
+
+    def write_bytes(self, data: bytes) -> None:
+        """Queue raw bytes (the simulator, fault injection); written in order, never truncated."""
+        self._enqueue([(bytes(data), 0, None)])
 
     async def send_many(self, packets: Sequence[Packet]) -> None:
-        if not packets:
-            return
-        self.write_bytes(b"".join(encode_frame(p) for p in packets))
-        self.stats.tx_packets += len(packets)
+        if packets:
+            self._enqueue([(encode_frame(p), 1, p) for p in packets])
+
+    async def send_urgent(self, packets: Sequence[Packet]) -> None:
+        if packets:
+            self._enqueue([(encode_frame(p), 1, p) for p in packets], urgent=True)
+
+    async def flush(self, within_s: float = 1.0) -> bool:
+        t_end = time.monotonic() + within_s
+        while self.tx_pending() and time.monotonic() < t_end and not self._closed:  # noqa: ASYNC110
+            await asyncio.sleep(0.001)
+        return self.tx_pending() == 0
 
     async def close(self) -> None:
         self._stop_reading()
@@ -209,12 +333,22 @@ class FdStreamTransport(Transport):
 class SerialTransport(FdStreamTransport):
     """Reach serial link via pyserial (115200 8N1, no flow control).
 
-    With ``rs485=True`` writes go through a paced queue (``request_gap_s`` of quiet time after a
-    REQUEST so the reply does not collide, ``command_gap_s`` after anything else), and a REQUEST
-    to the broadcast id is refused because every device would answer at once.
+    With ``rs485=True`` writes go through a paced writer: commands have priority over REQUESTs
+    (telemetry polls never delay a command by more than one request gap); consecutive commands
+    go out in one write followed by ``command_gap_s``; each REQUEST is followed by
+    ``request_gap_s`` of quiet time so that the reply does not collide. A REQUEST to the
+    broadcast id is refused because every device would answer at once.
+
+    RS-485 echo: many half-duplex adapters read back what the host transmits, and BPL commands
+    look exactly like replies. With ``rs485_echo=True`` every frame we write is expected back, in
+    order, and discarded when it arrives (within ``ECHO_TIMEOUT_S``). With ``rs485_echo=False``
+    a packet no device ever sends (a REQUEST, or anything from the broadcast id) is proof of an
+    echo: the link fails, so that echoed setpoints are never taken for joint feedback.
     """
 
     name = "serial"
+    ECHO_TIMEOUT_S = 0.5
+    QUEUE_SIZE = 256
 
     def __init__(
         self,
@@ -224,16 +358,23 @@ class SerialTransport(FdStreamTransport):
         rs485: bool = False,
         request_gap_s: float = 0.01,
         command_gap_s: float = 0.002,
+        rs485_echo: bool = False,
     ) -> None:
         super().__init__()
         self.port = port
         self.baudrate = baudrate
         self.rs485 = rs485
+        self.rs485_echo = rs485_echo
         self.request_gap_s = request_gap_s
         self.command_gap_s = command_gap_s
         self._serial: Any = None
-        self._queue: asyncio.Queue[Packet] | None = None
+        self._commands: collections.deque[Packet] = collections.deque()
+        self._requests: collections.deque[Packet] = collections.deque()
+        self._wake = asyncio.Event()
         self._writer: asyncio.Task[None] | None = None
+        self._echo: collections.deque[tuple[Packet, float]] = collections.deque()
+        self.echo_missing = 0  # frames whose echo never came back (rs485_echo only)
+        self._unexpected_echo = False
 
     async def open(self) -> None:
         import serial  # pyserial
@@ -256,56 +397,111 @@ class SerialTransport(FdStreamTransport):
         self._fd = self._serial.fileno()
         self._start_reading()
         if self.rs485:
-            self._queue = asyncio.Queue(maxsize=256)
             self._writer = asyncio.create_task(self._paced_writer(), name="rs485-writer")
 
     async def send_many(self, packets: Sequence[Packet]) -> None:
         if not self.rs485:
             await super().send_many(packets)
             return
-        assert self._queue is not None
         for p in packets:
             if p.packet_id == PacketID.REQUEST and p.device_id == 0xFF:
                 raise ArmError("RS-485: a REQUEST to the broadcast id would make all devices answer")
-            if self._queue.full():
+            if self.backlog() >= self.QUEUE_SIZE:
                 self.stats.tx_errors += 1
                 continue
-            self._queue.put_nowait(p)
+            (self._requests if p.packet_id == PacketID.REQUEST else self._commands).append(p)
+        self._wake.set()
 
     async def send_urgent(self, packets: Sequence[Packet]) -> None:
-        if self._queue is not None:
-            while not self._queue.empty():
-                self._queue.get_nowait()  # stale setpoints: the stop goes first
+        if not self.rs485:
+            await super().send_urgent(packets)
+            return
+        self._commands.clear()  # stale setpoints: the stop goes first
+        self._requests.clear()
         await self.send_many(packets)
 
     def backlog(self) -> int:
-        return self._queue.qsize() if self._queue is not None else 0
+        return len(self._commands) + len(self._requests)
 
-    async def flush(self, within_s: float = 1.0) -> None:
-        """RS-485: wait until the paced queue has been written."""
-        if self._queue is None:
-            return
+    def pending_requests(self) -> int:
+        return len(self._requests)
+
+    async def flush(self, within_s: float = 1.0) -> bool:
+        """Wait until queued commands (not telemetry REQUESTs) and the transmit buffer have been
+        written; False if that took longer than ``within_s``."""
         t_end = time.monotonic() + within_s
-        while not self._queue.empty() and time.monotonic() < t_end:  # noqa: ASYNC110
+        while (self._commands or self.tx_pending()) and time.monotonic() < t_end:
+            if self._closed:
+                break
             await asyncio.sleep(0.001)
+        return not (self._commands or self.tx_pending())
 
     async def _paced_writer(self) -> None:
-        """Commands queued back to back go out in one write (one master, no reply expected);
-        each REQUEST is followed by quiet time so that its reply does not collide."""
-        assert self._queue is not None
+        """Commands first (back to back in one write), then one REQUEST at a time, each followed
+        by quiet time; a gap starts when the bytes have left the transmit buffer."""
         while True:
-            batch = [await self._queue.get()]
-            while batch[-1].packet_id != PacketID.REQUEST and not self._queue.empty():
-                batch.append(self._queue.get_nowait())
-            self.write_bytes(b"".join(encode_frame(p) for p in batch))
-            self.stats.tx_packets += len(batch)
-            gap = self.request_gap_s if batch[-1].packet_id == PacketID.REQUEST else self.command_gap_s
+            while not self._commands and not self._requests:
+                self._wake.clear()
+                await self._wake.wait()
+            if self._commands:
+                batch = [self._commands.popleft() for _ in range(min(len(self._commands), 32))]
+                gap = self.command_gap_s
+            else:
+                batch = [self._requests.popleft()]
+                gap = self.request_gap_s
+            self._enqueue([(encode_frame(p), 1, p) for p in batch])
+            while self.tx_pending() and not self._closed:  # noqa: ASYNC110
+                await asyncio.sleep(0.001)
             await asyncio.sleep(gap)
 
+    # ---------------------------------------------------------------- RS-485 echo
+
+    def _frame_started(self, packet: Packet | None) -> None:
+        if self.rs485 and self.rs485_echo and packet is not None:
+            self._echo.append((packet, time.monotonic()))
+
+    def _deliver(self, packets: Iterable[Packet]) -> None:
+        if not self.rs485:
+            super()._deliver(packets)
+            return
+        now = time.monotonic()
+        while self._echo and now - self._echo[0][1] > self.ECHO_TIMEOUT_S:
+            self._echo.popleft()
+            self.echo_missing += 1
+        keep: list[Packet] = []
+        for p in packets:
+            if self.rs485_echo and self._match_echo(p):
+                self.stats.rx_echo += 1
+                continue
+            if p.packet_id == PacketID.REQUEST or p.device_id == 0xFF:
+                # no device sends these: it is our own transmission read back
+                self.stats.rx_echo += 1
+                if not self.rs485_echo:
+                    self._unexpected_echo = True
+                    self._fail(
+                        "RS-485: the adapter echoes our own transmission (set arm.serial.rs485_echo = true)"
+                    )
+                continue
+            keep.append(p)
+        if self._unexpected_echo:
+            keep = []  # once an echo was seen, nothing read on this line can be trusted
+        super()._deliver(keep)
+
+    def _match_echo(self, p: Packet) -> bool:
+        """Discard ``p`` if it is the echo of a frame we wrote (echoes come back in order)."""
+        for i, (q, _) in enumerate(self._echo):
+            if q == p:
+                for _ in range(i):  # earlier echoes were lost (e.g. corrupted)
+                    self._echo.popleft()
+                    self.echo_missing += 1
+                self._echo.popleft()
+                return True
+        return False
+
     async def close(self) -> None:
+        with contextlib.suppress(Exception):
+            await self.flush(0.2)  # a stop sent just before closing still goes out
         if self._writer is not None:
-            with contextlib.suppress(Exception):
-                await self.flush(0.2)
             self._writer.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._writer
@@ -354,6 +550,8 @@ class UdpTransport(Transport):
         self.remote = remote
         self.local = local
         self.peer: tuple[str, int] | None = remote
+        #: the arm's resolved (address, port); datagrams from anywhere else are ignored
+        self.remote_addr: tuple[str, int] | None = None
         self._tr: asyncio.DatagramTransport | None = None
         self._decoder = StreamDecoder(stats=self.stats.decoder)
 
@@ -365,6 +563,21 @@ class UdpTransport(Transport):
             tr, _ = await loop.create_datagram_endpoint(lambda: _UdpProtocol(self), local_addr=self.local)
         except OSError as exc:
             raise ArmError(f"udp bind {self.local}: {exc}") from None
+        if self.remote is not None:
+            sock = tr.get_extra_info("socket")
+            family = sock.family if sock is not None else socket.AF_INET
+            try:
+                infos = await loop.getaddrinfo(
+                    self.remote[0], self.remote[1], family=family, type=socket.SOCK_DGRAM
+                )
+                if not infos:
+                    raise OSError("no address")
+            except OSError as exc:
+                tr.close()
+                raise ArmError(f"udp: cannot resolve the arm address {self.remote[0]!r}: {exc}") from None
+            addr = infos[0][4]
+            self.remote_addr = (str(addr[0]), int(addr[1]))
+            self.peer = self.remote_addr
         self._tr = tr
 
     @property
@@ -375,13 +588,17 @@ class UdpTransport(Transport):
         return (str(addr[0]), int(addr[1]))
 
     def _on_datagram(self, data: bytes, addr: tuple[str, int]) -> None:
-        if self.remote is not None and (addr[1] != self.remote[1]):
-            return  # not from the arm
+        if self.remote is not None and (str(addr[0]), int(addr[1])) != self.remote_addr:
+            self.stats.rx_foreign += 1  # not from the arm (address and port are compared)
+            return
         if self.remote is None:
             self.peer = (addr[0], addr[1])
         pk = self._decoder.feed(data)
         if not data.endswith(b"\x00"):
-            self._decoder.reset()  # a datagram never continues in the next one
+            # a datagram never continues in the next one: its unterminated tail is a broken frame
+            if self._decoder.pending_bytes:
+                self.stats.decoder.framing_errors += 1
+            self._decoder.reset()
         self._deliver(pk)
 
     async def send_many(self, packets: Sequence[Packet]) -> None:
@@ -485,6 +702,11 @@ class CanReassembler:
                 self.stats.framing_errors += 1
                 self.stats.bytes_dropped += len(chunk)
                 continue
+            except Exception as exc:  # defensive: one bad packet must not lose the others
+                log.debug("can: unexpected error decoding a packet: %r", exc)
+                self.stats.framing_errors += 1
+                self.stats.bytes_dropped += len(chunk)
+                continue
             if self.check_device and p.device_id != (arb_id & 0xFF):
                 self.device_mismatches += 1
                 self.stats.framing_errors += 1
@@ -499,9 +721,21 @@ class CanReassembler:
 
 
 class CanTransport(Transport):
-    """BPL packets tunnelled over CAN with python-can (role ``host`` or ``arm`` for the sim)."""
+    """BPL packets tunnelled over CAN with python-can (role ``host`` or ``arm`` for the sim).
+
+    Sends never block the event loop (``bus.send(timeout=0)``): a frame the controller cannot
+    take is dropped with its packet (``tx_errors``), except for urgent packets (stops), which are
+    retried for up to ``URGENT_RETRY_S``. The frames of one send call never interleave with
+    another call's. When a packet fails after some of its frames went out, a lone ``0x00`` frame
+    ends it at the receiver (or, if that fails too, goes ahead of the next packet on that id), so
+    the next packet is not merged into the broken one.
+
+    A bus error (the receive thread's ``recv`` raising) fails the link once and stops the
+    receive thread: a persistent error must not make it spin.
+    """
 
     name = "can"
+    URGENT_RETRY_S = 0.1
 
     def __init__(
         self,
@@ -529,6 +763,9 @@ class CanTransport(Transport):
         self._bus: Any = None
         self._notifier: Any = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._tx_lock = asyncio.Lock()
+        self._dirty: set[int] = set()  # ids whose last packet was cut short without a 0x00
+        self._bus_error: str | None = None  # set by the receive thread on its first error
 
     async def open(self) -> None:
         import can
@@ -552,11 +789,24 @@ class CanTransport(Transport):
                     loop.call_soon_threadsafe(owner._on_frame, msg)
 
             def on_error(self, exc: Exception) -> None:
-                loop = owner._loop
-                if loop is not None and not loop.is_closed():
-                    loop.call_soon_threadsafe(owner._fail, f"bus error: {exc}")
+                # runs in the notifier thread, which calls recv again right away: report the
+                # first error once, then back off until the loop has stopped the thread
+                if owner._bus_error is None:
+                    owner._bus_error = f"bus error: {exc}"
+                    loop = owner._loop
+                    if loop is not None and not loop.is_closed():
+                        loop.call_soon_threadsafe(owner._on_bus_error)
+                time.sleep(0.05)
 
         self._notifier = can.Notifier(self._bus, [_Listener()], timeout=0.02)
+
+    def _on_bus_error(self) -> None:
+        """Event loop side of the first bus error: fail the link once, stop the receive thread."""
+        notifier, self._notifier = self._notifier, None
+        if notifier is not None:
+            with contextlib.suppress(Exception):
+                notifier.stop(timeout=0.0)  # no join here: the thread exits on its next check
+        self._fail(self._bus_error or "bus error")
 
     def _on_frame(self, msg: Any) -> None:
         if self._closed or msg.is_error_frame or msg.is_remote_frame:
@@ -567,32 +817,63 @@ class CanTransport(Transport):
             return
         self._deliver(self._re.feed(int(msg.arbitration_id), bytes(msg.data), time.monotonic()))
 
-    async def send_many(self, packets: Sequence[Packet]) -> None:
+    def _send_frame(self, arb_id: int, data: bytes) -> bool:
         import can
 
+        msg = can.Message(arbitration_id=arb_id, data=data, is_extended_id=self.mapping.extended_ids)
+        try:
+            self._bus.send(msg, timeout=0.0)
+        except (can.CanError, OSError, ValueError) as exc:
+            log.debug("can send: %s", exc)
+            return False
+        self.stats.tx_bytes += len(data)
+        return True
+
+    async def _send(self, packets: Sequence[Packet], *, urgent: bool) -> None:
         if self._bus is None or self._closed:
             self.stats.tx_errors += len(packets)
             return
-        for p in packets:
-            arb = self.mapping.out_id(p.device_id, self.role)
-            for arb_id, chunk in can_frames(p, arb):
-                msg = can.Message(arbitration_id=arb_id, data=chunk, is_extended_id=self.mapping.extended_ids)
-                try:
-                    self._bus.send(msg, timeout=0.01)
-                except can.CanError as exc:
+        async with self._tx_lock:  # one call's frames stay together
+            deadline = time.monotonic() + (self.URGENT_RETRY_S if urgent else 0.0)
+            for p in packets:
+                if self._bus is None:
                     self.stats.tx_errors += 1
-                    log.debug("can send: %s", exc)
-                    break
-                self.stats.tx_bytes += len(chunk)
-            else:
-                self.stats.tx_packets += 1
+                    continue
+                arb = self.mapping.out_id(p.device_id, self.role)
+                chunks = [data for _, data in can_frames(p, arb)]
+                lead = 0
+                if arb in self._dirty:
+                    chunks.insert(0, b"\x00")  # end the packet that was cut short earlier
+                    lead = 1
+                i = 0
+                while i < len(chunks):
+                    if self._send_frame(arb, chunks[i]):
+                        i += 1
+                        if i == lead:
+                            self._dirty.discard(arb)
+                    elif urgent and time.monotonic() < deadline:
+                        await asyncio.sleep(0.002)
+                    else:
+                        break
+                if i == len(chunks):
+                    self.stats.tx_packets += 1
+                    continue
+                self.stats.tx_errors += 1
+                if i > lead and not self._send_frame(arb, b"\x00"):
+                    self._dirty.add(arb)  # the receiver holds a partial packet on this id
+
+    async def send_many(self, packets: Sequence[Packet]) -> None:
+        await self._send(packets, urgent=False)
+
+    async def send_urgent(self, packets: Sequence[Packet]) -> None:
+        await self._send(packets, urgent=True)
 
     async def close(self) -> None:
         self._closed = True
-        if self._notifier is not None:
+        notifier, self._notifier = self._notifier, None
+        if notifier is not None:
             with contextlib.suppress(Exception):
-                self._notifier.stop(timeout=0.2)
-            self._notifier = None
+                notifier.stop(timeout=0.2)
         if self._bus is not None:
             with contextlib.suppress(Exception):
                 self._bus.shutdown()
@@ -609,6 +890,7 @@ def make_transport(cfg: Any) -> Transport:
             rs485=s.rs485,
             request_gap_s=s.rs485_request_gap_s,
             command_gap_s=s.rs485_command_gap_s,
+            rs485_echo=s.rs485_echo,
         )
     if cfg.transport == "udp":
         u = cfg.udp

@@ -85,6 +85,7 @@ async def sim_and_controller(
             rs485=rs485,
             request_gap_s=cfg.serial.rs485_request_gap_s,
             command_gap_s=cfg.serial.rs485_command_gap_s,
+            rs485_echo=cfg.serial.rs485_echo,
         )
     elif kind == "udp":
         arm = UdpTransport(None, ("127.0.0.1", 0))

@@ -260,3 +260,25 @@ def test_fetch_latest_grasps_over_loopback_zenoh() -> None:
         assert np.allclose(got.pose_W[1], T) and got.width_m[1] == pytest.approx(0.035)
     finally:
         close_session(daemon, [qable])
+
+
+def test_bpl_encode_errors_are_clear(capsys: pytest.CaptureFixture[str]) -> None:
+    for argv, msg in (
+        (["1", "0x20", "foo"], "'foo' is not a byte value"),
+        (["1", "0x20", "300"], "out of range"),
+        (["1", "position", "1e39"], "binary32"),
+        (["1", "position", "x"], "not a number"),
+    ):
+        assert main(["bpl", "encode", *argv]) == 1
+        err = capsys.readouterr().err
+        assert msg in err and "Traceback" not in err, err
+    rc, out = _cli(capsys, "bpl", "encode", "1", "0x20", "0x01", "2")  # unknown id: raw bytes
+    assert rc == 0 and out.strip() == "07 01 02 20 01 06 D2 00"
+
+
+def test_bpl_decode_accepts_0x_prefixed_bytes(capsys: pytest.CaptureFixture[str]) -> None:
+    rc, out = _cli(capsys, "bpl", "decode", "0x09 0x9E 0xEF 0x83 0x40 0x03 0x01 0x08 0xB8 0x00")
+    assert rc == 0
+    assert json.loads(out)["packets"][0]["values"] == [4.123]
+    rc, out = _cli(capsys, "bpl", "decode", "0x09,0x9E,0xEF,0x83", "0X40:0x03:01:08:B8")
+    assert rc == 0 and json.loads(out)["packets"][0]["packet"] == "POSITION"

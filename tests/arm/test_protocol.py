@@ -20,6 +20,7 @@ from pugsd.arm.protocol import (
     crc8,
     decode_frame,
     encode_frame,
+    has_nonfinite,
     make_packet,
     parse_device_id,
     parse_packet_id,
@@ -360,3 +361,56 @@ def test_can_tunnel_roundtrip_and_garbage(pkts: list[tuple[int, int, object]], j
             t += 0.001
     # the broadcast id may have been polluted by the junk prefix; all others must be exact
     assert [p for p in out if p.device_id != 0xFF] == [p for p in sent if p.device_id != 0xFF]
+
+
+def test_oversize_v1_frame_is_a_decode_error(caplog: pytest.LogCaptureFixture) -> None:
+    """LENGTH 65..127 with a valid CRC: a DecodeError (counted), never an ArmError or a
+    traceback, and the reassembler keeps the packets around it."""
+    from cobs import cobs
+
+    data = bytes(range(1, 62))  # 61 data bytes: LENGTH 65, one over the 64-byte maximum
+    body = data + bytes([P.POSITION, 0x02, len(data) + 4])
+    wire = cobs.encode(body + bytes([crc8(body)])) + b"\x00"
+    with pytest.raises(DecodeError, match="maximum"):
+        decode_frame(wire)
+    good = encode_frame(make_packet(0x02, P.POSITION, [1.0]))
+    with caplog.at_level("ERROR"):
+        dec = StreamDecoder()
+        assert dec.feed(good + wire + good) == [decode_frame(good)] * 2
+        assert dec.stats.framing_errors == 1 and dec.stats.bytes_dropped == len(wire)
+    assert not caplog.records  # no "unexpected error" traceback
+    re = CanReassembler()
+    out = []
+    stream = good + wire + good
+    for i in range(0, len(stream), 8):
+        out += re.feed(0x402, stream[i : i + 8], i * 1e-4)
+    assert out == [decode_frame(good)] * 2 and re.stats.framing_errors == 1
+
+
+def test_reassembler_counts_any_packet_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Whatever a single packet raises in the reassembler is counted; the others still arrive."""
+    import pugsd.arm.transport as tmod
+
+    good = encode_frame(make_packet(0x02, P.POSITION, [1.0]))
+    bad = encode_frame(make_packet(0x02, P.POSITION, [2.0]))
+    real = tmod.decode_frame
+
+    def flaky(chunk: bytes) -> Packet:
+        if chunk == bad:
+            raise RuntimeError("decoder bug")
+        return real(chunk)
+
+    monkeypatch.setattr(tmod, "decode_frame", flaky)
+    re = CanReassembler()
+    assert re.feed(0x402, bad + good, 0.0) == [decode_frame(good)]
+    assert re.stats.framing_errors == 1
+
+
+def test_encode_refuses_values_that_do_not_fit() -> None:
+    with pytest.raises(ArmError, match="binary32"):
+        make_packet(0x01, P.POSITION, [1e39])
+    with pytest.raises(ArmError, match="not an integer"):
+        make_packet(0x01, P.MODE, [float("nan")])
+    nan = make_packet(0x01, P.POSITION, [float("nan")])  # the codec itself carries NaN ...
+    assert has_nonfinite(nan) and not has_nonfinite(make_packet(0x01, P.POSITION, [1.0]))
+    assert not has_nonfinite(make_packet(0x01, P.MODE, [2]))  # ... the link refuses to send it

@@ -6,11 +6,18 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import math
+import time
 
 import numpy as np
 import pytest
 
-from pugsd.arm.config import ArmCanConfig, ArmConfig, ArmKinematicsConfig, ArmSafetyConfig
+from pugsd.arm.config import (
+    ArmCanConfig,
+    ArmConfig,
+    ArmKinematicsConfig,
+    ArmSafetyConfig,
+    ArmTelemetryConfig,
+)
 from pugsd.arm.controller import ArmController, T_B_W_from_config
 from pugsd.arm.kinematics import pose_from_xyz_rpy
 from pugsd.arm.protocol import JOINT_DEVICES, Mode, PacketID, make_packet
@@ -309,3 +316,194 @@ def test_device_reported_limits_are_enforced() -> None:
             assert st["joints"][1]["device_limits"] == [1.0, 1.3]
 
     run(main(), 20)
+
+
+# ---------------------------------------------------------------- review fixes
+
+
+def _stopped(sim: object, t0: float) -> bool:
+    """Zero velocity and a MODE reached the simulated arm after ``t0``."""
+    return (
+        sim.first_event_after(t0, ["VELOCITY"]) is not None  # type: ignore[attr-defined]
+        and sim.first_event_after(t0, ["MODE"]) is not None  # type: ignore[attr-defined]
+    )
+
+
+def _nan_from(monkeypatch: pytest.MonkeyPatch, device: int, on: dict[str, bool]) -> None:
+    """Make the simulated ``device`` report a NaN position (CRC-valid) while ``on["nan"]``."""
+    from pugsd.arm import sim as simmod
+
+    orig = simmod.SimAxis.reported_position
+
+    def patched(self: simmod.SimAxis) -> float:
+        if on["nan"] and self.device_id == device:
+            return float("nan")
+        return orig(self)
+
+    monkeypatch.setattr(simmod.SimAxis, "reported_position", patched)
+
+
+def test_nan_joint_feedback_mid_motion_stops_arm(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A joint reporting NaN mid-motion: rejected and counted, the watchdog trips, the motion
+    ends with a report (no exception), the stop reaches the arm, status() still works."""
+    on = {"nan": False}
+    _nan_from(monkeypatch, 0x06, on)
+
+    async def main() -> None:
+        async with sim_and_controller("udp") as (sim, ctl):
+            T = reachable_grasp(ctl, ctl._measured_q(), [0.8, 0.3, -0.3, 0.4, 0.3, 0.5])
+            task = asyncio.create_task(ctl.execute_grasp(T_B_G=T, width_m=0.03))
+            await wait_state(ctl, "pregrasp", task=task)
+            await asyncio.sleep(0.05)
+            t_bad = time.monotonic()
+            on["nan"] = True
+            rep = await asyncio.wait_for(task, 3.0)  # a report, not a ValueError
+            assert not rep.ok and "non-finite" in rep.reason, rep.reason
+            await wait_until(lambda: _stopped(sim, t_bad), 2.0, "stop at the arm")
+            await wait_until(lambda: all(sim.axes[d].mode == Mode.DISABLE for d in sim.axes))
+            assert ctl.trip_reason is not None and "0x06" in ctl.trip_reason
+            assert ctl.link.nonfinite > 0
+            st = ctl.status()  # no ValueError
+            shoulder = next(j for j in st["joints"] if j["device_id"] == 0x06)
+            assert shoulder["invalid"] == "position" and st["tcp_base"] is None
+            assert math.isfinite(shoulder["position"])  # the NaN was never stored
+            on["nan"] = False  # recovers: finite feedback clears the fault
+            await wait_until(lambda: ctl.trip_reason is None, 2.0, "re-arm")
+
+    run(main(), 30)
+
+
+def test_nan_jaw_feedback_never_reaches_the_wire(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A NaN jaw position trips the watchdog, execute is refused, and nothing non-finite is
+    ever sent (refused at the command level too)."""
+    on = {"nan": False}
+    _nan_from(monkeypatch, 0x01, on)
+
+    async def main() -> None:
+        async with sim_and_controller("udp") as (sim, ctl):
+            T = reachable_grasp(ctl, ctl._measured_q(), [0.1, 0.1, -0.1, 0.1, 0.1, 0.1])
+            on["nan"] = True
+            await wait_until(lambda: ctl.trip_reason is not None, 2.0, "trip")
+            assert "0x01" in ctl.trip_reason and ctl.link.jaw_mm() is None  # type: ignore[operator]
+            with pytest.raises(SafetyError):
+                await ctl.execute_grasp(T_B_G=T, width_m=0.03)
+            with pytest.raises(SafetyError, match="non-finite"):
+                await ctl.link.send([make_packet(0x01, PacketID.POSITION, [float("nan")])])
+            ctl._abort = None  # as during a motion: the setpoint itself is refused
+            with pytest.raises(SafetyError, match="non-finite"):
+                await ctl._send_setpoint(ctl.model.wrap_into_limits(sim.q()), float("inf"))
+            await asyncio.sleep(0.1)
+            nan_sp = [e for e in sim.events if e[2] == "POSITION" and not math.isfinite(e[3][0])]
+            assert nan_sp == [] and _no_motion(sim)
+            ctl.status()
+
+    run(main(), 30)
+    model = ArmController(fast_config()).model
+    with pytest.raises(ArmError, match="finite"):
+        model.wrap_into_limits(np.array([math.nan, 1, 1, 1, 1, 1]))
+
+
+def test_any_exception_during_motion_stops_arm(monkeypatch: pytest.MonkeyPatch) -> None:
+    """An unexpected error (not ArmError/SafetyError) once motion started still stops the arm
+    and comes back as a report."""
+
+    async def main() -> None:
+        async with sim_and_controller("udp") as (sim, ctl):
+            T = reachable_grasp(ctl, ctl._measured_q(), [0.1, 0.1, -0.1, 0.1, 0.1, 0.1])
+
+            def boom(*_a: object, **_k: object) -> None:
+                raise RuntimeError("boom")
+
+            monkeypatch.setattr(ctl.model, "pose_error_bound", boom)  # runs after the approach
+            t0 = time.monotonic()
+            rep = await ctl.execute_grasp(T_B_G=T, width_m=0.03)
+            assert not rep.ok and rep.state == "approach" and "RuntimeError: boom" in rep.reason
+            await wait_until(lambda: _stopped(sim, t0), 2.0, "stop at the arm")
+            await wait_until(lambda: all(sim.axes[d].mode == Mode.DISABLE for d in sim.axes))
+
+    run(main(), 30)
+
+
+def test_dead_jaw_is_not_a_grip() -> None:
+    """A jaw that never moves when told to close is not accepted as gripping: the grasp fails
+    in the close phase and the arm is stopped."""
+
+    async def main() -> None:
+        async with sim_and_controller("udp") as (sim, ctl):
+            T = reachable_grasp(ctl, ctl._measured_q(), [0.1, 0.1, -0.1, 0.1, 0.1, 0.1])
+            task = asyncio.create_task(ctl.execute_grasp(T_B_G=T, width_m=0.04))
+            await wait_state(ctl, "approach", task=task)
+            sim.axes[0x01].vmax = 0.0  # the jaw cannot move any more
+            jaw_open = sim.axes[0x01].pos
+            t0 = time.monotonic()
+            rep = await asyncio.wait_for(task, 10.0)
+            assert not rep.ok and rep.state == "close", rep
+            assert "jaw" in rep.reason and "travel" in rep.reason
+            assert [p.name for p in rep.phases] == ["pregrasp", "approach"]
+            assert sim.axes[0x01].pos == jaw_open
+            await wait_until(lambda: _stopped(sim, t0), 2.0, "stop at the arm")
+            await wait_until(lambda: all(sim.axes[d].mode == Mode.DISABLE for d in sim.axes))
+
+    run(main(), 30)
+
+
+def test_setpoint_lead_aborts_stalled_joint() -> None:
+    """max_setpoint_lead_rad: a joint that stops following mid-motion aborts the grasp."""
+
+    async def main() -> None:
+        async with sim_and_controller("udp") as (sim, ctl):
+            T = reachable_grasp(ctl, ctl._measured_q(), [0.8, 0.3, -0.3, 0.4, 0.3, 0.5])
+            task = asyncio.create_task(ctl.execute_grasp(T_B_G=T, width_m=0.03))
+            await wait_state(ctl, "pregrasp", task=task)
+            t0 = time.monotonic()
+            sim.axes[0x07].vmax = 0.0  # the base joint stalls
+            rep = await asyncio.wait_for(task, 5.0)
+            assert not rep.ok and rep.state == "pregrasp"
+            assert "leads the measured position" in rep.reason, rep.reason
+            lim = ctl.cfg.safety.max_setpoint_lead_rad
+            # aborted soon after the setpoint ran 0.35 rad ahead (2 rad/s: ~0.18 s)
+            assert time.monotonic() - t0 < 1.0
+            assert ctl.trip_reason is None  # the lead check, not the watchdog
+            await wait_until(lambda: _stopped(sim, t0), 2.0, "stop at the arm")
+            assert lim == pytest.approx(0.35)
+
+    run(main(), 30)
+
+
+def test_heartbeat_set_resent_after_power_cycle() -> None:
+    """HEARTBEAT_SET is lost on a power cycle (HEARTBEAT_FREQUENCY is saved): the host sets it
+    again once the feedback went stale, and the feedback comes back."""
+    cfg = fast_config(telemetry=dataclasses.replace(ArmTelemetryConfig(), mode="heartbeat"))
+
+    async def main() -> None:
+        async with sim_and_controller("udp", cfg) as (sim, ctl):
+            assert all(sim.axes[d].heartbeat_ids for d in sim.axes)
+            for ax in sim.axes.values():  # power cycle: the heartbeat packet list is lost
+                ax.heartbeat_ids = ()
+            await wait_until(lambda: ctl.trip_reason is not None, 2.0, "stale feedback trips")
+            await wait_until(lambda: all(sim.axes[d].heartbeat_ids for d in sim.axes), 3.0, "re-set")
+            await wait_until(lambda: ctl.link.feedback_age() < 0.1, 2.0, "feedback again")
+            await wait_until(lambda: ctl.trip_reason is None, 2.0, "re-arm")
+            assert ctl.link.heartbeat_resends >= 1
+
+    run(main(), 20)
+
+
+def test_config_refuses_rs485_heartbeat_and_overloaded_polling() -> None:
+    from pugsd.arm.config import ArmMotionConfig, ArmSerialConfig
+    from pugsd.config import load_config_dict
+
+    rs485 = ArmSerialConfig(rs485=True)
+    slow = ArmTelemetryConfig(rate_hz=10.0)
+    assert ArmConfig(serial=rs485, telemetry=slow).serial.rs485  # 10 Hz * 7 * 10 ms = 0.7 s/s
+    with pytest.raises(ConfigError, match="heartbeat"):
+        ArmConfig(serial=rs485, telemetry=ArmTelemetryConfig(mode="heartbeat", rate_hz=10.0))
+    with pytest.raises(ConfigError, match=r"rate_hz to at most 14\.3 Hz"):
+        load_config_dict({"arm": {"serial": {"rs485": True}}})  # default 50 Hz, 10 ms gap
+    with pytest.raises(ConfigError, match="rate_hz"):
+        ArmConfig(serial=ArmSerialConfig(rs485=True, rs485_request_gap_s=0.05), telemetry=slow)
+    # the rules concern the serial link only
+    assert ArmConfig(transport="udp", serial=rs485).transport == "udp"
+    # a minimum jaw travel the grip margin can never reach is refused
+    with pytest.raises(ConfigError, match="jaw_min_travel_mm"):
+        ArmConfig(motion=ArmMotionConfig(jaw_min_travel_mm=5.0))  # margin is 3 mm of travel
