@@ -26,6 +26,7 @@ import contextlib
 import json
 import logging
 import math
+import re
 import sys
 import threading
 import time
@@ -50,7 +51,7 @@ from pugsd.wire.keys import parse_key
 from pugsd.wire.publisher import Publisher
 from pugsd.wire.session import close_session, open_session
 from pugsd.wire.topics import INPUT_ROLES, key_for, subscribe_key_for
-from pugsd.wire.types import IMAGE, POSE_COV_STAMPED, POSE_STAMPED
+from pugsd.wire.types import CAMERA_INFO, IMAGE, POSE_COV_STAMPED, POSE_STAMPED
 
 log = logging.getLogger(__name__)
 
@@ -95,8 +96,21 @@ def apply_thread_limits(cfg: Any) -> None:
         torch.set_num_threads(cfg.daemon.torch_threads)
 
 
+class InputRejected(PugsdError):
+    """A rejection whose countable class is fixed by the code, not read from the message (which
+    may quote text from the wire); ``role``, when set, is the input it is charged to (a frame
+    combines several inputs)."""
+
+    def __init__(self, reason: str, message: str, role: str | None = None) -> None:
+        super().__init__(message)
+        self.reason = reason
+        self.role = role
+
+
 def reason_class(exc: BaseException) -> str:
     """A short, countable class for a rejection (the full reason goes to the log)."""
+    if isinstance(exc, InputRejected):
+        return exc.reason
     text = str(exc).lower()
     for key, words in (
         ("malformed_cdr", ("malformed cdr", "truncated cdr", "cdr encapsulation", "not bytes")),
@@ -312,10 +326,12 @@ class Daemon:
         self._subscribers.clear()
         for box in (self.stereo_box, self.depth_box, self.commands, self.arm_box):
             box.close()
+        busy: list[asyncio.Task[None]] = []
         for name, task in workers.items():
-            if not self._busy.get(name):
+            if any(self._busy.get(stage) for stage in _WORKER_STAGES.get(name, ())):
+                busy.append(task)  # inside a call: let it finish (its loop then ends)
+            else:
                 task.cancel()
-        busy = [t for t in workers.values() if not t.done()]
         if busy:
             log.info("shutdown: finishing in-flight work (%s)", ", ".join(t.get_name() for t in busy))
             _, pending = await asyncio.wait(busy, timeout=self.cfg.daemon.shutdown_timeout_s)
@@ -357,16 +373,22 @@ class Daemon:
         from pugsd.arm.controller import parse_execute_request
 
         if self.arm is None:
-            raise PugsdError("arm disabled: set [arm] enabled = true to allow motion")
+            raise InputRejected("disabled", "arm disabled: set [arm] enabled = true to allow motion")
         payload = query.payload.to_bytes() if query.payload is not None else b""
-        grasp_id, width_m = parse_execute_request(payload)
+        try:
+            grasp_id, width_m = parse_execute_request(payload)
+        except PugsdError as exc:
+            raise InputRejected("bad_request", str(exc)[:300]) from None
+        except (RecursionError, OverflowError, ValueError) as exc:  # deep nesting, huge numbers
+            msg = f"arm/execute: unreadable request ({type(exc).__name__})"
+            raise InputRejected("bad_request", msg) from None
         result = self.latest_result
         if result is None:
-            raise PugsdError("no grasps yet: model not ready")
+            raise InputRejected("not_ready", "no grasps yet: model not ready")
         if grasp_id not in {int(g) for g in result.grasps.grasp_id}:
-            raise PugsdError(f"grasp id {grasp_id} is not among the latest grasps")
+            raise InputRejected("unknown_grasp", f"grasp id {grasp_id} is not among the latest grasps")
         if self._busy.get("arm") or not self.arm_box.offer((result.grasps, grasp_id, width_m)):
-            raise PugsdError("busy: an arm motion is in progress")
+            raise InputRejected("busy", "busy: an arm motion is in progress")
         return f"accepted: grasp {grasp_id}"
 
     async def _arm_worker(self) -> None:
@@ -472,31 +494,52 @@ class Daemon:
         loop = self._loop
         assert loop is not None
         with contextlib.suppress(RuntimeError):
-            loop.call_soon_threadsafe(self._offer_command, Command("reset", None))
+            if str(sample.key_expr) == self.key("reset"):
+                loop.call_soon_threadsafe(self._offer_command, Command("reset", None))
+            else:  # a put on a wildcard (``pugs/**``) must not clear the map
+                loop.call_soon_threadsafe(self._refuse_wildcard, "reset", str(sample.key_expr))
 
     # --- loop-side handlers -----------------------------------------------------------------------
 
     def _on_query(self, kind: str, query: Any) -> None:
-        key = str(query.key_expr) if kind != "latest" else self.key("grasps/latest")
+        """Answer on the queryable's own key (a wildcard query's replies stay apart under zenoh's
+        consolidation). Queryables that change state (reset, arm/execute) act only on a query for
+        exactly their key; a wildcard query reaching them gets an error reply."""
+        key = self.key(_QUERY_KEYS[kind])
         with query:
-            if kind == "latest":
-                if self.latest_grasps is None:
-                    query.reply_err("no grasps yet: model not ready")
-                else:
-                    query.reply(key, self.latest_grasps)
-            elif kind == "status":
-                query.reply(key, json.dumps(_jsonable(self.status())))
-            elif kind == "arm_execute":
-                try:
-                    query.reply(key, self._on_arm_execute(query))
-                except PugsdError as exc:
-                    self.health.reject("arm", str(exc).split(":")[0])
-                    query.reply_err(f"rejected: {exc}")
-            elif kind == "reset":
-                if self._offer_command(Command("reset", None)):
-                    query.reply(key, "accepted")
-                else:
-                    query.reply_err(f"rejected: {self.commands.reject_reason()}")
+            try:
+                if kind in _STATE_CHANGING and str(query.key_expr) != key:
+                    self._refuse_wildcard(kind, str(query.key_expr))
+                    query.reply_err(f"rejected: {key} acts only on a query for exactly that key")
+                elif kind == "latest":
+                    if self.latest_grasps is None:
+                        query.reply_err("no grasps yet: model not ready")
+                    else:
+                        query.reply(key, self.latest_grasps)
+                elif kind == "status":
+                    query.reply(key, json.dumps(_jsonable(self.status())))
+                elif kind == "arm_execute":
+                    try:
+                        query.reply(key, self._on_arm_execute(query))
+                    except PugsdError as exc:
+                        if not isinstance(exc, InputRejected):
+                            exc = InputRejected("refused", str(exc))
+                        self._reject("arm", exc)
+                        query.reply_err(f"rejected: {exc}")
+                elif kind == "reset":
+                    if self._offer_command(Command("reset", None)):
+                        query.reply(key, "accepted")
+                    else:
+                        query.reply_err(f"rejected: {self.commands.reject_reason()}")
+            except Exception as exc:  # a bug: count and log, answer, keep serving
+                self._internal_error(f"errors.query.{kind}", f"answering a {kind} query", exc)
+                with contextlib.suppress(Exception):
+                    query.reply_err(f"internal error: {type(exc).__name__}")
+
+    def _refuse_wildcard(self, kind: str, asked: str) -> None:
+        source = "arm" if kind == "arm_execute" else kind
+        msg = f"{kind} needs exactly {self.key(_QUERY_KEYS[kind])!r}, not {asked[:200]!r}"
+        self._reject(source, InputRejected("wildcard_key", msg))
 
     def _offer_command(self, cmd: Command) -> bool:
         ok = self.commands.offer(cmd)
@@ -506,11 +549,46 @@ class Daemon:
         return ok
 
     def _reject(self, role: str, exc: BaseException) -> None:
+        """Count a rejection of ``role`` (or of the input ``exc`` is charged to) by its class and
+        log it with the reason: the first five per key, then every 100th."""
+        if isinstance(exc, InputRejected) and exc.role:
+            role = exc.role
         cls = reason_class(exc)
         self.health.reject(role, cls)
         n = self.health.rejected[f"{role}: {cls}"]
         if n <= 5 or n % 100 == 0:
             log.warning("rejected %s input (%s, #%d): %s", role, cls, n, exc)
+
+    def _drop(self, stage: str, reason: str, n: int = 1) -> None:
+        """Count ``n`` drops under the reason's stable head and log the full reason (with its
+        numbers): the first five per key, then every 100th."""
+        head = _short(reason)
+        self.health.drop(stage, head, n)
+        total = self.health.dropped[f"{stage}: {head}"]
+        if total - n < 5 or total // 100 != (total - n) // 100:
+            log.info("dropped %d at %s (#%d): %s", n, stage, total, reason)
+
+    def _internal_error(self, key: str, what: str, exc: BaseException) -> None:
+        """A bug, not bad input: count it under ``key``; log the traceback the first time, then
+        one line for the 2nd to 5th and every 100th."""
+        self.health.count(key)
+        n = self.health.counts[key]
+        if n == 1:
+            log.error("%s failed: %s", what, exc, exc_info=exc)
+        elif n <= 5 or n % 100 == 0:
+            log.error("%s failed (#%d): %s: %s", what, n, type(exc).__name__, exc)
+
+    def dropped_total(self) -> int:
+        """Everything the daemon itself dropped: the stereo and depth mailboxes (drop oldest, and
+        reset), the ingress bound, unpaired stereo halves, and the counted drops (pose wait,
+        duplicate stamps, reset, in flight during a reset)."""
+        return (
+            self.stereo_box.dropped
+            + self.depth_box.dropped
+            + self.ingress.dropped
+            + self.pairer.unpaired_dropped
+            + self.health.counts.get("dropped", 0)
+        )
 
     def _on_inbound(self, item: Inbound) -> None:
         self.ingress.leave()
@@ -531,12 +609,14 @@ class Daemon:
         except PugsdError as exc:
             self._reject(item.role, exc)
         except Exception as exc:  # a bug, not bad input: count and log, keep serving
-            self.health.count(f"errors.input.{item.role}")
-            log.exception("handling %s input failed: %s", item.role, exc)
+            self._internal_error(f"errors.input.{item.role}", f"handling {item.role} input", exc)
 
     def _msg_type(self, item: Inbound, default: str) -> str:
         if self.cfg.topics.key_style == "rmw_zenoh":
-            return parse_key(item.key).typename
+            try:
+                return parse_key(item.key).typename
+            except DecodeError as exc:
+                raise InputRejected("wrong_type", f"{item.role}: {exc}"[:300]) from None
         return default
 
     def _dispatch(self, item: Inbound) -> None:
@@ -544,15 +624,19 @@ class Daemon:
         if role in ("left_image", "right_image"):
             self._expect_type(item, IMAGE)
             img = codec.decode_image(data, STEREO_ENCODINGS)
+            dups = self.pairer.duplicates
             pair = (
                 self.pairer.add_left(img.stamp_ns, img)
                 if role == "left_image"
                 else self.pairer.add_right(img.stamp_ns, img)
             )
+            if self.pairer.duplicates != dups:  # the waiting half with this stamp was replaced
+                self._drop("unpaired", f"duplicate_stamp (a second {role} for stamp {img.stamp_ns})")
             if pair is not None:
                 self.health.count("paired")
                 self._admit(img.stamp_ns, ("stereo", pair, item.recv_s), item.recv_s)
         elif role in ("left_info", "right_info", "depth_info"):
+            self._expect_type(item, CAMERA_INFO)
             info = codec.decode_camera_info(data)
             self._infos[role] = info
             if role != "depth_info":
@@ -560,6 +644,8 @@ class Daemon:
             self._poll_gate()
         elif role == "pose":
             typename = self._msg_type(item, _POSE_TYPES[self.cfg.topics.pose_type])
+            if typename not in _POSE_TYPES.values():
+                raise InputRejected("wrong_type", f"pose: type {typename[:100]!r} not accepted")
             pm = codec.decode_pose(data, typename, self._pose_stamped_cov)
             cov = pm.cov if pm.cov is not None and np.any(pm.cov != 0.0) else None
             self.poses.add(PoseSample(pm.stamp_ns, pm.T, cov))
@@ -587,11 +673,12 @@ class Daemon:
     def _expect_type(self, item: Inbound, typename: str) -> None:
         got = self._msg_type(item, typename)
         if got != typename:
-            raise DecodeError(f"{item.role}: type {got} not accepted (expected {typename})")
+            msg = f"{item.role}: type {got[:100]!r} not accepted (expected {typename})"
+            raise InputRejected("wrong_type", msg)
 
     def _admit(self, stamp_ns: int, entry: tuple[str, Any, float], now_s: float) -> None:
         for _, reason in self.gate.add(stamp_ns, entry, now_s):
-            self.health.drop("pose_wait", reason)
+            self._drop("pose_wait", reason)
         self._poll_gate()
 
     def _pending(self, entry: tuple[str, Any, float], now_s: float) -> str | None:
@@ -621,9 +708,11 @@ class Daemon:
         return self._last_std_s is not None and now_s - self._last_std_s < _SIDE_ACTIVE_S
 
     def _poll_gate(self) -> None:
+        """Release the frames whose pose is ready; a frame that fails is counted (a rejection,
+        charged to the input at fault, or an internal error) and the others still go on."""
         ready, dropped = self.gate.poll(time.monotonic(), self._pending)
         for _, reason in dropped:
-            self.health.drop("pose_wait", _short(reason))
+            self._drop("pose_wait", reason)
         for (kind, payload, recv_s), stamp_ns, T, cov in ready:
             try:
                 if kind == "stereo":
@@ -632,6 +721,8 @@ class Daemon:
                     self._emit_depth(payload, stamp_ns, T, cov, recv_s)
             except PugsdError as exc:
                 self._reject("left_image" if kind == "stereo" else "depth", exc)
+            except Exception as exc:  # a bug, not bad input: the gate worker must go on
+                self._internal_error(f"errors.frames.{kind}", f"emitting a {kind} frame", exc)
 
     def _stereo_rig(self) -> StereoRig:
         if self._rig is None:
@@ -650,37 +741,70 @@ class Daemon:
         recv_s: float,
     ) -> None:
         left, right = pair
+        mask_in = self._masks.pop(stamp_ns, None)  # taken even if the frame is rejected
+        try:
+            rig = self._stereo_rig()
+        except PugsdError as exc:
+            raise InputRejected(reason_class(exc), str(exc), "camera_info") from None
+        shape = (rig.left.height, rig.left.width)
+        for role, img in (("left_image", left), ("right_image", right)):
+            if img.array.shape[:2] != shape:
+                msg = f"{role}: image is {img.array.shape[:2]}, camera expects {shape}"
+                raise InputRejected("wrong_size", msg, role)
         if left.encoding != right.encoding:
-            raise DecodeError(f"stereo pair encoding mismatch: {left.encoding} vs {right.encoding}")
-        frame = StereoFrame(
-            stamp_ns=stamp_ns,
-            left=left.rgb_or_mono(),
-            right=right.rgb_or_mono(),
-            rig=self._stereo_rig(),
-            T_W_C=T,
-            pose_cov=cov,
-            mask=self._masks.pop(stamp_ns, None),
-        )
+            msg = f"stereo pair encoding mismatch: {left.encoding} vs {right.encoding}"
+            raise InputRejected("wrong_encoding", msg, "right_image")
+        mask = self._side_image("mask", mask_in, shape)
+        try:
+            frame = StereoFrame(
+                stamp_ns=stamp_ns,
+                left=left.rgb_or_mono(),
+                right=right.rgb_or_mono(),
+                rig=rig,
+                T_W_C=T,
+                pose_cov=cov,
+                mask=mask,
+            )
+        except PugsdError as exc:  # the images and the mask are checked: the pose is at fault
+            raise InputRejected(reason_class(exc), str(exc), "pose") from None
         self.health.count("frames.stereo")
         self.stereo_box.offer((frame, recv_s))
 
     def _emit_depth(
         self, img: codec.ImageMsg, stamp_ns: int, T: np.ndarray, cov: np.ndarray, recv_s: float
     ) -> None:
+        std_in, mask_in = self._stds.pop(stamp_ns, None), self._masks.pop(stamp_ns, None)
         info = self._infos.get("depth_info")
         if info is None:
             raise DecodeError("depth: no CameraInfo for the depth image yet")
-        frame = DepthFrame(
-            stamp_ns=stamp_ns,
-            depth_m=img.depth_m(),
-            camera=info.camera,
-            T_W_C=T,
-            pose_cov=cov,
-            sigma_m=self._stds.pop(stamp_ns, None),
-            mask=self._masks.pop(stamp_ns, None),
-        )
+        shape = (info.camera.height, info.camera.width)
+        if img.array.shape[:2] != shape:
+            raise InputRejected("wrong_size", f"depth image is {img.array.shape[:2]}, camera expects {shape}")
+        sigma = self._side_image("depth_std", std_in, shape)
+        mask = self._side_image("mask", mask_in, shape)
+        try:
+            frame = DepthFrame(
+                stamp_ns=stamp_ns,
+                depth_m=img.depth_m(),
+                camera=info.camera,
+                T_W_C=T,
+                pose_cov=cov,
+                sigma_m=sigma,
+                mask=mask,
+            )
+        except PugsdError as exc:  # the images are checked: the pose is at fault
+            raise InputRejected(reason_class(exc), str(exc), "pose") from None
         self.health.count("frames.depth")
         self.depth_box.offer((frame, recv_s))
+
+    def _side_image(self, role: str, arr: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | None:
+        """A frame's mask or depth std image; one of another size than the frame is rejected
+        (counted under ``role``) and the frame goes on without it."""
+        if arr is None or arr.shape == shape:
+            return arr
+        msg = f"{role} is {arr.shape}, camera expects {shape}; frame used without it"
+        self._reject(role, InputRejected("wrong_size", msg))
+        return None
 
     # --- workers ----------------------------------------------------------------------------------
 
@@ -980,10 +1104,13 @@ class Daemon:
             cmd = await self.commands.take()
             if cmd.name == "reset":
                 self._generation += 1
-                self.stereo_box.clear()
+                self.stereo_box.clear()  # counted by the mailboxes
                 self.depth_box.clear()
-                self.gate.clear()
-                self.pairer.clear()
+                waiting, unpaired = self.gate.clear(), self.pairer.clear()
+                if waiting:
+                    self._drop("reset", "frames waiting for a pose", waiting)
+                if unpaired:
+                    self._drop("reset", "unpaired stereo halves", unpaired)
                 await self._guard("reset", self._offload("reset", self._locked, self.pipeline.reset))
                 self.latest_grasps = None
                 self.latest_result = None
@@ -1039,21 +1166,24 @@ class Daemon:
             self.notifier.send(
                 f"STATUS=frames {c.get('frames.stereo', 0) + c.get('frames.depth', 0)}, "
                 f"integrated {c.get('integrated', 0)}, ready {self.ready}, "
-                f"grasps {self.grasps_published}, dropped {c.get('dropped', 0)}, "
+                f"grasps {self.grasps_published}, dropped {self.dropped_total()}, "
                 f"rejected {c.get('rejected', 0)}"
             )
 
     async def _watchdog_worker(self) -> None:
         interval = watchdog_interval_s()
         period = min(1.0, interval) if interval else 1.0
-        reported: list[str] = []
+        reported: list[str] = []  # the problems logged last, without their changing numbers
+        reported_s = -math.inf
         while not self._stopping:
             self.health.tick()
             problems = self.health.problems()
             if problems:
-                if problems != reported:
+                kinds = sorted(_NUMBER.sub("#", p) for p in problems)
+                now = time.monotonic()
+                if kinds != reported or now - reported_s >= _UNHEALTHY_RELOG_S:
                     log.error("unhealthy, withholding watchdog pings: %s", "; ".join(problems))
-                reported = problems
+                    reported, reported_s = kinds, now
             else:
                 reported = []
                 if interval:
@@ -1065,10 +1195,28 @@ class Daemon:
         while not self._stopping:
             await asyncio.sleep(0.05)
             if len(self.gate):
-                self._poll_gate()
+                try:
+                    self._poll_gate()
+                except Exception as exc:  # a bug in the lookup itself: keep the worker alive
+                    self._internal_error("errors.gate", "polling the pose gate", exc)
 
 
 _SIDE_ACTIVE_S = 2.0  # a mask/std topic counts as active this long after its last message
+_UNHEALTHY_RELOG_S = 300.0  # an unchanged unhealthy state is logged again this often
+_NUMBER = re.compile(r"\d+(?:\.\d+)?")
+
+# the stages (``_busy`` keys, health stages) each worker task runs its calls under
+_WORKER_STAGES: dict[str, tuple[str, ...]] = {
+    "depth": ("depth",),
+    "model": ("integrate", "train"),
+    "grasps": ("grasps",),
+    "commands": ("reset",),
+    "arm": ("arm",),
+}
+
+# queryable kind -> its key under the prefix; the state-changing ones answer exact keys only
+_QUERY_KEYS = {"latest": "grasps/latest", "status": "status", "reset": "reset", "arm_execute": "arm/execute"}
+_STATE_CHANGING = frozenset({"reset", "arm_execute"})
 
 _POSE_TYPES = {"PoseWithCovarianceStamped": POSE_COV_STAMPED, "PoseStamped": POSE_STAMPED}
 

@@ -269,24 +269,34 @@ async def _demo_main(
             f"[{time.monotonic() - t_start:6.1f} s] camera publishing {len(frames)} views "
             f"at {rate_hz:g} Hz" + (f", {sweeps} sweep(s)" if sweeps > 0 else " in a loop")
         )
-        try:
-            await asyncio.wait_for(stop.wait(), timeout=duration_s)
+        stopped = asyncio.create_task(stop.wait())
+        try:  # until the duration is over, a signal comes, or the daemon has failed
+            await asyncio.wait({stopped, serve}, timeout=duration_s, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            stopped.cancel()
+        if serve.done():
+            write("the daemon stopped; shutting down")
+        elif stop.is_set():
             write("interrupted; shutting down")
-        except TimeoutError:
-            pass
     finally:
         stop_camera.set()
         if cam_thread is not None:
             cam_thread.join(5.0)
         stop.set()
-        await serve
-        if sub is not None:
-            sub.undeclare()
-        camera.close()
-        files = recorder.stop(timeout=10.0)
-        close_session(peer)
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.remove_signal_handler(sig)
+        try:
+            await serve  # re-raises the daemon's failure, after the clean-up below
+        finally:
+            if sub is not None:
+                with contextlib.suppress(Exception):
+                    sub.undeclare()
+            with contextlib.suppress(Exception):
+                camera.close()
+            try:
+                files = recorder.stop(timeout=10.0)  # finishes the MCAP (no .part left behind)
+            finally:
+                close_session(peer)
+                for sig in (signal.SIGTERM, signal.SIGINT):
+                    loop.remove_signal_handler(sig)
     extra = {"frames_sent": camera.sent, "max_put_s": put_worst[0], "recorder": recorder.stats}
     return daemon, printer, files, extra
 
@@ -331,11 +341,11 @@ def run_demo(
     mb = st["mailboxes"]
     write(
         f"frames sent {extra['frames_sent']}, integrated {c.get('integrated', 0)}, dropped "
-        f"{mb['stereo']['dropped'] + mb['depth']['dropped'] + c.get('dropped', 0)} (newest frame "
-        f"wins: stereo queue {mb['stereo']['dropped']}, depth queue {mb['depth']['dropped']}, "
-        f"no pose {c.get('dropped', 0)}), rejected {c.get('rejected', 0)}, lost before the "
-        f"daemon {sum(st['upstream']['lost'].values())}, grasp updates "
-        f"{daemon.grasps_published}; slowest zenoh put {1e3 * extra['max_put_s']:.2f} ms"
+        f"{daemon.dropped_total()} (newest frame wins: stereo queue {mb['stereo']['dropped']}, "
+        f"depth queue {mb['depth']['dropped']}; no pose/reset/duplicate {c.get('dropped', 0)}, unpaired "
+        f"{st['waiting']['unpaired_dropped']}, ingress bound {st['ingress']['dropped']}), rejected "
+        f"{c.get('rejected', 0)}, lost before the daemon {sum(st['upstream']['lost'].values())}, "
+        f"grasp updates {daemon.grasps_published}; slowest zenoh put {1e3 * extra['max_put_s']:.2f} ms"
     )
     lat = st["latency"]
     write(

@@ -175,9 +175,11 @@ class PoseBuffer:
             return PoseLookup("fail", reason="image is older than every buffered pose")
         a, b = self._samples[i - 1], self._samples[i]
         if b.stamp_ns - a.stamp_ns > self.max_gap_ns:
+            # a constant head (a drop counter key); the numbers in parentheses, for the log
+            gap_s, max_s = (b.stamp_ns - a.stamp_ns) / 1e9, self.max_gap_ns / 1e9
             return PoseLookup(
                 "fail",
-                reason=f"pose gap {(b.stamp_ns - a.stamp_ns) / 1e9:.3f} s around the image stamp",
+                reason=f"pose gap above pose_max_gap_s around the image stamp ({gap_s:.3f} s > {max_s:g} s)",
             )
         frac = (stamp_ns - a.stamp_ns) / (b.stamp_ns - a.stamp_ns)
         T = interpolate_pose(a.T_W_C, b.T_W_C, frac)
@@ -188,7 +190,10 @@ class PoseBuffer:
 
 
 class ExactPairer(Generic[L, R]):
-    """Pairs left and right halves with the same stamp; keeps ``capacity`` incomplete ones."""
+    """Pairs left and right halves with the same stamp; keeps ``capacity`` incomplete ones.
+
+    ``unpaired_dropped`` counts halves pushed out by that bound; ``duplicates`` waiting halves
+    replaced by a newer one of the same side and stamp."""
 
     def __init__(self, capacity: int) -> None:
         self.capacity = capacity
@@ -196,8 +201,11 @@ class ExactPairer(Generic[L, R]):
         self._right: OrderedDict[int, R] = OrderedDict()
         self.paired = 0
         self.unpaired_dropped = 0
+        self.duplicates = 0
 
     def _push(self, mine: OrderedDict[int, T], stamp_ns: int, item: T) -> None:
+        if stamp_ns in mine:
+            self.duplicates += 1
         mine[stamp_ns] = item
         mine.move_to_end(stamp_ns)
         while len(mine) > self.capacity:
@@ -221,9 +229,12 @@ class ExactPairer(Generic[L, R]):
     def pending(self) -> int:
         return len(self._left) + len(self._right)
 
-    def clear(self) -> None:
+    def clear(self) -> int:
+        """Discard the waiting halves; returns how many."""
+        n = self.pending()
         self._left.clear()
         self._right.clear()
+        return n
 
 
 @dataclass(slots=True)

@@ -67,10 +67,12 @@ class SequenceTracker:
     tracker keeps the highest number seen: a jump from n to n + k counts k - 1 messages as
     ``lost`` (dropped by the publisher's congestion control, a slow link or a restarted router);
     a number at or below the highest counts as ``late`` (zenoh delivers one publisher's samples
-    in order, so this should stay 0). Samples without a valid attachment (plain zenoh
-    publishers, zenoh-bridge-ros2dds keys) are counted as ``untracked``. At most ``max_publishers``
-    GIDs are remembered per source (least recently seen forgotten); a forgotten publisher that
-    returns starts afresh. Thread-safe: zenoh may call subscribers from several threads.
+    in order, so this should stay 0). A number 1 after a higher one is a publisher that restarted
+    under the same GID (a fixed zenoh id): counted as ``restarts``, and its numbering starts
+    afresh. Samples without a valid attachment (plain zenoh publishers, zenoh-bridge-ros2dds keys)
+    are counted as ``untracked``. At most ``max_publishers`` GIDs are remembered per source (least
+    recently seen forgotten); a forgotten publisher that returns starts afresh. Thread-safe: zenoh
+    may call subscribers from several threads.
     """
 
     def __init__(self, max_publishers: int = 32) -> None:
@@ -78,6 +80,7 @@ class SequenceTracker:
         self._last: dict[str, OrderedDict[bytes, int]] = {}
         self.lost: Counter[str] = Counter()
         self.late: Counter[str] = Counter()
+        self.restarts: Counter[str] = Counter()
         self.untracked: Counter[str] = Counter()
         self._lock = threading.Lock()
 
@@ -94,7 +97,10 @@ class SequenceTracker:
         with self._lock:
             seen = self._last.setdefault(source, OrderedDict())
             last = seen.get(att.gid)
-            if last is not None and seq <= last:
+            if last is not None and seq == 1 and last > 1:  # restarted: resync
+                self.restarts[source] += 1
+                last = None
+            elif last is not None and seq <= last:
                 self.late[source] += 1
                 seen.move_to_end(att.gid)
                 return 0
@@ -112,6 +118,7 @@ class SequenceTracker:
             return {
                 "lost": dict(self.lost),
                 "late": dict(self.late),
+                "restarts": dict(self.restarts),
                 "untracked": dict(self.untracked),
                 "publishers": {k: len(v) for k, v in self._last.items()},
             }

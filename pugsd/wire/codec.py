@@ -397,14 +397,25 @@ class PoseMsg:
 
 
 def _check_cov(C: np.ndarray, typename: str) -> np.ndarray:
+    """Finite, symmetric, PSD; the checks run on ``C`` scaled to entries in [-1, 1], so that
+    entries near the float64 limit cannot overflow."""
     if not np.all(np.isfinite(C)):
         raise DecodeError(f"{typename}: non-finite covariance")
-    scale = max(float(np.abs(C).max()), 1e-30)
-    if np.abs(C - C.T).max() > 1e-6 * scale:
+    scale = float(np.abs(C).max())
+    if scale == 0.0:
+        return np.zeros_like(C)
+    S = C / scale
+    if np.abs(S - S.T).max() > 1e-6:
         raise DecodeError(f"{typename}: covariance is not symmetric")
-    if float(np.linalg.eigvalsh(0.5 * (C + C.T)).min()) < -1e-9 * scale:
+    try:
+        lowest = float(np.linalg.eigvalsh(0.5 * (S + S.T)).min())
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        raise DecodeError(
+            f"{typename}: covariance eigenvalues failed ({exc}); not positive semi-definite"
+        ) from None
+    if not lowest >= -1e-9:  # NaN too
         raise DecodeError(f"{typename}: covariance is not positive semi-definite")
-    return 0.5 * (C + C.T)
+    return 0.5 * C + 0.5 * C.T
 
 
 def encode_pose_with_covariance(
@@ -736,6 +747,8 @@ def decode_status(data: bytes) -> dict[str, Any]:
         obj = json.loads(m.data)
     except ValueError as exc:
         raise DecodeError(f"status: not JSON: {exc}") from None
+    except RecursionError:
+        raise DecodeError("status: JSON nested too deeply") from None
     if not isinstance(obj, dict):
         raise DecodeError("status: JSON is not an object")
     return obj

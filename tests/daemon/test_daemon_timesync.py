@@ -100,6 +100,30 @@ def test_exact_pairer() -> None:
     assert p.paired == 2
 
 
+def test_exact_pairer_counts_replaced_halves_and_what_clear_discards() -> None:
+    p: ExactPairer[str, str] = ExactPairer(capacity=4)
+    p.add_left(1, "L1")
+    p.add_left(1, "L1 again")  # the waiting half is replaced: one frame's half lost
+    p.add_right(2, "R2")
+    assert p.duplicates == 1 and p.unpaired_dropped == 0
+    assert p.add_right(1, "R1") == ("L1 again", "R1")
+    assert p.clear() == 1 and p.pending() == 0
+
+
+def test_pose_gap_drop_reason_has_a_constant_head() -> None:
+    """The head (before " (") keys the drop counter: the gap itself only goes to the log."""
+    buf = PoseBuffer(10, 5 * 10**8, np.zeros((6, 6)))
+    heads = set()
+    for k, gap in enumerate((600_000_000, 607_000_000, 1_234_000_000)):
+        t0 = 10**10 * (k + 1)
+        buf.add(PoseSample(t0, np.eye(4), None))
+        buf.add(PoseSample(t0 + gap, np.eye(4), None))
+        res = buf.lookup(t0 + gap // 2)
+        assert res.state == "fail" and f"{gap / 1e9:.3f} s" in res.reason
+        heads.add(res.reason.split(" (", 1)[0])
+    assert heads == {"pose gap above pose_max_gap_s around the image stamp"}
+
+
 def test_pose_gate_waits_then_releases_or_drops() -> None:
     buf = PoseBuffer(10, 10**9, np.zeros((6, 6)))
     gate: PoseGate[str] = PoseGate(buf, wait_s=0.5, capacity=2)

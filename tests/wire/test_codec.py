@@ -7,6 +7,7 @@ import contextlib
 import io
 import math
 import struct
+import warnings
 from typing import Any
 
 import numpy as np
@@ -383,3 +384,34 @@ def test_wrong_type_bytes_raise_decode_error() -> None:
     for dec in (codec.decode_grasp_array, codec.decode_pose_with_covariance, codec.decode_cloud):
         with pytest.raises(DecodeError):
             dec(img)
+
+
+def test_covariance_near_the_float64_limit_is_checked_without_overflow(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    T = np.eye(4)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no overflow RuntimeWarning either
+        for C in (np.diag([1e308] * 6), np.diag([1.5e308] * 6), np.full((6, 6), 1e308)):
+            pm = codec.decode_pose_with_covariance(codec.encode_pose_with_covariance(1, T, C))
+            assert pm.cov is not None and np.all(np.isfinite(pm.cov))
+            assert np.array_equal(pm.cov, C)
+        bad = np.diag([1e308, -1e308, 1e308, 1e308, 1e308, 1e308])
+        with pytest.raises(DecodeError, match="semi-definite"):
+            codec.decode_pose_with_covariance(codec.encode_pose_with_covariance(1, T, bad))
+        zero = codec.decode_pose_with_covariance(codec.encode_pose_with_covariance(1, T, np.zeros((6, 6))))
+        assert zero.cov is not None and not np.any(zero.cov)
+
+    def no_convergence(a: Any) -> Any:
+        raise np.linalg.LinAlgError("Eigenvalues did not converge")
+
+    monkeypatch.setattr(np.linalg, "eigvalsh", no_convergence)
+    with pytest.raises(DecodeError, match="semi-definite"):
+        codec.decode_pose_with_covariance(codec.encode_pose_with_covariance(1, T, np.eye(6)))
+
+
+def test_deeply_nested_status_json_is_a_decode_error() -> None:
+    S = codec.msg_class(STRING)
+    deep = codec.serialize(S(data="[" * 100_000 + "]" * 100_000), STRING)
+    with pytest.raises(DecodeError, match="nested"):
+        codec.decode_status(deep)

@@ -99,6 +99,7 @@ def test_sequence_tracker_counts_gaps_late_and_untracked_per_publisher() -> None
     assert snap == {
         "lost": {"img": 3},
         "late": {"img": 1},
+        "restarts": {},
         "untracked": {"img": 2},
         "publishers": {"img": 2, "pose": 1},
     }
@@ -117,3 +118,19 @@ def test_sequence_tracker_forgets_the_least_recent_publisher() -> None:
     assert t.observe("x", encode_attachment(5, 0, g[1])) == 0  # g[1] forgotten in turn
     assert t.snapshot()["lost"] == {}
 
+
+def test_sequence_tracker_resyncs_when_a_publisher_restarts_with_the_same_gid() -> None:
+    from pugsd.wire.attachment import SequenceTracker
+
+    g = b"G" * 16
+    t = SequenceTracker()
+    for seq in range(1, 101):
+        assert t.observe("img", encode_attachment(seq, 0, g)) == 0
+    # the publisher restarts under the same GID (fixed zenoh id): numbering begins at 1 again
+    for seq in range(1, 51):
+        assert t.observe("img", encode_attachment(seq, 0, g)) == 0
+    assert t.observe("img", encode_attachment(53, 0, g)) == 2  # gaps are seen again at once
+    snap = t.snapshot()
+    assert snap["restarts"] == {"img": 1} and snap["late"] == {} and snap["lost"] == {"img": 2}
+    assert t.observe("img", encode_attachment(53, 0, g)) == 0  # a repeat is still late
+    assert t.snapshot()["late"] == {"img": 1}

@@ -1,0 +1,387 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Bad input, bugs and commands are contained: counted under bounded keys, logged with a rate
+limit, never stopping the daemon or costing good frames; shutdown finishes busy work; every drop
+is in the STATUS= line. In-process daemon (fake pipeline) over real loopback zenoh."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import sys
+import time
+import types
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import zenoh
+
+from pugsd.config import load_config_dict
+from pugsd.core.types import StereoFrame
+from pugsd.daemon.app import Daemon
+from pugsd.wire import codec
+from pugsd.wire.keys import topic_key
+from pugsd.wire.types import IMAGE
+from tests.daemon.conftest import RIG, FakePipeline, daemon_config_dict, wait_for
+from tests.daemon.test_daemon_inprocess import DaemonThread, RecordingNotifier, pose_at, start_with_source
+
+COV = np.eye(6) * 1e-6
+
+
+def _passed_on(d: Daemon, pipe: FakePipeline) -> int:
+    """Frames integrated or dropped by a mailbox (drop oldest: any frame may be)."""
+    return len(pipe.integrated) + d.stereo_box.dropped + d.depth_box.dropped
+
+
+def test_an_input_bug_is_counted_and_logged_with_a_rate_limit(
+    port: int, client: zenoh.Session, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    pipe = FakePipeline()
+    dt, src = start_with_source(load_config_dict(daemon_config_dict(port)), client, pipe)
+    d = dt.daemon
+    try:
+        # finite covariances near the float64 limit: checked without overflow (PSD or not)
+        src.put("pose", codec.encode_pose_with_covariance(10**9, np.eye(4), np.diag([1e308] * 6)))
+        huge_bad = np.diag([1e308, -1e308, 1e308, 1e308, 1e308, 1e308])
+        src.put("pose", codec.encode_pose_with_covariance(10**9, np.eye(4), huge_bad))
+        wait_for(lambda: d.health.counts.get("received.pose", 0) == 2, 5.0, "two poses")
+        assert d.health.counts["poses"] == 1
+        assert dict(d.health.rejected) == {"pose: non_psd_covariance": 1}
+
+        def broken(*args: Any) -> Any:
+            raise RuntimeError("decoder bug")
+
+        monkeypatch.setattr(codec, "decode_pose", broken)
+        good = codec.encode_pose_with_covariance(2 * 10**9, np.eye(4), COV)
+        for _ in range(30):
+            src.put("pose", good)
+        wait_for(lambda: d.health.counts.get("errors.input.pose", 0) == 30, 10.0, "30 input errors")
+        logged = [r for r in caplog.records if "handling pose input failed" in r.getMessage()]
+        assert len(logged) == 5, [r.getMessage() for r in logged]  # 1st (traceback), 2nd..5th
+        assert [r.exc_info is not None for r in logged] == [True] + [False] * 4
+        assert d.serving
+    finally:
+        src.close()
+        dt.stop()
+
+
+def test_wildcard_queries_and_puts_do_not_reset(port: int, client: zenoh.Session) -> None:
+    pipe = FakePipeline()
+    notifier = RecordingNotifier()
+    dt = DaemonThread(Daemon(load_config_dict(daemon_config_dict(port)), pipe, notifier=notifier)).start()
+    try:
+        wait_for(lambda: "READY=1" in notifier.sent, 10.0, "READY")
+        wait_for(
+            lambda: any(r.ok is not None for r in client.liveliness().get("pugs/alive/**", timeout=0.5)),
+            10.0,
+            "the daemon's liveliness token",
+        )
+        d = dt.daemon
+        replies = list(client.get("pugs/**", timeout=2.0, consolidation=zenoh.ConsolidationMode.NONE))
+        oks = {str(r.ok.key_expr): r.ok.payload.to_string() for r in replies if r.ok is not None}
+        errs = [r.err.payload.to_string() for r in replies if r.err is not None]
+        assert set(oks) == {"pugs/status"}, oks  # each reply on its queryable's own key
+        assert any("pugs/reset acts only on a query for exactly that key" in e for e in errs), errs
+        # the default consolidation still shows the status reply
+        default = [str(r.ok.key_expr) for r in client.get("pugs/**", timeout=2.0) if r.ok is not None]
+        assert default == ["pugs/status"]
+        client.put("pugs/**", b"")  # a wildcard put reaches the reset subscriber: refused too
+        wait_for(lambda: d.health.rejected.get("reset: wildcard_key", 0) == 3, 5.0, "three refusals")
+        time.sleep(0.3)
+        assert pipe.resets == 0 and d.health.counts.get("resets", 0) == 0
+        # the exact key still resets, by query and by put
+        exact = [r for r in client.get("pugs/reset", timeout=2.0) if r.ok is not None]
+        assert [(str(r.ok.key_expr), r.ok.payload.to_string()) for r in exact] == [("pugs/reset", "accepted")]
+        client.put("pugs/reset", b"")
+        wait_for(lambda: pipe.resets == 2, 5.0, "two resets")
+    finally:
+        dt.stop()
+
+
+class FakeQuery:
+    """The parts of a zenoh Query that the daemon uses."""
+
+    def __init__(self, key: str, payload: str | bytes = b"") -> None:
+        self.key_expr = key
+        data = payload.encode() if isinstance(payload, str) else payload
+        self.payload = types.SimpleNamespace(to_bytes=lambda: data)
+        self.replies: list[tuple[str, str]] = []
+        self.errors: list[str] = []
+
+    def __enter__(self) -> FakeQuery:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        return None
+
+    def reply(self, key: str, payload: Any) -> None:
+        self.replies.append((key, str(payload)))
+
+    def reply_err(self, payload: str) -> None:
+        self.errors.append(payload)
+
+
+def test_arm_requests_are_refused_under_fixed_reasons(port: int) -> None:
+    """Deep nesting, huge numbers, unknown grasp ids, wildcards and a busy arm: each an error
+    reply counted under one of a few keys (never the id), no exception out of the handler."""
+    d = Daemon(load_config_dict(daemon_config_dict(port)), FakePipeline())
+    d.arm = object()  # enabled (the motion itself is not reached here)
+    d.latest_result = FakePipeline().compute()  # grasp ids 0, 1, 2
+
+    def ask(payload: str, key: str = "pugs/arm/execute") -> FakeQuery:
+        q = FakeQuery(key, payload)
+        d._on_query("arm_execute", q)
+        assert len(q.replies) + len(q.errors) == 1, (q.replies, q.errors)
+        return q
+
+    for bad in (
+        "[" * 100_000 + "]" * 100_000,  # RecursionError in json
+        "9" * 5000,  # ValueError: more digits than int() converts
+        '{"grasp_id": 1, "width_m": 1' + "0" * 400 + "}",  # OverflowError in float()
+        "not json",
+    ):
+        q = ask(bad)
+        assert q.errors and q.errors[0].startswith("rejected: "), q.errors
+    for gid in (7, 8, 123456789):
+        assert "not among the latest grasps" in ask(str(gid)).errors[0]
+    assert "exactly" in ask("1", key="pugs/**").errors[0]
+    assert ask("1").replies == [("pugs/arm/execute", "accepted: grasp 1")]
+    assert "busy" in ask("2").errors[0]  # one motion at a time
+    assert dict(d.health.rejected) == {
+        "arm: bad_request": 4,
+        "arm: unknown_grasp": 3,
+        "arm: wildcard_key": 1,
+        "arm: busy": 1,
+    }
+    assert not any(k.startswith("errors.") for k in d.health.counts)
+    # a reset query on a wildcard offers no command
+    q = FakeQuery("pugs/*")
+    d._on_query("reset", q)
+    assert q.errors and len(d.commands) == 0 and d.health.rejected["reset: wildcard_key"] == 1
+
+
+def test_a_wrong_size_side_image_is_rejected_alone_and_the_frame_goes_on(
+    port: int, client: zenoh.Session
+) -> None:
+    pipe = FakePipeline()
+    cfg = load_config_dict(daemon_config_dict(port, side_image_wait_s=0.3))
+    dt, src = start_with_source(cfg, client, pipe)
+    d = dt.daemon
+    rng = np.random.default_rng(0)
+    h, w = RIG.left.height, RIG.left.width
+    try:
+        n = 4
+        for i in range(n):
+            stamp = 10**9 + i * 10**8
+            src.put("mask", codec.encode_image(np.full((10, 10), 255, np.uint8), stamp, "left", "mono8"))
+            wait_for(lambda k=i + 1: d.health.counts.get("received.mask", 0) == k, 5.0, "the mask")
+            src.stereo(stamp, pose_at(0.01 * i), seed=i)
+            time.sleep(0.05)
+        wait_for(lambda: _passed_on(d, pipe) == n, 10.0, "every stereo frame passed on")
+        assert pipe.integrated
+        assert dict(d.health.rejected) == {"mask: wrong_size": n}
+        # a right image of the wrong size is charged to the right image
+        stamp = 2 * 10**9
+        src.put("mask", codec.encode_image(np.full((h, w), 255, np.uint8), stamp, "left", "mono8"))
+        src.put("pose", codec.encode_pose_with_covariance(stamp, np.eye(4), COV))
+        left = rng.integers(0, 255, (h, w), dtype=np.uint8)
+        src.put("left_image", codec.encode_image(left, stamp, "left"))
+        src.put("right_image", codec.encode_image(left[:, : w // 2].copy(), stamp, "right"))
+        wait_for(lambda: d.health.rejected.get("right_image: wrong_size", 0) == 1, 5.0, "right rejected")
+        # depth input: a std image of the wrong size is dropped, the depth frame is not
+        src.put("depth_info", codec.encode_camera_info(RIG.left, 0, "depth"))
+        stamp = 3 * 10**9
+        src.put("depth_std", codec.encode_image(np.ones((5, 5), np.float32), stamp, "depth"))
+        src.put("mask", codec.encode_image(np.full((h, w), 255, np.uint8), stamp, "depth", "mono8"))
+
+        def sides_here() -> bool:
+            return d._last_std_s is not None and d.health.counts["received.mask"] == n + 2
+
+        wait_for(sides_here, 5.0, "the std image and the mask")
+        src.put("pose", codec.encode_pose_with_covariance(stamp, np.eye(4), COV))
+        src.put("depth", codec.encode_image(np.full((h, w), 0.5, np.float32), stamp, "depth"))
+        wait_for(lambda: any(f.stamp_ns == stamp for f in pipe.frames), 10.0, "the depth frame")
+        frame = next(f for f in pipe.frames if f.stamp_ns == stamp)
+        assert frame.sigma_m is None and frame.mask is not None and frame.mask.all()
+        assert dict(d.health.rejected) == {
+            "mask: wrong_size": n,
+            "right_image: wrong_size": 1,
+            "depth_std: wrong_size": 1,
+        }
+    finally:
+        src.close()
+        dt.stop()
+
+
+def test_shutdown_lets_a_busy_training_step_finish(
+    port: int, client: zenoh.Session, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    pipe = FakePipeline(train_delay_s=1.0, ready_after=1000)
+    cfg = load_config_dict(daemon_config_dict(port, shutdown_timeout_s=5.0))
+    dt, src = start_with_source(cfg, client, pipe)
+    d = dt.daemon
+    try:
+        src.stereo(10**9, pose_at(0.0))
+        wait_for(lambda: d._busy.get("train", False), 10.0, "a training step in flight")
+        steps = pipe.steps
+    finally:
+        src.close()
+    took = dt.stop()
+    assert pipe.steps == steps + 1, "the step in flight was cancelled instead of finishing"
+    assert d.abandoned_work() == 0 and took < 5.0
+    waited = [r.getMessage() for r in caplog.records if "finishing in-flight work" in r.getMessage()]
+    assert waited == ["shutdown: finishing in-flight work (model)"]
+
+
+def test_status_line_counts_every_drop(port: int, client: zenoh.Session) -> None:
+    """Mailbox (drop oldest), duplicate stamp, unpaired and reset drops all reach STATUS=."""
+    pipe = FakePipeline(depth_delay_s=0.3)
+    cfg = load_config_dict(daemon_config_dict(port, pose_wait_s=30.0))
+    dt, src = start_with_source(cfg, client, pipe)
+    d = dt.daemon
+    n: Any = dt.daemon.notifier
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 255, (RIG.left.height, RIG.left.width), dtype=np.uint8)
+    try:
+        for i in range(10):
+            src.stereo(10**9 + i * 5 * 10**7, pose_at(0.001 * i), seed=i)
+            time.sleep(0.01)
+        src.put("pose", codec.encode_pose_with_covariance(2 * 10**9, pose_at(0.1), COV))
+        wait_for(lambda: d.stereo_box.dropped > 0, 10.0, "mailbox drops")
+        wait_for(lambda: _passed_on(d, pipe) == 10, 10.0, "the overload drained")
+        # a duplicate left half, then left halves that never pair
+        for stamp in (5 * 10**9, 5 * 10**9, 6 * 10**9, 7 * 10**9):
+            src.put("left_image", codec.encode_image(img, stamp, "left"))
+        # two pairs that wait for a pose (30 s), then a reset discards them with the halves
+        for stamp in (8 * 10**9, 9 * 10**9):
+            src.put("left_image", codec.encode_image(img, stamp, "left"))
+            src.put("right_image", codec.encode_image(img, stamp, "right"))
+        wait_for(lambda: len(d.gate) == 2, 5.0, "two frames waiting for a pose")
+        assert d.health.dropped["unpaired: duplicate_stamp"] == 1 and d.pairer.pending() == 3
+        assert [r.ok is not None for r in client.get("pugs/reset", timeout=2.0)] == [True]
+        wait_for(lambda: d.health.counts.get("resets", 0) == 1, 5.0, "the reset")
+        assert d.health.dropped["reset: frames waiting for a pose"] == 2
+        assert d.health.dropped["reset: unpaired stereo halves"] == 3
+        total = d.dropped_total()
+        assert total == d.stereo_box.dropped + d.depth_box.dropped + d.ingress.dropped + 6
+        wait_for(
+            lambda: any(s.startswith("STATUS=") and f"dropped {total}," in s for s in n.sent),
+            5.0,
+            f"STATUS= with dropped {total}",
+        )
+    finally:
+        src.close()
+        dt.stop()
+
+
+def test_a_bug_in_a_released_frame_costs_only_that_frame(
+    port: int, client: zenoh.Session, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Frames released by the gate worker (after waiting for their mask): an exception that is
+    not bad input, for one of them, neither stops the daemon nor loses the others."""
+    caplog.set_level(logging.ERROR, logger="pugsd.daemon.app")
+    pipe = FakePipeline()
+    cfg = load_config_dict(daemon_config_dict(port, side_image_wait_s=0.2))
+    dt, src = start_with_source(cfg, client, pipe)
+    d = dt.daemon
+    h, w = RIG.left.height, RIG.left.width
+    emit = d._emit_stereo
+    bad_stamp = 2 * 10**9
+
+    def flaky(pair: Any, stamp_ns: int, *args: Any) -> None:
+        if stamp_ns == bad_stamp:
+            raise RuntimeError("bug while assembling a frame")
+        emit(pair, stamp_ns, *args)
+
+    d._emit_stereo = flaky  # type: ignore[method-assign]
+    try:
+        mask = codec.encode_image(np.full((h, w), 255, np.uint8), 10**9, "left", "mono8")
+        src.put("mask", mask)  # masks are active: later frames wait for theirs, then go without
+        wait_for(lambda: d._last_mask_s is not None, 5.0, "the mask stream")
+        for i, stamp in enumerate((10**9, bad_stamp, bad_stamp + 10**8)):
+            src.stereo(stamp, pose_at(0.01 * i), seed=i)
+        wait_for(lambda: d.health.counts.get("errors.frames.stereo", 0) == 1, 5.0, "the bug counted")
+        wait_for(lambda: _passed_on(d, pipe) == 2, 5.0, "the other frames passed on")
+        assert bad_stamp not in pipe.integrated
+        time.sleep(0.2)
+        assert dt.thread.is_alive() and d.serving and dt.error is None
+        assert any(r.exc_info for r in caplog.records if "emitting a stereo frame" in r.getMessage())
+    finally:
+        src.close()
+        dt.stop()
+
+
+def test_unhealthy_state_is_logged_once_not_every_second(
+    port: int, client: zenoh.Session, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("WATCHDOG_USEC", "200000")  # the watchdog task runs every 0.1 s
+    monkeypatch.delenv("WATCHDOG_PID", raising=False)
+    caplog.set_level(logging.ERROR, logger="pugsd.daemon.app")
+    pipe = FakePipeline(train_delay_s=1.5, ready_after=1000)
+    cfg = load_config_dict(daemon_config_dict(port, stall_timeout_s=0.2))
+    dt, src = start_with_source(cfg, client, pipe)
+    d = dt.daemon
+    try:
+        src.stereo(10**9, pose_at(0.0))
+        wait_for(lambda: d._busy.get("train", False), 10.0, "a training step in flight")
+        t0 = time.monotonic()
+        wait_for(lambda: bool(d.health.problems()), 2.0, "train stuck")
+        time.sleep(max(0.0, 1.1 - (time.monotonic() - t0)))  # still inside the 1.5 s step
+        logged = [r.getMessage() for r in caplog.records if "unhealthy" in r.getMessage()]
+        assert len(logged) == 1 and "train stuck for" in logged[0], logged
+    finally:
+        src.close()
+        dt.stop()
+
+
+def test_malformed_type_segments_and_info_types_are_wrong_type(port: int, client: zenoh.Session) -> None:
+    pipe = FakePipeline()
+    dt, src = start_with_source(load_config_dict(daemon_config_dict(port)), client, pipe)
+    d = dt.daemon
+    try:
+        pose = codec.encode_pose_with_covariance(10**9, np.eye(4), COV)
+        client.put("0/camera_pose/malformed cdr/RIHS01_" + "0" * 64, pose)
+        client.put("0/camera_pose/geometry_msgs::msg::dds_::Pose_/RIHS01_" + "0" * 64, pose)
+        image = codec.encode_image(np.zeros((4, 4), np.uint8), 10**9)
+        client.put(topic_key("/stereo/left/camera_info", IMAGE), image)
+        wait_for(lambda: d.health.counts.get("rejected", 0) == 3, 5.0, "three rejections")
+        assert dict(d.health.rejected) == {"pose: wrong_type": 2, "left_info: wrong_type": 1}
+    finally:
+        src.close()
+        dt.stop()
+
+
+def test_demo_cleans_up_when_the_daemon_fails(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The demo stops at once when its daemon fails, and still finishes its MCAP and closes."""
+    from pugsd.daemon import demo
+    from pugsd.wire.session import free_tcp_port
+
+    stub = types.ModuleType("pugsd.core.pipeline")
+    stub.PugsPipeline = lambda core: FakePipeline()  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "pugsd.core.pipeline", stub)
+
+    async def crashing_watchdog(self: Daemon) -> None:
+        await asyncio.sleep(1.0)
+        raise RuntimeError("daemon bug")
+
+    monkeypatch.setattr(Daemon, "_watchdog_worker", crashing_watchdog)
+    port = free_tcp_port()
+    cfg = demo.demo_config(f"tcp/127.0.0.1:{port}", ())
+    rng = np.random.default_rng(0)
+    h, w = RIG.left.height, RIG.left.width
+
+    def render() -> list[StereoFrame]:
+        img = rng.integers(0, 255, (h, w), dtype=np.uint8)
+        return [StereoFrame(i, img, np.roll(img, -3, axis=1), RIG, pose_at(0.01 * i), COV) for i in range(3)]
+
+    lines: list[str] = []
+    t0 = time.monotonic()
+    with pytest.raises(ExceptionGroup) as info:
+        asyncio.run(demo._demo_main(cfg, render, 20.0, tmp_path, 5.0, lines.append, t0, 0))
+    assert "daemon bug" in repr(info.value.exceptions)
+    assert time.monotonic() - t0 < 15.0, "waited out the duration after the daemon had failed"
+    assert not list(tmp_path.glob("*.part")) and list(tmp_path.glob("*.mcap"))
+    assert any("the daemon stopped" in s for s in lines)
