@@ -212,42 +212,6 @@ class OccupancySVGP:
             self.load_state(self._good_state)
         self._make_optimizers(n)
 
-    def rescale_outputs(self, ratio: float) -> None:
-        """The targets were divided by a new scale, ``y' = ratio * y``: scale the model with them
-        so that it predicts the same field in the new units (``f' = ratio * f``).
-
-        With a zero mean, that takes the output scale and the noise variance times ``ratio^2``
-        and the inducing variables ``u' = ratio u``; q(u') is written whitened with the new
-        factor (``u = L v``, ``L L^T = K_ZZ + j I``). The noise is kept above its constraint's
-        lower bound. The ELBO per point
-        shifts by ``-log(ratio)`` (a change of variables), and the readiness window's ELBOs are
-        shifted with it so that ``elbo_slope`` does not see a jump."""
-        if self.model is None or ratio == 1.0:
-            return
-        if not (math.isfinite(ratio) and ratio > 0.0):
-            raise ValueError(f"target scale ratio must be finite and positive, got {ratio}")
-        assert self.likelihood is not None
-        r2 = ratio * ratio
-        vs = self.model.variational_strategy
-        with torch.no_grad():
-            L_old = self._inducing_factor64()
-            m_w, S_w = self._whitened_q64()
-            kern = self.model.covar_module
-            kern.outputscale = kern.outputscale * r2
-            lik = self.likelihood
-            floor = float(lik.noise_covar.raw_noise_constraint.lower_bound) * (1.0 + 1e-6)
-            lik.noise = torch.clamp(lik.noise * r2, min=floor)
-            # u' = ratio u, whitened with the new factor: the jitter does not scale with the
-            # kernel, so q(v) is not exactly unchanged (it is where K_ZZ >> jitter)
-            T = ratio * torch.linalg.solve_triangular(self._inducing_factor64(), L_old, upper=False)
-            self._write_whitened_q(T @ m_w, T @ S_w @ T.mT)
-        vs._memoize_cache = {}
-        shift = -math.log(ratio)
-        self._elbos = collections.deque((e + shift for e in self._elbos), maxlen=self._elbos.maxlen)
-        self.last_elbo += shift
-        self.version += 1
-        self._save_good_state()
-
     @property
     def initialised(self) -> bool:
         return self.model is not None

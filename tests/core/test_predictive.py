@@ -123,33 +123,6 @@ def test_one_natural_gradient_step_reaches_the_optimum_after_the_store_grew() ->
     assert after_step == pytest.approx(optimum, abs=1e-6 * abs(optimum))
 
 
-def test_rescaling_the_outputs_keeps_the_field_and_shifts_the_elbo(
-    trained: tuple[OccupancySVGP, np.ndarray],
-) -> None:
-    """Targets divided by a 25 % larger scale (y' = r y, r = 0.8): the model follows, f' = r f and
-    sigma'^2 ~ r^2 sigma^2, and the ELBO per point moves by about -log r. Not rescaling would
-    leave the mean 25 % and the variance 56 % off. The variance is matched less tightly than the
-    mean: gpytorch's jitter (1e-4, absolute) does not scale with the kernel, and these posterior
-    variances (4e-4 to 7e-3) are of its order."""
-    m, x = trained
-    state = m.state()
-    y = _field(x)
-    q = x[::29]
-    mu0, v0, _ = m.predict(q)
-    e0 = m.elbo_per_point(x, y)
-    slope0 = m.elbo_slope()
-    r = 0.8
-    m.rescale_outputs(r)
-    mu1, v1, _ = m.predict(q)
-    e1 = m.elbo_per_point(x, r * y)
-    slope1 = m.elbo_slope()
-    m.load_state(state)
-    assert np.abs(mu1 - r * mu0).max() < 5e-3 * np.abs(r * mu0).max()
-    assert np.median(np.abs(v1 - r * r * v0) / (r * r * v0)) < 0.15
-    assert e1 == pytest.approx(e0 - np.log(r), abs=0.02)
-    assert slope0 is not None and slope1 == pytest.approx(slope0, abs=1e-9)
-
-
 @pytest.mark.parametrize("policy", ["spread", "coverage"])
 def test_streaming_moves_inducing_points_into_new_region(policy: str) -> None:
     rng = np.random.default_rng(2)
