@@ -46,7 +46,7 @@ def format_grasps(grasps: ScoredGrasps, n: int = 10) -> str:
 
 
 def _offline(args: argparse.Namespace) -> int:
-    from pugsd.core.pipeline import PugsPipeline
+    from pugsd.models import make_pipeline
     from pugsd.sim import make_sequence
 
     overrides = list(args.set or ())
@@ -62,7 +62,7 @@ def _offline(args: argparse.Namespace) -> int:
         f"{k}={v!r}" if isinstance(v, str) else f"{k}={v}" for k, v in seq.core_overrides.items()
     ]
     cfg = load_config(args.config, overrides)
-    pipe = PugsPipeline(core_of(cfg), seed=args.seed)
+    pipe = make_pipeline(core_of(cfg), seed=args.seed)
     t0 = time.perf_counter()
     for frame in seq.frames:
         pipe.add_stereo(frame)

@@ -18,8 +18,8 @@ from pugsd.bench import measure as m
 from pugsd.bench.options import BenchOptions
 from pugsd.bench.targets import evaluate_targets
 from pugsd.config import PugsdConfig, core_of, load_config_dict
-from pugsd.core.pipeline import PugsPipeline
 from pugsd.core.predictive import NUM_INDUCING_AUTO_CPU, NUM_INDUCING_AUTO_CUDA, resolve_num_inducing
+from pugsd.models import make_pipeline
 
 SCHEMA = "pugsd-bench/1"
 
@@ -80,7 +80,7 @@ def _cuda_section(
         per_m: dict[str, Any] = {}
         for dev in ("cpu", "cuda"):
             cfg = build_config([*cfg_overrides, f"svgp.device={dev}", f"svgp.num_inducing={m_ind}"], dev)
-            pipe = PugsPipeline(core_of(cfg), seed=opts.seed)
+            pipe = make_pipeline(core_of(cfg), seed=opts.seed)
             for f in frames:
                 pipe.add_stereo(f)
             pipe.train_steps(1)  # initialises the model

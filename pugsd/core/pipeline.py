@@ -18,6 +18,7 @@ import dataclasses
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -122,7 +123,11 @@ class CloudJob:
 class PugsPipeline:
     """The complete PUGS method as a synchronous library."""
 
-    def __init__(self, cfg: CoreConfig | None = None, seed: int = 0) -> None:
+    def __init__(
+        self, cfg: CoreConfig | None = None, seed: int = 0, grasp_model: Any = None
+    ) -> None:
+        """``grasp_model``: the loaded network for ``grasp.proposer = "torchscript"`` (the core
+        reads no files; ``pugsd.models.make_pipeline`` loads it)."""
         self.cfg = cfg if cfg is not None else CoreConfig()
         self.seed = seed
         self.stereo = StereoDepth(self.cfg.stereo)
@@ -138,7 +143,7 @@ class PugsPipeline:
             )
         )
         self.recon = Reconstruction(self.cfg.reconstruction)
-        self.proposer = make_proposer(self.cfg.grasp, seed)
+        self.proposer = make_proposer(self.cfg.grasp, seed, grasp_model)
         self._pending: list[np.ndarray] = []
         self._scale: float | None = None
         self.frames = 0

@@ -44,9 +44,9 @@ def exit_after(daemon: Daemon) -> int:
 def _run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, args.set or ())
     setup_logging(cfg.daemon.log_level, cfg.daemon.log_json)
-    from pugsd.core.pipeline import PugsPipeline  # torch import: only when serving
+    from pugsd.models import make_pipeline  # torch import: only when serving
 
-    daemon = Daemon(cfg, PugsPipeline(core_of(cfg)))
+    daemon = Daemon(cfg, make_pipeline(core_of(cfg)))
     apply_thread_limits(cfg)
     asyncio.run(serve(daemon))
     return exit_after(daemon)

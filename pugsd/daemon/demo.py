@@ -212,13 +212,13 @@ async def _demo_main(
     t_start: float,
     sweeps: int,
 ) -> tuple[Daemon, GraspPrinter, list[Path], dict[str, Any]]:
-    from pugsd.core.pipeline import PugsPipeline
+    from pugsd.models import make_pipeline
     from pugsd.record.recorder import Recorder
     from pugsd.wire.topics import topic_types
 
     port = parse_loopback_port(cfg.zenoh["listen"]["endpoints"][0])
     rendering = asyncio.create_task(asyncio.to_thread(render))  # overlaps the daemon's start-up
-    daemon = Daemon(cfg, PugsPipeline(core_of(cfg)))
+    daemon = Daemon(cfg, make_pipeline(core_of(cfg)))
     apply_thread_limits(cfg)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()

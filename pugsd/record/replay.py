@@ -10,7 +10,6 @@ that carries one, the mask by exact stamp. Deterministic for a given file, confi
 from __future__ import annotations
 
 import bisect
-import importlib
 import json
 import logging
 from collections.abc import Iterable, Iterator
@@ -23,7 +22,7 @@ import numpy as np
 from pugsd.core.camera import StereoRig
 from pugsd.core.types import ScoredGrasps, StereoFrame
 from pugsd.daemon.config import TopicsConfig
-from pugsd.errors import DecodeError, InputError, PugsdError
+from pugsd.errors import DecodeError, InputError
 from pugsd.record.mcapio import ChannelTable, iter_recording, new_writer, versions
 from pugsd.wire import codec
 from pugsd.wire.topics import ROLE_TYPES, key_for
@@ -257,12 +256,10 @@ def replay(
     ``grasps.mcap`` (GraspArray, MarkerArray, PointCloud2 on the ``[topics]`` outputs)."""
     paths = [Path(p) for p in paths]
     ast = AssembleStats()
-    try:
-        pipeline_mod = importlib.import_module("pugsd.core.pipeline")
-        core_of = importlib.import_module("pugsd.config").core_of
-    except ImportError as exc:  # pragma: no cover - depends on the lead's pipeline
-        raise PugsdError(f"replay needs pugsd.core.pipeline.PugsPipeline: {exc}") from None
-    pipe = pipeline_mod.PugsPipeline(core_of(cfg), seed)
+    from pugsd.config import core_of
+    from pugsd.models import make_pipeline  # torch and open3d: only when replaying
+
+    pipe = make_pipeline(core_of(cfg), seed)
     n = 0
     for f in iter_frames(paths, cfg.topics, stats=ast):
         pipe.add_stereo(f)

@@ -11,17 +11,19 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from pugsd.config import GraspConfig
+from pugsd.config import CoreConfig, GraspConfig
 from pugsd.core.grasp.proposer import (
     AntipodalProposer,
     TorchScriptProposer,
     _orthonormal,
     farthest_point_subset,
     grasp_poses,
+    make_proposer,
 )
 from pugsd.core.grasp.scoring import rank_grasps, reweight
 from pugsd.core.predictive import farthest_point_sample
-from pugsd.errors import PugsdError
+from pugsd.errors import ConfigError, PugsdError
+from pugsd.models import load_torchscript, make_pipeline
 from tests.helpers.scenes import box_mesh, cylinder_mesh
 
 VIEWS = np.array([[0.5, 0, 0.2], [-0.5, 0, 0.2], [0, 0.5, 0.2], [0, -0.5, 0.2], [0, 0, 0.6]])
@@ -150,16 +152,24 @@ class _TinyNet(torch.nn.Module):
 def test_torchscript_adapter(tmp_path: Path) -> None:
     path = tmp_path / "net.pt"
     torch.jit.script(_TinyNet()).save(str(path))
-    prop = TorchScriptProposer(GraspConfig(proposer="torchscript", model_path=str(path)))
+    cfg = GraspConfig(proposer="torchscript", model_path=str(path))
+    prop = TorchScriptProposer(cfg, load_torchscript(path))
     pts = np.array([[0.0, 0, 0], [0.2, 0, 0], [-0.2, 0, 0]])
     gs = prop.propose(pts, None, VIEWS)
     np.testing.assert_allclose(gs.confidence, 1 / (1 + np.exp(-10 * pts[:, 0])), rtol=1e-6)
     np.testing.assert_allclose(gs.approach, [[0, 0, -1.0]] * 3, atol=1e-7)  # Gram-Schmidt
     assert np.all(np.abs((gs.approach * gs.baseline).sum(1)) < 1e-9)
-    with pytest.raises(PugsdError):
-        TorchScriptProposer(
-            GraspConfig(proposer="torchscript", model_path=str(tmp_path / "nope.pt"))
-        )
+    with pytest.raises(PugsdError, match="no TorchScript model"):
+        load_torchscript(tmp_path / "nope.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a model")
+    with pytest.raises(PugsdError, match="cannot load"):
+        load_torchscript(tmp_path / "junk.pt")
+    # the core reads no files: the network comes from outside (pugsd.models.make_pipeline)
+    with pytest.raises(ConfigError, match="outside the core"):
+        make_proposer(cfg)
+    pipe = make_pipeline(CoreConfig(grasp=cfg))
+    assert isinstance(pipe.proposer, TorchScriptProposer)
+    np.testing.assert_allclose(pipe.proposer.propose(pts, None, VIEWS).confidence, gs.confidence)
 
 
 def test_eq13_reweighting_changes_ranking() -> None:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import sys
 import time
 import types
 from pathlib import Path
@@ -359,9 +358,7 @@ def test_demo_cleans_up_when_the_daemon_fails(tmp_path: Path, monkeypatch: pytes
     from pugsd.daemon import demo
     from pugsd.wire.session import free_tcp_port
 
-    stub = types.ModuleType("pugsd.core.pipeline")
-    stub.PugsPipeline = lambda core: FakePipeline()  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "pugsd.core.pipeline", stub)
+    monkeypatch.setattr("pugsd.models.make_pipeline", lambda core, seed=0: FakePipeline())
 
     async def crashing_watchdog(self: Daemon) -> None:
         await asyncio.sleep(1.0)

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import json
-import sys
 import types
 from pathlib import Path
 from typing import Any
@@ -105,9 +104,7 @@ def test_replay_outputs_with_a_stand_in_pipeline(
     synth_recording: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     path, frames = synth_recording
-    fake = types.ModuleType("pugsd.core.pipeline")
-    fake.PugsPipeline = _FakePipeline  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "pugsd.core.pipeline", fake)
+    monkeypatch.setattr("pugsd.models.make_pipeline", _FakePipeline)
     res = replay([path], default_config(), out_dir=tmp_path)
     assert res.frames == len(frames) and len(res.grasps) == 1
     doc = json.loads((tmp_path / "grasps.json").read_text())

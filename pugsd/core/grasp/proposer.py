@@ -16,7 +16,6 @@ block 30 mm deep and 60 mm wide, and a depth of 90 mm from the wrist origin to t
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -24,7 +23,7 @@ import open3d as _o3d
 from scipy.spatial import cKDTree
 
 from pugsd.config import GraspConfig, GripperConfig
-from pugsd.errors import EmptyCloudError, PugsdError
+from pugsd.errors import ConfigError, EmptyCloudError, PugsdError
 
 # open3d's bundled stubs reject valid numpy arguments (Tensor overloads): use it untyped
 o3d: Any = _o3d
@@ -297,16 +296,14 @@ class TorchScriptProposer:
     Gram-Schmidt-orthogonalised against the baseline, and the pose follows the module convention.
     """
 
-    def __init__(self, cfg: GraspConfig) -> None:
+    def __init__(self, cfg: GraspConfig, model: Any) -> None:
+        """``model``: the loaded network (``pugsd.models.load_torchscript``; the core reads no
+        files)."""
         import torch
 
-        path = Path(cfg.model_path)
-        if not path.is_file():
-            raise PugsdError(f"grasp.model_path: no TorchScript model at {path!s}")
         self.cfg = cfg
         self._torch = torch
-        self.model = torch.jit.load(str(path), map_location="cpu")
-        self.model.eval()
+        self.model = model
 
     def propose(
         self, points_W: np.ndarray, normals_W: np.ndarray | None, view_origins_W: np.ndarray
@@ -340,7 +337,13 @@ class TorchScriptProposer:
         )
 
 
-def make_proposer(cfg: GraspConfig, seed: int = 0) -> GraspProposer:
+def make_proposer(cfg: GraspConfig, seed: int = 0, model: Any = None) -> GraspProposer:
+    """The configured proposer; ``proposer = "torchscript"`` needs the loaded ``model``."""
     if cfg.proposer == "torchscript":
-        return TorchScriptProposer(cfg)
+        if model is None:
+            raise ConfigError(
+                "grasp.proposer = torchscript: load the network outside the core and pass it "
+                "(pugsd.models.make_pipeline does)"
+            )
+        return TorchScriptProposer(cfg, model)
     return AntipodalProposer(cfg, seed)
