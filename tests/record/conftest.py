@@ -1,8 +1,13 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Fixtures: pairs of loopback-only zenoh peer sessions on fresh 127.0.0.1 ports."""
+"""Fixtures: synthetic recordings, signal handlers restored after CLI calls, a disk that hangs."""
 
 from __future__ import annotations
 
+import io
+import signal
+import threading
+from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -52,3 +57,33 @@ def make_frames(n: int, width: int = 64, height: int = 48, seed: int = 0) -> lis
             )
         )
     return frames
+
+
+@pytest.fixture
+def restore_signals() -> Iterator[None]:
+    """The CLI installs SIGTERM/SIGINT handlers; put pytest's back."""
+    handlers = (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, handlers[0])
+        signal.signal(signal.SIGINT, handlers[1])
+
+
+class GatedFile(io.RawIOBase):
+    """Every write waits for ``gate`` (a disk that hangs)."""
+
+    def __init__(self, path: Path, gate: threading.Event) -> None:
+        self.f = open(path, "wb", buffering=0)  # noqa: SIM115
+        self.gate = gate
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, b: Any) -> int:
+        self.gate.wait(30)
+        return int(self.f.write(b) or 0)
+
+    def close(self) -> None:
+        self.f.close()
+        super().close()

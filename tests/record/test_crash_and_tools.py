@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import io
 import os
 import re
 import signal
@@ -33,6 +32,7 @@ from pugsd.wire.keys import topic_key
 from pugsd.wire.publisher import Publisher
 from pugsd.wire.session import close_session, free_tcp_port, loopback_config, open_session
 from pugsd.wire.types import IMAGE
+from tests.record.conftest import GatedFile
 
 N_MSGS = 80
 CHUNK = 65536
@@ -287,17 +287,6 @@ def test_recover_removes_its_temp_file_when_writing_fails(
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.fixture
-def restore_signals() -> Iterator[None]:
-    """The CLI installs SIGTERM/SIGINT handlers; put pytest's back."""
-    handlers = (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, handlers[0])
-        signal.signal(signal.SIGINT, handlers[1])
-
-
 def test_cli_record_bad_key_is_an_error_and_closes_the_session(
     daemon_side: tuple[Any, int], tmp_path: Path, capsys: pytest.CaptureFixture[str],
     monkeypatch: pytest.MonkeyPatch, restore_signals: None,
@@ -320,23 +309,6 @@ def test_cli_record_bad_key_is_an_error_and_closes_the_session(
     assert len(closed) == 1 and not list(tmp_path.iterdir())
 
 
-class _HangingFile(io.RawIOBase):
-    def __init__(self, path: Path, gate: threading.Event) -> None:
-        self.f = open(path, "wb", buffering=0)  # noqa: SIM115
-        self.gate = gate
-
-    def writable(self) -> bool:
-        return True
-
-    def write(self, b: Any) -> int:
-        self.gate.wait(30)
-        return int(self.f.write(b) or 0)
-
-    def close(self) -> None:
-        self.f.close()
-        super().close()
-
-
 def test_cli_record_exits_1_when_the_writer_does_not_finish(
     daemon_side: tuple[Any, int], tmp_path: Path, capsys: pytest.CaptureFixture[str],
     monkeypatch: pytest.MonkeyPatch, restore_signals: None,
@@ -352,7 +324,7 @@ def test_cli_record_exits_1_when_the_writer_does_not_finish(
         self.put("/crash", "sensor_msgs/msg/Image", codec.encode_image(np.zeros((4, 4), np.uint8), 1))
         return self
 
-    monkeypatch.setattr(recorder_mod, "_default_opener", lambda p: _HangingFile(p, gate))
+    monkeypatch.setattr(recorder_mod, "_default_opener", lambda p: GatedFile(p, gate))
     monkeypatch.setattr(Recorder, "start", start)
     monkeypatch.setattr(Recorder.stop, "__defaults__", (0.3,))  # stop(timeout=0.3)
     try:

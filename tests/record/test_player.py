@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import signal
 import threading
 import time
 from collections.abc import Iterator
@@ -35,17 +34,6 @@ def listener() -> Iterator[tuple[Any, int]]:
         yield s, port
     finally:
         close_session(s)
-
-
-@pytest.fixture
-def restore_signals() -> Iterator[None]:
-    """The CLI installs SIGTERM/SIGINT handlers; put pytest's back."""
-    handlers = (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, handlers[0])
-        signal.signal(signal.SIGINT, handlers[1])
 
 
 @pytest.mark.timeout(60)

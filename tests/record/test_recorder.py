@@ -24,6 +24,7 @@ from pugsd.wire import codec
 from pugsd.wire.attachment import encode_attachment
 from pugsd.wire.keys import topic_key
 from pugsd.wire.types import IMAGE, POSE_COV_STAMPED
+from tests.record.conftest import GatedFile
 
 
 def _cfg(tmp: Path, **kw: Any) -> RecordConfig:
@@ -278,30 +279,11 @@ def test_queue_bytes_bound_includes_the_message_being_written(
     assert rec.queued_bytes == 0
 
 
-class _GatedFile(io.RawIOBase):
-    """Every write waits for ``gate`` (a disk that hangs)."""
-
-    def __init__(self, path: Path, gate: threading.Event) -> None:
-        self.f = open(path, "wb", buffering=0)  # noqa: SIM115
-        self.gate = gate
-
-    def writable(self) -> bool:
-        return True
-
-    def write(self, b: Any) -> int:
-        self.gate.wait(30)
-        return int(self.f.write(b) or 0)
-
-    def close(self) -> None:
-        self.f.close()
-        super().close()
-
-
 def test_stop_timeout_is_reported(tmp_path: Path) -> None:
     gate = threading.Event()
 
     def opener(p: Path) -> IO[bytes]:
-        return _GatedFile(p, gate)  # type: ignore[return-value]
+        return GatedFile(p, gate)  # type: ignore[return-value]
 
     rec = Recorder(_cfg(tmp_path), opener=opener).start()
     try:
