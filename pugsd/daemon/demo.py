@@ -339,11 +339,13 @@ def run_demo(
     st = daemon.status()
     c = st["counts"]
     mb = st["mailboxes"]
+    ingress = st["ingress"]["dropped"]  # messages, not frames: reported on their own
     write(
         f"frames sent {extra['frames_sent']}, integrated {c.get('integrated', 0)}, dropped "
-        f"{daemon.dropped_total()} (newest frame wins: stereo queue {mb['stereo']['dropped']}, "
-        f"depth queue {mb['depth']['dropped']}; no pose/reset/duplicate {c.get('dropped', 0)}, unpaired "
-        f"{st['waiting']['unpaired_dropped']}, ingress bound {st['ingress']['dropped']}), rejected "
+        f"{daemon.dropped_total() - ingress} (newest frame wins: stereo queue "
+        f"{mb['stereo']['dropped']}, depth queue {mb['depth']['dropped']}; no pose/reset/duplicate "
+        f"{c.get('dropped', 0)}, unpaired halves {st['waiting']['unpaired_dropped']}), messages "
+        f"dropped at the ingress bound {ingress}, rejected "
         f"{c.get('rejected', 0)}, lost before the daemon {sum(st['upstream']['lost'].values())}, "
         f"grasp updates {daemon.grasps_published}; slowest zenoh put {1e3 * extra['max_put_s']:.2f} ms"
     )
