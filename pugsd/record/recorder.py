@@ -18,6 +18,7 @@ import collections
 import contextlib
 import errno
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -45,6 +46,25 @@ Opener = Callable[[Path], IO[bytes]]
 def _default_opener(path: Path) -> IO[bytes]:
     # unbuffered: every record the mcap writer emits reaches the OS at once (crash safety)
     return open(path, "wb", buffering=0)
+
+
+def _fsync(fh: Any) -> None:
+    """fsync a file object that has a descriptor (test doubles without one are skipped)."""
+    try:
+        fd = fh.fileno()
+    except (OSError, ValueError, AttributeError):  # io.UnsupportedOperation is an OSError
+        return
+    os.fsync(fd)
+
+
+def _fsync_dir(path: Path) -> None:
+    """Make a rename durable (best effort: not every filesystem lets a directory be fsynced)."""
+    with contextlib.suppress(OSError):
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
 
 class _Passthrough:
@@ -78,6 +98,9 @@ class _Passthrough:
 
     def flush(self) -> None:
         self._f.flush()
+
+    def fileno(self) -> int:
+        return self._f.fileno()
 
     def close(self) -> None:
         self._f.close()
@@ -515,6 +538,7 @@ class Recorder:
         try:
             if ok:
                 fh.flush()
+                _fsync(fh)  # on disk before the rename: a power cut leaves a .part or a whole file
             fh.close()
         except OSError as exc:
             if ok:
@@ -527,6 +551,7 @@ class Recorder:
             except OSError as exc:
                 self._fail(exc, "rename")
                 return
+            _fsync_dir(final.parent)
             self.stats.files.append(str(final))
             self.stats.files_finished += 1
             log.info("recorder: finished %s", final)

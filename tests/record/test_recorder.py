@@ -7,6 +7,7 @@ from __future__ import annotations
 import errno
 import io
 import json
+import os
 import threading
 import time
 from pathlib import Path
@@ -192,6 +193,40 @@ def test_full_disk_is_reported_not_a_crash(tmp_path: Path) -> None:
     res = recover(part, tmp_path / "recovered.mcap")
     assert res.messages == s.written > 0, (res.messages, s.written, s.dropped_error)
     assert s.buffered == 0
+
+
+def test_a_finished_file_is_fsynced_before_its_rename(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A power cut on the vehicle must leave either a .part (recoverable) or a whole file: the
+    data is fsynced before the rename, the directory after it; a failing fsync leaves the .part."""
+    import pugsd.record.recorder as recorder_mod
+
+    calls: list[tuple[str, list[str]]] = []
+    real_fsync = os.fsync
+
+    def fsync(fd: int) -> None:
+        calls.append((os.readlink(f"/proc/self/fd/{fd}"), sorted(p.name for p in tmp_path.iterdir())))
+        real_fsync(fd)
+
+    monkeypatch.setattr(recorder_mod.os, "fsync", fsync)
+    rec = Recorder(_cfg(tmp_path))
+    with rec:
+        rec.put("/img", IMAGE, _img(0))
+    (final,) = rec.stats.files
+    assert [Path(c[0]).name for c in calls] == [Path(final).name + ".part", tmp_path.name]
+    assert calls[0][1] == [Path(final).name + ".part"]  # the data first, still under .part
+    assert calls[1][1] == [Path(final).name]  # then the directory, after the rename
+
+    def failing(fd: int) -> None:
+        raise OSError(errno.EIO, "I/O error")
+
+    monkeypatch.setattr(recorder_mod.os, "fsync", failing)
+    rec = Recorder(_cfg(tmp_path / "b"))
+    with rec:
+        rec.put("/img", IMAGE, _img(0))
+    assert rec.stats.files == [] and "I/O error" in rec.stats.error
+    assert len(list((tmp_path / "b").glob("*.mcap.part"))) == 1
 
 
 def test_flush_failure_counts_the_open_chunk_as_dropped(tmp_path: Path) -> None:
