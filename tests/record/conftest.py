@@ -60,6 +60,20 @@ def make_frames(n: int, width: int = 64, height: int = 48, seed: int = 0) -> lis
 
 
 @pytest.fixture
+def daemon_side() -> Iterator[tuple[Any, int]]:
+    """A loopback-only peer session listening on a free 127.0.0.1 port (where a daemon would
+    be), and the port."""
+    from pugsd.wire.session import close_session, free_tcp_port, loopback_config, open_session
+
+    port = free_tcp_port()
+    s = open_session(loopback_config(listen_port=port), require_loopback=True)
+    try:
+        yield s, port
+    finally:
+        close_session(s)
+
+
+@pytest.fixture
 def restore_signals() -> Iterator[None]:
     """The CLI installs SIGTERM/SIGINT handlers; put pytest's back."""
     handlers = (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT))

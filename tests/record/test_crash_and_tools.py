@@ -10,7 +10,6 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -30,23 +29,12 @@ from pugsd.record.synth import write_recording
 from pugsd.wire import codec
 from pugsd.wire.keys import topic_key
 from pugsd.wire.publisher import Publisher
-from pugsd.wire.session import close_session, free_tcp_port, loopback_config, open_session
 from pugsd.wire.types import IMAGE
 from tests.record.conftest import GatedFile
 
 N_MSGS = 80
 CHUNK = 65536
 IMG = (64, 64)  # 4 kB + header per message: about 16 messages per chunk
-
-
-@pytest.fixture
-def daemon_side() -> Iterator[tuple[Any, int]]:
-    port = free_tcp_port()
-    s = open_session(loopback_config(listen_port=port), require_loopback=True)
-    try:
-        yield s, port
-    finally:
-        close_session(s)
 
 
 def _spawn_recorder(out: Path, port: int) -> subprocess.Popen[bytes]:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
 from typing import Any
 
 import pytest
@@ -15,7 +14,6 @@ from pugsd.errors import ConfigError
 from pugsd.record.mcapio import RecordedMessage
 from pugsd.record.player import Player, PlayOptions, output_key
 from pugsd.wire.keys import HUMBLE_HASH, topic_key
-from pugsd.wire.session import close_session, free_tcp_port, loopback_config, open_session
 from pugsd.wire.types import POSE_COV_STAMPED
 
 POSE_DDS = "geometry_msgs::msg::dds_::PoseWithCovarianceStamped_"
@@ -23,17 +21,6 @@ POSE_DDS = "geometry_msgs::msg::dds_::PoseWithCovarianceStamped_"
 
 def _msg(key: str, topic: str = "/camera_pose") -> RecordedMessage:
     return RecordedMessage(topic, POSE_COV_STAMPED, key, b"", 1, 1, 1, 0)
-
-
-@pytest.fixture
-def listener() -> Iterator[tuple[Any, int]]:
-    """A loopback-only peer session listening on a free 127.0.0.1 port, and the port."""
-    port = free_tcp_port()
-    s = open_session(loopback_config(listen_port=port), require_loopback=True)
-    try:
-        yield s, port
-    finally:
-        close_session(s)
 
 
 @pytest.mark.timeout(60)
@@ -93,10 +80,10 @@ def test_output_key_domain_alone_and_recorded_hash() -> None:
 
 
 def test_cli_play_topic_without_slash_and_nothing_to_play(
-    listener: tuple[Any, int], synth_recording: Any, capsys: pytest.CaptureFixture[str],
+    daemon_side: tuple[Any, int], synth_recording: Any, capsys: pytest.CaptureFixture[str],
     restore_signals: None,
 ) -> None:  # fmt: skip
-    session, port = listener
+    session, port = daemon_side
     src, _ = synth_recording
     got: list[str] = []
     sub = session.declare_subscriber("**", lambda s: got.append(str(s.key_expr)))
