@@ -55,7 +55,8 @@ def test_full_serial_buffer_never_truncates_frames_and_the_stop_gets_through() -
             assert host.tx_pending() > 0 and host.stats.tx_errors > 0
             stop = [make_packet(0xFF, P.VELOCITY, [0.0]), make_packet(0xFF, P.MODE, [1])]
             await host.send_urgent(stop)
-            assert not await host.flush(0.05)  # the arm side is still full
+            # (no assertion that the stop is still stuck here: the kernel moves pty data on from
+            # its flip buffer asynchronously, so room for two small frames can appear unread)
             data = bytearray()
             t_end = time.monotonic() + 5.0
             while time.monotonic() < t_end:  # the arm side reads again
