@@ -361,6 +361,8 @@ def test_nan_joint_feedback_mid_motion_stops_arm(monkeypatch: pytest.MonkeyPatch
             assert not rep.ok and "non-finite" in rep.reason, rep.reason
             await wait_until(lambda: _stopped(sim, t_bad), 2.0, "stop at the arm")
             await wait_until(lambda: all(sim.axes[d].mode == Mode.DISABLE for d in sim.axes))
+            # the motion loop may see the NaN before the watchdog's next period: wait for it
+            await wait_until(lambda: ctl.trip_reason is not None, 2.0, "watchdog trip")
             assert ctl.trip_reason is not None and "0x06" in ctl.trip_reason
             assert ctl.link.nonfinite > 0
             st = ctl.status()  # no ValueError
