@@ -445,16 +445,6 @@ class OccupancySVGP:
         vd = self.model.variational_strategy._variational_distribution
         return vd().mean.detach()
 
-    def _inducing_factor64(self) -> torch.Tensor:
-        """``L`` with ``L L^T = K_ZZ + j I`` (the strategy's jitter ``j``), in float64."""
-        assert self.model is not None
-        vs = self.model.variational_strategy
-        f64 = torch.float64
-        kern = copy.deepcopy(self.model.covar_module).to(f64)
-        Z = vs.inducing_points.detach().to(f64)
-        eye = torch.eye(len(Z), dtype=f64, device=Z.device)
-        return torch.linalg.cholesky(kern(Z).to_dense() + float(vs.jitter_val) * eye)
-
     def _whitened_q64(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The whitened q(v) = N(m_w, S_w) in float64, from the distribution's own parameters."""
         assert self.model is not None
