@@ -24,7 +24,7 @@ import torch
 from pugsd.bench.options import BenchOptions
 from pugsd.config import CoreConfig, PugsdConfig
 from pugsd.core.pipeline import PipelineResult, PugsPipeline
-from pugsd.core.types import StereoFrame
+from pugsd.core.types import ScoredGrasps, StereoFrame
 
 Writer = Callable[[str], None]
 
@@ -407,23 +407,23 @@ def daemon_feed(
         sent = [0]
         t_feed = [0.0, 0.0]
         last_sent: list[tuple[float, int]] = []  # (monotonic time, stamp) of the last frame
-        grasps_rx: list[tuple[float, int]] = []
-        steps_rx: list[int] = []  # the model's training steps so far, at each receipt
+        # (receipt time, the GraspArray, the model's training steps so far at receipt)
+        grasps_rx: list[tuple[float, ScoredGrasps, int]] = []
         sub = None
         if grasps_timeout_s > 0:
 
             def on_grasps(sample: Any) -> None:
-                stamp = codec.decode_grasp_array(sample.payload.to_bytes()).stamp_ns
-                grasps_rx.append((time.monotonic(), stamp))
-                steps_rx.append(pipe.svgp.total_steps)  # a plain int read
+                g = codec.decode_grasp_array(sample.payload.to_bytes())
+                grasps_rx.append((time.monotonic(), g, pipe.svgp.total_steps))  # a plain int read
 
             sub = peer.declare_subscriber(key_for(cfg.topics, "grasps"), on_grasps)
-        clouds_rx: list[tuple[float, Any]] = []
+        clouds_rx: list[tuple[float, Any, int]] = []
         sub_cloud = None
         if grasps_timeout_s > 0 and cloud_timeout_s > 0:
 
             def on_cloud(sample: Any) -> None:
-                clouds_rx.append((time.monotonic(), codec.decode_cloud(sample.payload.to_bytes())))
+                c = codec.decode_cloud(sample.payload.to_bytes())
+                clouds_rx.append((time.monotonic(), c, pipe.svgp.total_steps))
 
             sub_cloud = peer.declare_subscriber(key_for(cfg.topics, "cloud"), on_cloud)
 
@@ -475,23 +475,18 @@ def daemon_feed(
             t_last, stamp_last = last_sent[0]
             t_w = time.monotonic()
             while time.monotonic() - t_w < grasps_timeout_s:
-                if any(s >= stamp_last for _, s in grasps_rx):
+                if any(g.stamp_ns >= stamp_last for _, g, _ in grasps_rx):
                     break
                 await asyncio.sleep(0.01)
-            hits = [t for t, s in grasps_rx if s >= stamp_last]
-            out["last_frame_to_grasps_s"] = (min(hits) - t_last) if hits else None
-            first = next((i for i, (_, s) in enumerate(grasps_rx) if s >= stamp_last), None)
-            out["train_steps_at_grasps"] = None if first is None else steps_rx[first]
-            out["grasps_received"] = len(grasps_rx)
+            grasps_seen = len(grasps_rx)
             if sub_cloud is not None:
                 t_w = time.monotonic()
                 while time.monotonic() - t_w < cloud_timeout_s:
-                    if any(c.stamp_ns >= stamp_last for _, c in clouds_rx):
+                    if any(c.stamp_ns >= stamp_last for _, c, _ in clouds_rx):
                         break
                     await asyncio.sleep(0.01)
-                got = [(t, c) for t, c in clouds_rx if c.stamp_ns >= stamp_last]
-                out["last_frame_cloud"] = got[0][1] if got else None
-                out["last_frame_to_cloud_s"] = (got[0][0] - t_last) if got else None
+            out.update(last_frame_outputs(list(grasps_rx), list(clouds_rx), t_last, stamp_last))
+            out["grasps_received"] = grasps_seen
         if sub is not None:
             sub.undeclare()
         if sub_cloud is not None:
@@ -543,6 +538,92 @@ def match_points(
     return ia[first], ib[first]
 
 
+def cloud_scored_grasps(grasps: ScoredGrasps, cloud: Any) -> bool | None:
+    """Whether ``cloud`` (a decoded PointCloud2) came from the computation that scored ``grasps``.
+    A grasp's id is the index of its contact's point in that computation's query cloud (what the
+    cloud carries, in order), and the daemon fills the cloud's sigma2_occ around the values
+    Algorithm 1 gave those points: the cloud carries each grasp's sigma2_occ at its id, to float32
+    rounding; a later computation on a further-trained model carries other values there. None
+    where it cannot be told (no grasps, an id outside the cloud, no sigma2_occ field)."""
+    f = cloud.fields
+    ids = np.asarray(grasps.grasp_id, dtype=np.int64)
+    if len(grasps) == 0 or "sigma2_occ" not in f:
+        return None
+    s2 = np.asarray(f["sigma2_occ"], dtype=np.float32)
+    if ids.min() < 0 or ids.max() >= len(s2):
+        return None
+    want = np.asarray(grasps.sigma2_occ, dtype=np.float64).astype(np.float32)
+    return bool(np.allclose(s2[ids], want, rtol=1e-6, atol=0.0))
+
+
+def last_frame_outputs(
+    grasps_rx: Sequence[tuple[float, ScoredGrasps, int]],
+    clouds_rx: Sequence[tuple[float, Any, int]],
+    t_last: float,
+    stamp_last: int,
+) -> dict[str, Any]:
+    """What a daemon run published for the last frame offered (stamp ``stamp_last``, published at
+    monotonic ``t_last``), from the GraspArrays and PointCloud2s received, each as (receipt time,
+    decoded message, the model's SVGP steps at receipt).
+
+    The first GraspArray stamped with that frame gives ``last_frame_to_grasps_s`` and
+    ``train_steps_at_grasps``. The first cloud stamped with it is ``last_frame_cloud`` only if it
+    came from that same computation: while frames stream the daemon leaves the cloud out
+    (``daemon.cloud_interval_s``), and then the first cloud for the frame comes from a later grasp
+    round on a further-trained model. Such a cloud is ``later_cloud`` instead, with its own
+    latency and step count. Told by the values (``cloud_scored_grasps``), or where the grasps
+    cannot tell (none were proposed) by the order of receipt: the daemon publishes each round's
+    grasps, then its cloud, then the next round's, on one session (in order), so the cloud is that
+    round's if no other GraspArray came between the two."""
+    out: dict[str, Any] = {
+        "last_frame_to_grasps_s": None,
+        "train_steps_at_grasps": None,
+        "last_frame_cloud": None,
+        "last_frame_to_cloud_s": None,
+        "train_steps_at_cloud": None,
+        "cloud_scored_first_grasps": None,
+        "later_cloud": None,
+    }
+    first = next(((t, g, n) for t, g, n in grasps_rx if g.stamp_ns >= stamp_last), None)
+    if first is not None:
+        out["last_frame_to_grasps_s"] = first[0] - t_last
+        out["train_steps_at_grasps"] = first[2]
+    cl = next(((t, c, n) for t, c, n in clouds_rx if c.stamp_ns >= stamp_last), None)
+    if cl is None:
+        return out
+    same = None
+    if first is not None:
+        same = cloud_scored_grasps(first[1], cl[1])
+        if same is None:
+            same = first[0] <= cl[0] and not any(first[0] < t <= cl[0] for t, _, _ in grasps_rx)
+    out["cloud_scored_first_grasps"] = same
+    if same is False:
+        out["later_cloud"] = {"cloud": cl[1], "to_cloud_s": cl[0] - t_last, "train_steps": cl[2]}
+    else:
+        out["last_frame_cloud"] = cl[1]
+        out["last_frame_to_cloud_s"] = cl[0] - t_last
+        out["train_steps_at_cloud"] = cl[2]
+    return out
+
+
+def _cloud_agreement(cloud: Any, reference: tuple[np.ndarray, np.ndarray]) -> dict[str, Any]:
+    """Spearman of a published cloud's sigma2_occ against the reference's on the points the two
+    share (None below 95 % shared), with the point counts."""
+    f = cloud.fields
+    pts = np.stack([f["x"], f["y"], f["z"]], axis=1)
+    ia, ib = match_points(pts, reference[0])
+    share = len(ia) / max(len(reference[0]), 1)
+    rho = None
+    if "sigma2_occ" in f and share >= 0.95:
+        rho = spearman(f["sigma2_occ"][ia].astype(np.float64), reference[1][ib])
+    return {
+        "points": len(pts),
+        "reference_points": len(reference[0]),
+        "shared_fraction": round(share, 4),
+        "spearman_sigma2_occ": rho,
+    }
+
+
 def daemon_last_frame(
     base: PugsdConfig,
     frames: list[StereoFrame],
@@ -555,9 +636,13 @@ def daemon_last_frame(
     the GraspArray stamped with it (the daemon's own readiness, latch and training schedule).
 
     ``reference`` (query cloud [m, world], sigma2_occ of the paper's fit there): the agreement of
-    what the daemon published for the last frame, i.e. the PointCloud2 stamped with it, whose
-    sigma2_occ comes from the model that scored those grasps, with the reference on the points the
-    two clouds share (the same frames give the same query cloud)."""
+    what the daemon published for the last frame, i.e. the PointCloud2 stamped with it that came
+    from the computation that scored the first grasps for it (so its sigma2_occ is from the model
+    that scored those grasps, checked at the grasp contacts), with the reference on the points the
+    two clouds share (the same frames give the same query cloud). When that computation published
+    no cloud (the daemon leaves it out while frames stream), the first cloud for the frame came
+    from a later grasp round on a further-trained model: it is reported as ``later_cloud``, with
+    its own step count, and gives no ``spearman_sigma2_occ``."""
     r = daemon_feed(
         base, frames, len(frames), 1.0 / opts.rate_hz, opts.drain_timeout_s,
         grasps_timeout_s=opts.ready_timeout_s,
@@ -568,23 +653,21 @@ def daemon_last_frame(
     agreement: dict[str, Any] | None = None
     if reference is not None:
         cloud = r.get("last_frame_cloud")
+        later = r.get("later_cloud")
         agreement = {"cloud_received": cloud is not None, "spearman_sigma2_occ": None}
+        if cloud is not None or later is not None:
+            agreement["cloud_scored_first_grasps"] = r.get("cloud_scored_first_grasps")
         if cloud is not None:
-            f = cloud.fields
-            pts = np.stack([f["x"], f["y"], f["z"]], axis=1)
-            ia, ib = match_points(pts, reference[0])
-            share = len(ia) / max(len(reference[0]), 1)
             lc = r.get("last_frame_to_cloud_s")
-            agreement.update(
-                last_frame_to_cloud_s=None if lc is None else round(lc, 4),
-                points=len(pts),
-                reference_points=len(reference[0]),
-                shared_fraction=round(share, 4),
-            )
-            if "sigma2_occ" in f and share >= 0.95:
-                agreement["spearman_sigma2_occ"] = spearman(
-                    f["sigma2_occ"][ia].astype(np.float64), reference[1][ib]
-                )
+            agreement["last_frame_to_cloud_s"] = None if lc is None else round(lc, 4)
+            agreement["train_steps_at_cloud"] = r.get("train_steps_at_cloud")
+            agreement.update(_cloud_agreement(cloud, reference))
+        if later is not None:
+            agreement["later_cloud"] = {
+                "last_frame_to_cloud_s": round(later["to_cloud_s"], 4),
+                "train_steps_at_cloud": later["train_steps"],
+                **_cloud_agreement(later["cloud"], reference),
+            }
     out = {
         "frames": r["sent"],
         "integrated": int(st["counts"].get("integrated", 0)),

@@ -160,6 +160,8 @@ def run_bench(
             "batch_size": base.svgp.batch_size,
             "dtype": base.svgp.dtype,
             "overrides": list(overrides),
+            # which halves ran (--no-pipeline, --no-daemon): the wall-time target needs both
+            "sections": {"pipeline": opts.use_pipeline, "daemon": opts.use_daemon},
         },
         "errors": {},
     }
