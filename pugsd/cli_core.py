@@ -10,6 +10,7 @@ import time
 from pugsd import __version__
 from pugsd.config import core_of, dump_config, load_config
 from pugsd.core.types import ScoredGrasps
+from pugsd.errors import ConfigError
 
 
 def _version(args: argparse.Namespace) -> int:
@@ -18,7 +19,18 @@ def _version(args: argparse.Namespace) -> int:
 
 
 def _check_config(args: argparse.Namespace) -> int:
-    load_config(args.file, args.set or ())
+    from pugsd.wire.session import check_loopback_safe, zenoh_config
+
+    cfg = load_config(args.file, args.set or ())
+    # what `pugsd run` checks when it opens its session: the unit's ExecStartPre relies on it
+    if not cfg.daemon.allow_non_loopback:
+        try:
+            check_loopback_safe(cfg.zenoh)
+        except ConfigError as exc:
+            raise ConfigError(
+                f"{exc} (`pugsd run` refuses it unless [daemon] allow_non_loopback = true)"
+            ) from None
+    zenoh_config(cfg.zenoh)  # zenoh's own parser: unknown keys and bad values
     sys.stdout.write(f"{args.file}: ok\n")
     return 0
 

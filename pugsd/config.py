@@ -363,11 +363,14 @@ def parse_override(text: str) -> tuple[str, Any]:
     if "=" not in text:
         raise ConfigError(f"override {text!r}: expected KEY=VALUE")
     key, raw = text.split("=", 1)
+    key, raw = key.strip(), raw.strip()
+    if not all(part.strip() for part in key.split(".")):
+        raise ConfigError(f"override {text!r}: expected section.key=VALUE")
     try:
         value = tomllib.loads(f"v = {raw}")["v"]
     except tomllib.TOMLDecodeError:
         value = raw
-    return key.strip(), value
+    return key, value
 
 
 def load_config_dict(data: Mapping[str, Any], overrides: Sequence[str] = ()) -> PugsdConfig:

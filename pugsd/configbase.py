@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import types
 import typing
 from collections.abc import Mapping
@@ -84,10 +85,15 @@ def _coerce(value: Any, tp: Any, path: str) -> Any:
     if origin in (dict,) or tp is dict:
         if not isinstance(value, Mapping):
             raise ConfigError(f"{path}: expected a table, got {type(value).__name__}")
-        return json.loads(json.dumps(dict(value)))
+        try:
+            return json.loads(json.dumps(dict(value), allow_nan=False))
+        except (TypeError, ValueError) as exc:  # TOML dates and times, nan and inf
+            raise ConfigError(f"{path}: not representable as JSON ({exc})") from None
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{path}: expected a number, got {type(value).__name__}")
+        if not math.isfinite(value):  # TOML's nan and inf: no setting means either
+            raise ConfigError(f"{path}: expected a finite number, got {value}")
         return float(value)
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):

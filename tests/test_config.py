@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import datetime
 import subprocess
 import sys
 import tomllib
@@ -10,7 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from pugsd.config import PugsdConfig, dump_config, load_config, load_config_dict
+from pugsd.cli import main
+from pugsd.config import PugsdConfig, dump_config, load_config, load_config_dict, parse_override
 from pugsd.configbase import to_dict
 from pugsd.errors import ConfigError
 
@@ -97,3 +99,94 @@ def test_partial_zenoh_table_keeps_safe_defaults() -> None:
     assert cfg.zenoh["scouting"]["gossip"]["enabled"] is False
     cfg = load_config_dict({"zenoh": {"mode": "client"}})
     assert cfg.zenoh["mode"] == "client" and cfg.zenoh["scouting"]["gossip"]["enabled"] is False
+
+
+@pytest.mark.parametrize(
+    "override",
+    [
+        "daemon.pose_max_gap_s=inf",  # int(inf * 1e9) broke the daemon's start after check-config
+        "daemon.status_rate_hz=inf",  # a period of 0 s: a busy loop
+        "daemon.stall_timeout_s=nan",
+        "arm.kinematics.T_B_W_xyz=[nan, 0.0, 0.0]",  # no range check on these: nan went through
+        "arm.safety.workspace_min_m=[-inf, -1.0, -1.0]",
+    ],
+)
+def test_non_finite_numbers_are_rejected(override: str) -> None:
+    with pytest.raises(ConfigError, match="expected a finite number"):
+        load_config_dict({}, [override])
+
+
+def test_pose_max_gap_is_bounded() -> None:
+    """A finite but huge gap overflowed the daemon's conversion to integer nanoseconds."""
+    with pytest.raises(ConfigError, match=r"daemon.pose_max_gap_s: 1e\+300 is above the maximum"):
+        load_config_dict({}, ["daemon.pose_max_gap_s=1e300"])
+    assert load_config_dict({}, ["daemon.pose_max_gap_s=3600"]).daemon.pose_max_gap_s == 3600.0
+
+
+def test_zenoh_table_must_be_json() -> None:
+    """A TOML date in the zenoh table was a TypeError traceback, not a config error."""
+    with pytest.raises(ConfigError, match="zenoh: not representable as JSON"):
+        load_config_dict({"zenoh": {"when": datetime.date(1979, 5, 27)}})
+
+
+def test_override_parsing_edge_cases() -> None:
+    assert parse_override("daemon.log_level = debug") == ("daemon.log_level", "debug")
+    assert parse_override("daemon.prefix=pugs/robot1") == ("daemon.prefix", "pugs/robot1")
+    assert parse_override("daemon.prefix=a=b") == ("daemon.prefix", "a=b")
+    assert parse_override("zenoh.connect.endpoints=['tcp/127.0.0.1:1']") == (
+        "zenoh.connect.endpoints",
+        ["tcp/127.0.0.1:1"],
+    )
+    assert load_config_dict({}, ["daemon.log_level = debug"]).daemon.log_level == "debug"
+    for bad in ("=3", "daemon..prefix=x", "daemon.=x", "noequals"):
+        with pytest.raises(ConfigError, match="override"):
+            parse_override(bad)
+
+
+@pytest.mark.parametrize(
+    "text,message",
+    [
+        # zenoh rejects the typo when `pugsd run` opens its session: check-config (the unit's
+        # ExecStartPre) said ok, and the service restarted in a loop
+        ("[zenoh.scouting.multicast]\nenabeld = false\n", "unknown field `enabeld`"),
+        ('[zenoh.connect]\nendpoints = ["tcp/192.168.1.10:7447"]\n', "allow_non_loopback = true"),
+        ('[zenoh]\nmode = "server"\n', "invalid [zenoh] config"),
+    ],
+)
+def test_check_config_validates_the_zenoh_table(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str, message: str
+) -> None:
+    f = tmp_path / "z.toml"
+    f.write_text(text)
+    assert main(["check-config", str(f)]) == 1
+    assert message in capsys.readouterr().err
+    lan = tmp_path / "lan.toml"
+    lan.write_text(
+        '[daemon]\nallow_non_loopback = true\n[zenoh.connect]\nendpoints = ["tcp/192.168.1.10:7447"]\n'
+    )
+    assert main(["check-config", str(lan)]) == 0
+
+
+@pytest.mark.parametrize(
+    "override",
+    [
+        "daemon.prefix=''",  # zenoh refused "/grasps/latest" only when the daemon declared it
+        "daemon.prefix='pugs/'",
+        "daemon.prefix='pugs/*'",
+        "daemon.node_name=''",
+        "daemon.node_name='arm*1'",
+        "topics.pose=''",
+        "topics.left_image='/stereo//left'",
+        "topics.grasps='/pugs/grasps?x'",
+    ],
+)
+def test_keys_that_zenoh_would_refuse_are_config_errors(override: str) -> None:
+    with pytest.raises(ConfigError, match="is not a usable zenoh key"):
+        load_config_dict({}, [override])
+
+
+def test_usable_keys_are_accepted() -> None:
+    cfg = load_config_dict(
+        {}, ["daemon.prefix=robot1/pugs", "daemon.node_name=bow", "topics.pose=/nav/pose/"]
+    )
+    assert (cfg.daemon.prefix, cfg.daemon.node_name, cfg.topics.pose) == ("robot1/pugs", "bow", "/nav/pose/")

@@ -3,9 +3,22 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 from pugsd.configbase import opt
+from pugsd.errors import ConfigError
+
+
+def _check_key(name: str, value: str, *, strip: bool = False) -> None:
+    """``value`` must be a concrete zenoh key expression: non-empty ``/``-separated chunks without
+    the wildcard and reserved characters ``* $ ? #`` (zenoh refuses it only when the daemon declares
+    it; a topic's leading and trailing ``/`` are stripped as the wire layer does)."""
+    v = value.strip("/") if strip else value
+    if not v or any(not chunk for chunk in v.split("/")) or any(c in v for c in "*$?#"):
+        raise ConfigError(
+            f"{name}: {value!r} is not a usable zenoh key (non-empty '/'-separated chunks, "
+            "no '*', '$', '?' or '#')"
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -67,7 +80,12 @@ class DaemonConfig:
         60.0, "keep training without new frames for this long after the last one", unit="s", ge=0.0
     )
     pose_max_gap_s: float = opt(
-        0.5, "never interpolate between poses further apart than this", unit="s", gt=0.0
+        0.5,
+        "never interpolate between poses further apart than this; a pose stamped this much before "
+        "the newest one restarts the pose buffer (the source's clock went back)",
+        unit="s",
+        gt=0.0,
+        le=3600.0,
     )
     pose_std_translation_m: float = opt(
         0.002,
@@ -106,6 +124,10 @@ class DaemonConfig:
         ge=1,
     )
 
+    def __post_init__(self) -> None:
+        _check_key("prefix", self.prefix)
+        _check_key("node_name", self.node_name)
+
 
 @dataclass(frozen=True, slots=True)
 class TopicsConfig:
@@ -134,6 +156,12 @@ class TopicsConfig:
     markers: str = opt("/pugs/grasp_markers", "output visualization_msgs/MarkerArray")
     cloud: str = opt("/pugs/cloud", "output sensor_msgs/PointCloud2 with sigma2_occ and confidence")
     status: str = opt("/pugs/status", "output status (JSON in std_msgs/String)")
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, str) and f.name not in ("key_style", "hash_mode", "pose_type"):
+                _check_key(f.name, value, strip=True)
 
 
 @dataclass(frozen=True, slots=True)

@@ -109,6 +109,12 @@ class PoseBuffer:
     A query is answered once a pose at or after ``t`` exists and one at or before it, no more than
     ``max_gap_ns`` apart. The covariance is that of the latest pose (by stamp, not after the later
     bracketing pose) that carries one; ``default_cov`` when none has.
+
+    A pose stamped more than ``max_gap_ns`` before the newest one means the pose source's clock went
+    back (a restarted source, a replay loop, a stepped clock; zenoh delivers one publisher's samples
+    in order): the buffer starts afresh from it (``jumps_back`` counts these), keeping only the newest
+    covariance. Kept, the old timeline's poses would stay "newest" and every later pose would be
+    evicted on arrival once the ring is full, so no frame would get a pose again.
     """
 
     def __init__(self, capacity: int, max_gap_ns: int, default_cov: np.ndarray) -> None:
@@ -119,6 +125,7 @@ class PoseBuffer:
         self._samples: list[PoseSample] = []
         self._cov_stamps: list[int] = []
         self._covs: list[np.ndarray] = []
+        self.jumps_back = 0
 
     def __len__(self) -> int:
         return len(self._stamps)
@@ -128,6 +135,13 @@ class PoseBuffer:
         return self._stamps[-1] if self._stamps else None
 
     def add(self, sample: PoseSample) -> None:
+        if self._stamps and sample.stamp_ns < self._stamps[-1] - self.max_gap_ns:
+            last_cov = self._covs[-1] if self._covs else None
+            self.clear()
+            self.jumps_back += 1
+            if last_cov is not None:  # still the latest covariance the source reported
+                self._cov_stamps.append(sample.stamp_ns)
+                self._covs.append(last_cov)
         i = bisect.bisect_left(self._stamps, sample.stamp_ns)
         if i < len(self._stamps) and self._stamps[i] == sample.stamp_ns:
             self._samples[i] = sample

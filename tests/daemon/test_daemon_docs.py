@@ -36,3 +36,22 @@ def test_unit_file_is_notify_with_watchdog() -> None:
     for line in ("Type=notify", "WatchdogSec=", "NotifyAccess=main", "KillSignal=SIGTERM",
                  "NoNewPrivileges=yes", "ProtectSystem=strict"):  # fmt: skip
         assert line in unit
+
+
+def test_arm_drop_in_opens_what_the_unit_closes() -> None:
+    """[arm] enabled in the service: the base unit hides /dev/ttyUSB* (PrivateDevices=yes) and
+    allows no AF_CAN socket; the documented drop-in gives both back."""
+    root = DOC.parents[1]
+    unit = (root / "systemd" / "pugsd.service").read_text()
+    assert "PrivateDevices=yes" in unit and "AF_CAN" not in unit
+    drop_in = (root / "systemd" / "pugsd-arm.conf").read_text().splitlines()
+    for line in ("[Service]", "PrivateDevices=no", "SupplementaryGroups=dialout",
+                 "RestrictAddressFamilies=AF_CAN"):  # fmt: skip
+        assert line in drop_in
+    assert "systemd/pugsd-arm.conf" in DOC.read_text()
+
+
+def test_install_steps_pin_the_cpu_torch() -> None:
+    """PyPI's torch==2.13.0 is the CUDA build (several GB of nvidia-* wheels)."""
+    pins = re.findall(r"torch==[0-9.]+\S*", DOC.read_text())
+    assert pins and all(p.startswith("torch==2.13.0+cpu") for p in pins), pins
