@@ -36,7 +36,12 @@ class StereoConfig:
     downsample: int = opt(4, "image downsampling factor before matching (paper: 4)", ge=1, le=16)
     mode: str = opt("sgbm_3way", "OpenCV SGBM mode", choices=("sgbm", "sgbm_3way", "hh"))
     num_disparities: int = opt(
-        64, "disparity search range at full resolution (scaled by downsample)", unit="px", ge=16
+        0,
+        "disparity search range at full resolution (scaled by downsample); 0: sized from the rig "
+        "in CameraInfo to reach min_depth_m (a nearer surface is matched at a wrong disparity, "
+        "not rejected)",
+        unit="px",
+        ge=0,
     )
     min_disparity: int = opt(0, "smallest disparity searched", unit="px", ge=0)
     block_size: int = opt(5, "SGBM block size (odd)", unit="px", ge=1, le=31)
@@ -44,7 +49,12 @@ class StereoConfig:
     speckle_window_size: int = opt(50, "SGBM speckle filter window (0 disables)", unit="px", ge=0)
     speckle_range: int = opt(2, "SGBM speckle filter disparity range", unit="px", ge=0)
     disp12_max_diff: int = opt(1, "left-right consistency check (-1 disables)", unit="px", ge=-1)
-    min_depth_m: float = opt(0.1, "nearer depths are invalid (NaN)", unit="m", gt=0.0)
+    min_depth_m: float = opt(
+        0.2,
+        "nearer depths are invalid (NaN); with num_disparities = 0 the search reaches this near",
+        unit="m",
+        gt=0.0,
+    )
     max_depth_m: float = opt(3.0, "farther depths are invalid (NaN)", unit="m", gt=0.0)
     noise_mode: str = opt(
         "fixed",
@@ -66,7 +76,9 @@ class StereoConfig:
 
     def __post_init__(self) -> None:
         _check(self.block_size % 2 == 1, f"block_size: must be odd, got {self.block_size}")
-        _check(self.num_disparities % 16 == 0, "num_disparities: must be a multiple of 16")
+        _check(
+            self.num_disparities % 16 == 0, "num_disparities: must be 0 (auto) or a multiple of 16"
+        )
         _check(self.max_depth_m > self.min_depth_m, "max_depth_m: must exceed min_depth_m")
 
 
@@ -79,9 +91,7 @@ class ObservationConfig:
         "Eq. 3 form: rotated = R Sigma R^T + Sigma_t; paper_literal = Sigma + Sigma_t",
         choices=("rotated", "paper_literal"),
     )
-    rotation_term: bool = opt(
-        True, "add G Sigma_phi G^T from the 6x6 pose covariance (rotated form only)"
-    )
+    rotation_term: bool = opt(True, "add G Sigma_phi G^T from the 6x6 pose covariance (rotated form only)")
     regulariser_m: float = opt(
         0.0005,
         "isotropic std eps added as eps^2 I so every covariance is invertible (> 0: a pose "
@@ -148,9 +158,7 @@ class SvgpConfig:
         "predictive variance of the latent f or of the observation y",
         choices=("latent", "observed"),
     )
-    device: str = opt(
-        "cpu", "torch device; auto uses CUDA when present", choices=("cpu", "cuda", "auto")
-    )
+    device: str = opt("cpu", "torch device; auto uses CUDA when present", choices=("cpu", "cuda", "auto"))
     dtype: str = opt("float32", "torch dtype", choices=("float32", "float64"))
     seed: int = opt(0, "random seed for inducing points and minibatches", ge=0)
     paper_lr: float = opt(1e-3, "Adam learning rate in paper mode (paper: 1e-3)", gt=0.0)
@@ -209,8 +217,7 @@ class SvgpConfig:
     )
     coverage_lengthscales: float = opt(
         1.5,
-        "coverage: new points farther than this many lengthscales from all inducing points "
-        "trigger a move",
+        "coverage: new points farther than this many lengthscales from all inducing points trigger a move",
         gt=0.0,
     )
     predict_chunk: int = opt(20000, "points per batched prediction call on the CPU", ge=256)
@@ -248,9 +255,7 @@ class CubatureConfig:
         "observed surface, not the torn edge)",
         choices=("total", "paper_literal"),
     )
-    max_query_points: int = opt(
-        5000, "random subsample cap on the query cloud given to Algorithm 1", ge=100
-    )
+    max_query_points: int = opt(5000, "random subsample cap on the query cloud given to Algorithm 1", ge=100)
 
 
 @dataclass(frozen=True, slots=True)
@@ -274,14 +279,10 @@ class GripperConfig:
 
     max_width_m: float = opt(0.10, "maximum jaw opening", unit="m", gt=0.0)
     min_width_m: float = opt(0.005, "narrowest graspable width", unit="m", ge=0.0)
-    depth_m: float = opt(
-        0.09, "wrist origin to finger-pad line along the approach", unit="m", gt=0.0
-    )
+    depth_m: float = opt(0.09, "wrist origin to finger-pad line along the approach", unit="m", gt=0.0)
     finger_length_m: float = opt(0.045, "finger length along the approach", unit="m", gt=0.0)
     finger_width_m: float = opt(0.02, "finger extent along the jaw-plane normal", unit="m", gt=0.0)
-    finger_thickness_m: float = opt(
-        0.012, "finger thickness along the closing axis", unit="m", gt=0.0
-    )
+    finger_thickness_m: float = opt(0.012, "finger thickness along the closing axis", unit="m", gt=0.0)
     palm_depth_m: float = opt(0.03, "palm block depth behind the fingers", unit="m", gt=0.0)
     palm_width_m: float = opt(0.06, "palm extent along the jaw-plane normal", unit="m", gt=0.0)
 

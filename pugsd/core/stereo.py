@@ -4,6 +4,11 @@
 Depth is z-depth ``z = f_x B / disp`` (metres) at the downsampled resolution; invalid pixels are
 NaN, never zero. Noise (Sec. 2.2 of the math spec): ``fixed`` gives the paper's constant
 ``sigma_d^2``; ``disparity`` gives ``sigma_z = z^2 sigma_disp / (f_x B)``.
+
+The disparity search must reach the nearest surface: SGBM does not mark a surface nearer than its
+largest disparity invalid, it matches it at a wrong (aliased) disparity, i.e. a wrong depth. With
+``num_disparities = 0`` (the default) the search is sized from the rig so that it reaches
+``min_depth_m``; ``reach_m`` says how near a configuration can measure.
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ import cv2
 import numpy as np
 
 from pugsd.config import StereoConfig
+from pugsd.core.camera import StereoRig
 from pugsd.core.types import DepthFrame, StereoFrame
 
 _MODES = {
@@ -34,16 +40,39 @@ def _down(img: np.ndarray, factor: int, interp: int) -> np.ndarray:
     return cv2.resize(img, (w // factor, h // factor), interpolation=interp)
 
 
+def disparity_levels(cfg: StereoConfig, rig: StereoRig) -> int:
+    """SGBM's ``numDisparities`` at the matching resolution (a multiple of 16).
+
+    ``num_disparities > 0``: that full-resolution range scaled by ``downsample``. ``0`` (auto):
+    enough levels for the largest disparity ``f_x B / min_depth_m`` (disparities searched are
+    ``min_disparity .. min_disparity + levels - 1``), capped at half the matched image width."""
+    f = cfg.downsample
+    if cfg.num_disparities > 0:
+        return max(16, int(np.ceil(cfg.num_disparities / f / 16.0)) * 16)
+    cam = rig.left.scaled(f)
+    need = cam.fx * rig.baseline_m / cfg.min_depth_m - cfg.min_disparity // f + 1.0
+    cap = max(16, (cam.width // 2) // 16 * 16)
+    return int(min(max(16, int(np.ceil(need / 16.0)) * 16), cap))
+
+
+def reach_m(cfg: StereoConfig, rig: StereoRig) -> float:
+    """The nearest z-depth (m) the configured search can measure on ``rig``: ``f_x B / d_max``
+    with ``d_max`` the largest disparity searched, at the matching resolution."""
+    cam = rig.left.scaled(cfg.downsample)
+    d_max = cfg.min_disparity // cfg.downsample + disparity_levels(cfg, rig) - 1
+    return float(cam.fx * rig.baseline_m / max(d_max, 1))
+
+
 class StereoDepth:
     """Rectified pair -> ``DepthFrame`` (stateless; safe to call from any thread)."""
 
     def __init__(self, cfg: StereoConfig) -> None:
         self.cfg = cfg
 
-    def _matcher(self, channels: int) -> cv2.StereoSGBM:
+    def _matcher(self, channels: int, rig: StereoRig) -> cv2.StereoSGBM:
         c = self.cfg
         f = c.downsample
-        num_disp = max(16, int(np.ceil(c.num_disparities / f / 16.0)) * 16)
+        num_disp = disparity_levels(c, rig)
         bs = c.block_size
         return cv2.StereoSGBM.create(
             minDisparity=c.min_disparity // f,
@@ -65,7 +94,7 @@ class StereoDepth:
         cam = frame.rig.left.scaled(f)
         left = _down(_gray(frame.left), f, cv2.INTER_AREA)
         right = _down(_gray(frame.right), f, cv2.INTER_AREA)
-        disp = self._matcher(1).compute(left, right).astype(np.float32) / 16.0
+        disp = self._matcher(1, frame.rig).compute(left, right).astype(np.float32) / 16.0
         fb = cam.fx * frame.rig.baseline_m
         with np.errstate(divide="ignore", invalid="ignore"):
             depth = np.where(disp > 0.5, fb / disp, np.nan).astype(np.float32)

@@ -39,6 +39,7 @@ import numpy as np
 import zenoh
 
 from pugsd.core.camera import StereoRig
+from pugsd.core.stereo import reach_m as stereo_reach_m
 from pugsd.core.types import DepthFrame, StereoFrame
 from pugsd.daemon.health import Health
 from pugsd.daemon.mailbox import Mailbox, Overflow
@@ -648,7 +649,14 @@ class Daemon:
                 raise InputRejected("wrong_type", f"pose: type {typename[:100]!r} not accepted")
             pm = codec.decode_pose(data, typename, self._pose_stamped_cov)
             cov = pm.cov if pm.cov is not None and np.any(pm.cov != 0.0) else None
+            jumps = self.poses.jumps_back
             self.poses.add(PoseSample(pm.stamp_ns, pm.T, cov))
+            if self.poses.jumps_back != jumps:
+                log.warning(
+                    "pose: stamps went back by more than daemon.pose_max_gap_s (a restarted source "
+                    "or a stepped clock); the pose buffer starts afresh at %d ns (%d times so far)",
+                    pm.stamp_ns, self.poses.jumps_back,
+                )  # fmt: skip
             if pm.frame_id:
                 self._frame_id = pm.frame_id
             self.health.count("poses")
@@ -730,6 +738,15 @@ class Daemon:
             if left is None or right is None:
                 raise DecodeError("stereo: no CameraInfo for both cameras yet")
             self._rig = codec.stereo_rig_from_infos(left, right)
+            scfg = self.cfg.stereo
+            near_m = stereo_reach_m(scfg, self._rig)
+            if near_m > scfg.min_depth_m * 1.001:
+                log.warning(
+                    "stereo: on this rig (fx %.1f px, baseline %.3f m) the disparity search reaches "
+                    "only %.3f m, not stereo.min_depth_m = %.3f m: a nearer surface gets a wrong "
+                    "depth; set stereo.num_disparities = 0 (sized from the rig) or raise it",
+                    self._rig.left.fx, self._rig.baseline_m, near_m, scfg.min_depth_m,
+                )  # fmt: skip
         return self._rig
 
     def _emit_stereo(
@@ -1147,6 +1164,7 @@ class Daemon:
                 "unpaired": self.pairer.pending(),
                 "unpaired_dropped": self.pairer.unpaired_dropped,
                 "poses": len(self.poses),
+                "pose_clock_jumps_back": self.poses.jumps_back,
             },
             "pipeline": pstats,
             "recorder": None if self.recorder is None else self.recorder.stats.as_dict(),

@@ -17,11 +17,16 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from pugsd.sim.objects import ObjectSpec, get_object, load_object_mesh
+
+if TYPE_CHECKING:
+    from pugsd.config import StereoConfig
+    from pugsd.core.camera import StereoRig
+    from pugsd.sim.sequence import SyntheticSequence
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +67,41 @@ def wilson_interval(k: int, n: int, z: float = 1.959963984540054) -> tuple[float
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
+def mcnemar_exact_p(only_a: int, only_b: int) -> float:
+    """Two-sided exact McNemar p-value from the discordant pairs of a paired comparison.
+
+    Baseline and PUGS are tried on the same sequences, so their outcomes are paired; only the
+    sequences where exactly one succeeded carry information (``only_a``, ``only_b``).
+    """
+    n = only_a + only_b
+    if n == 0:
+        return 1.0
+    k = min(only_a, only_b)
+    tail = sum(math.comb(n, i) for i in range(k + 1)) / 2.0**n
+    return min(1.0, 2.0 * tail)
+
+
+def paired_tests(
+    trials: Sequence[dict[str, Any]], names: Sequence[str], recons: Sequence[str]
+) -> list[dict[str, Any]]:
+    """Per object x recon x metric: baseline-only and PUGS-only successes on the same sequences
+    and the exact McNemar p-value (empty unless both methods were evaluated)."""
+    out: list[dict[str, Any]] = []
+    for n in names:
+        for rc in recons:
+            rows = [t for t in trials if t["object"] == n and t["recon"] == rc]
+            if not rows or not all({"baseline", "pugs"} <= set(t["methods"]) for t in rows):
+                continue
+            for k in METRICS:
+                b = sum(1 for t in rows if t["methods"]["baseline"][k] and not t["methods"]["pugs"][k])
+                p = sum(1 for t in rows if t["methods"]["pugs"][k] and not t["methods"]["baseline"][k])
+                out.append(
+                    {"object": n, "recon": rc, "metric": k, "n": len(rows), "baseline_only": b,
+                     "pugs_only": p, "mcnemar_p": mcnemar_exact_p(b, p)}
+                )  # fmt: skip
+    return out
+
+
 @dataclass
 class EvalOptions:
     """What to evaluate and how (the CLI maps one-to-one onto these)."""
@@ -100,17 +140,35 @@ def _object(opts: EvalOptions, name: str) -> ObjectSpec:
     return get_object(name)
 
 
+def stereo_reach_m(stereo: StereoConfig, rig: StereoRig) -> float:
+    """The nearest depth (m) the pipeline's matcher (``StereoConfig``) can measure on ``rig``."""
+    from pugsd.core.stereo import reach_m
+
+    return reach_m(stereo, rig)
+
+
+def _nearest_object_depth_m(seq: SyntheticSequence) -> float:
+    """The smallest true z-depth of the object over a sequence's left views (inf if never seen)."""
+    near = [float(np.nanmin(d[m])) for d, m in zip(seq.depth_gt_m, seq.masks) if m.any()]
+    return min(near, default=math.inf)
+
+
 def _core_config(opts: EvalOptions, seq_overrides: dict[str, Any]) -> Any:
+    """The pipeline configuration of one trial: the paper's 160-px matching resolution, the
+    sequence's own overrides, then ``--set`` (which wins). The disparity search is sized from the
+    rig by default (``stereo.num_disparities = 0``: it reaches ``stereo.min_depth_m``, 0.2 m,
+    nearer than any surface the evaluation's cameras see)."""
     from pugsd.config import core_of, load_config
 
     ds = max(1, round(opts.width / 160))  # the paper's input resolution after downsampling
     over = [f"stereo.downsample={ds}"]
     over += [f"{k}={v}" for k, v in seq_overrides.items()]
-    over += list(opts.overrides)
-    return core_of(load_config(opts.config_path, over))
+    return core_of(load_config(opts.config_path, over + list(opts.overrides)))
 
 
-_TRIALS: dict[tuple[str, str], Any] = {}
+# one MuJoCo model per object and pose in each process; a user mesh is keyed by its path and
+# mass too, so two meshes with the same file name never share a model
+_TRIALS: dict[tuple[str, str | None, float | None, str], Any] = {}
 
 
 def _run_job(opts: EvalOptions, job: Job) -> dict[str, Any]:
@@ -134,6 +192,13 @@ def _run_job(opts: EvalOptions, job: Job) -> dict[str, Any]:
     )
     t1 = time.perf_counter()
     cfg = _core_config(opts, seq.core_overrides)
+    z_near, z_reach = _nearest_object_depth_m(seq), stereo_reach_m(cfg.stereo, seq.rig)
+    if z_near < z_reach:
+        log.warning(
+            "%s/%s seed %d: the object comes to %.3f m, nearer than the disparity search reaches "
+            "(%.3f m); raise stereo.num_disparities",
+            job.object_name, job.recon, job.seed, z_near, z_reach,
+        )  # fmt: skip
     out: dict[str, Any] = {"object": job.object_name, "recon": job.recon, "seed": job.seed}
     try:
         res = PugsPipeline.run(seq.frames, cfg, mode=opts.mode, seed=job.seed)
@@ -142,7 +207,7 @@ def _run_job(opts: EvalOptions, job: Job) -> dict[str, Any]:
         out["error"] = f"{type(exc).__name__}: {exc}"
         res = None
     t2 = time.perf_counter()
-    key = (job.object_name, opts.pose)
+    key = (job.object_name, opts.object_mesh, opts.mass_kg, opts.pose)
     if key not in _TRIALS:
         _TRIALS[key] = GraspTrial(obj, seq.T_W_O)
     trial = _TRIALS[key]
@@ -263,6 +328,7 @@ def run_evaluation(
         },
         "wall_time_s": time.perf_counter() - t0,
         "cells": cells,
+        "paired": paired_tests(trials, names, opts.recons),
         "trials": trials,
     }
 
@@ -324,6 +390,7 @@ def rescore(results: dict[str, Any], cfg: Any = None) -> dict[str, Any]:
                 m[k] = bool(getattr(r, k))
             m["details"] = _jsonable(r.details)
     out["cells"] = aggregate_cells(out["trials"], st["objects"], st["recons"], st["methods"])
+    out["paired"] = paired_tests(out["trials"], st["objects"], st["recons"])
     out["rescored"] = True
     return out
 

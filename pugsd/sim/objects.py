@@ -124,6 +124,25 @@ def _torus_xz_segments(
     return parts
 
 
+def _clip_below_x(part: trimesh.Trimesh, x_min: float) -> trimesh.Trimesh | None:
+    """The convex ``part`` cut to the half-space ``x >= x_min`` (None if nothing is left).
+
+    Exact for a convex polytope: the hull of its vertices on the kept side and of the points where
+    its edges cross the plane.
+    """
+    v = np.asarray(part.vertices, dtype=np.float64)
+    keep = v[v[:, 0] >= x_min]
+    e = np.asarray(part.edges_unique)
+    a, b = v[e[:, 0]], v[e[:, 1]]
+    cross = (a[:, 0] - x_min) * (b[:, 0] - x_min) < 0
+    t = (x_min - a[cross, 0]) / (b[cross, 0] - a[cross, 0])
+    cut = a[cross] + t[:, None] * (b[cross] - a[cross])
+    pts = np.vstack([keep, cut])
+    if len(pts) < 4 or float(np.ptp(pts[:, 0])) < 1e-9:
+        return None
+    return _hull(pts)
+
+
 def _boolean(kind: str, meshes: list[trimesh.Trimesh]) -> trimesh.Trimesh:
     if kind == "union":
         out = trimesh.boolean.union(meshes, engine="manifold")
@@ -184,7 +203,13 @@ def make_mug() -> ObjectSpec:
         ring = np.concatenate([np.stack([rr * np.cos(th), rr * np.sin(th)], 1) for rr in (ri, ro)])
         pts = np.vstack([np.c_[ring, np.zeros(len(ring))], np.c_[ring, np.full(len(ring), h)]])
         parts.append(_hull(pts))
-    parts += _torus_xz_segments(handle_c, major, minor, 16, keep=lambda p: float(p[0]) > ro - 0.002)
+    # the handle's arc segments, cut at x = ri: the hull of a segment that meets the wall would
+    # otherwise reach up to 3 mm into the cavity, where the rendered mesh (cavity subtracted
+    # last) has nothing; the wall sectors cover ri <= r <= ro
+    for seg in _torus_xz_segments(handle_c, major, minor, 16, keep=lambda p: float(p[0]) > ro - 0.002):
+        clipped = _clip_below_x(seg, ri)
+        if clipped is not None:
+            parts.append(clipped)
     return ObjectSpec(
         name="mug",
         mesh=mesh,

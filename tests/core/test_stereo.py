@@ -60,3 +60,45 @@ def test_mismatched_pair_is_rejected(seq) -> None:  # type: ignore[no-untyped-de
         StereoFrame(f.stamp_ns, f.left, f.right[:-2], f.rig, f.T_W_C, f.pose_cov)
     with pytest.raises(ImageSizeError):
         StereoFrame(f.stamp_ns, f.left[:, :-4], f.right[:, :-4], f.rig, f.T_W_C, f.pose_cov)
+
+
+def test_the_default_search_is_sized_from_the_rig() -> None:
+    """``num_disparities = 0``: levels for ``f_x B / min_depth_m`` at the matching resolution,
+    in multiples of 16, capped at half the matched width; an explicit range is used as given."""
+    from pugsd.core.camera import PinholeCamera, StereoRig
+    from pugsd.core.stereo import disparity_levels, reach_m
+
+    rig = StereoRig(PinholeCamera(600.0, 600.0, 320.0, 240.0, 640, 480), 0.04)  # f B = 24 px m
+    # at 1/4: f B = 6 px m; 0.2 m needs disparity 30, i.e. levels 0..30: 32
+    assert disparity_levels(StereoConfig(), rig) == 32
+    assert reach_m(StereoConfig(), rig) == pytest.approx(6.0 / 31.0)
+    assert disparity_levels(StereoConfig(min_depth_m=0.1), rig) == 64  # disparity 60
+    assert disparity_levels(StereoConfig(min_depth_m=0.02), rig) == 80  # 300 capped at 160 / 2
+    assert reach_m(StereoConfig(min_depth_m=0.02), rig) == pytest.approx(6.0 / 79.0)
+    assert disparity_levels(StereoConfig(downsample=1), rig) == 128  # disparity 120: 0..120
+    # the old fixed default: 64 px at full resolution, 16 levels at 1/4, reaching 0.40 m
+    assert disparity_levels(StereoConfig(num_disparities=64), rig) == 16
+    assert reach_m(StereoConfig(num_disparities=64), rig) == pytest.approx(0.4)
+
+
+def test_a_surface_nearer_than_the_old_fixed_search_gets_its_depth(seq) -> None:  # type: ignore[no-untyped-def]
+    """The box seen from 0.35-0.40 m at 640 x 480 (f B = 24 px m): with the old fixed 64 px the
+    search stopped at 0.40 m, and SGBM matched the nearer pixels at a wrong disparity rather than
+    rejecting them; sized from the rig it measures them."""
+    from pugsd.core.stereo import reach_m
+
+    frame = seq.frames[0]
+    gt = _block_mean(seq.depth_gt_m[0].astype(np.float64), 4)
+
+    old_reach_m = reach_m(StereoConfig(num_disparities=64), frame.rig)
+
+    def near_error_m(cfg: StereoConfig) -> tuple[float, int]:
+        d = StereoDepth(cfg).estimate(frame).depth_m
+        m = np.isfinite(d) & np.isfinite(gt) & (gt < 0.99 * old_reach_m)
+        return float(np.median(np.abs(d[m] - gt[m]))), int(m.sum())
+
+    err_auto, n_auto = near_error_m(StereoConfig())
+    err_old, n_old = near_error_m(StereoConfig(num_disparities=64))
+    assert n_auto > 50 and n_old > 50
+    assert err_auto < 0.005
+    assert err_old > 0.008  # measured 3.1 mm sized from the rig, 11.6 mm with the old 64 px

@@ -382,3 +382,59 @@ def test_demo_cleans_up_when_the_daemon_fails(tmp_path: Path, monkeypatch: pytes
     assert time.monotonic() - t0 < 15.0, "waited out the duration after the daemon had failed"
     assert not list(tmp_path.glob("*.part")) and list(tmp_path.glob("*.mcap"))
     assert any("the daemon stopped" in s for s in lines)
+
+
+def test_frames_get_poses_again_after_the_pose_clock_jumps_back(
+    port: int, client: zenoh.Session, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A pose source restarted with an earlier clock: its old, later-stamped poses used to stay
+    "newest" and, once the ring was full, evict every new pose on arrival, so no frame got a pose
+    again. Now the buffer starts afresh, the daemon logs it and counts it in its status."""
+    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    cfg = daemon_config_dict(port)
+    cfg["queues"] = {"poses": 8}
+    pipe = FakePipeline()
+    dt, src = start_with_source(load_config_dict(cfg), client, pipe)
+    d = dt.daemon
+    try:
+        t_old = 1000 * 10**9
+        for i in range(12):  # more than the ring holds
+            src.put("pose", codec.encode_pose_with_covariance(t_old + i * 10**8, np.eye(4), COV))
+        wait_for(lambda: d.health.counts.get("poses", 0) == 12, 5.0, "the old timeline's poses")
+        for i in range(3):  # the source restarts at t = 5 s
+            src.stereo(5 * 10**9 + i * 10**8, pose_at(0.01 * i), seed=i)
+            time.sleep(0.05)
+        wait_for(lambda: _passed_on(d, pipe) == 3, 10.0, "the frames after the jump passed on")
+        assert d.status()["waiting"]["pose_clock_jumps_back"] == 1
+        assert sum("stamps went back" in r.getMessage() for r in caplog.records) == 1
+        assert not any(k.startswith("pose_wait") for k in d.health.snapshot().get("dropped", {}))
+    finally:
+        src.close()
+        dt.stop()
+
+
+def test_a_disparity_search_short_of_min_depth_is_logged_once_per_rig(
+    port: int, client: zenoh.Session, caplog: pytest.LogCaptureFixture
+) -> None:
+    """On the tests' 64 x 48 rig (f B = 0.75 px m at 1/4) a search for 1 cm would need 76 levels;
+    it is capped at half the 16-px matched width (16 levels: 5 cm). The daemon says so once."""
+    from pugsd.core.stereo import disparity_levels, reach_m
+
+    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    cfg = daemon_config_dict(port)
+    cfg["stereo"] = {"min_depth_m": 0.01}
+    config = load_config_dict(cfg)
+    assert disparity_levels(config.stereo, RIG) == 16 and reach_m(config.stereo, RIG) == pytest.approx(0.05)
+    pipe = FakePipeline()
+    dt, src = start_with_source(config, client, pipe)
+    d = dt.daemon
+    try:
+        for i in range(3):
+            src.stereo(10**9 + i * 10**8, pose_at(0.01 * i), seed=i)
+            time.sleep(0.05)
+        wait_for(lambda: _passed_on(d, pipe) == 3, 10.0, "three frames passed on")
+        msgs = [r.getMessage() for r in caplog.records if "disparity search reaches" in r.getMessage()]
+        assert len(msgs) == 1 and "only 0.050 m" in msgs[0] and "0.010 m" in msgs[0], msgs
+    finally:
+        src.close()
+        dt.stop()

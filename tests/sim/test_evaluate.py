@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pugsd.cli import main
@@ -20,6 +21,27 @@ def test_wilson_interval_reference_values() -> None:
     lo, hi = wilson_interval(10, 20)
     assert lo == pytest.approx(0.2993, abs=1e-4) and hi == pytest.approx(0.7007, abs=1e-4)
     assert wilson_interval(0, 0) == (0.0, 1.0)
+
+
+def test_mcnemar_exact_reference_values() -> None:
+    from pugsd.sim.evaluate import mcnemar_exact_p, paired_tests
+
+    assert mcnemar_exact_p(0, 0) == 1.0
+    assert mcnemar_exact_p(0, 4) == pytest.approx(0.125)  # 2 * 0.5^4
+    assert mcnemar_exact_p(1, 5) == pytest.approx(0.21875)  # 2 * 7 / 64
+    assert mcnemar_exact_p(0, 6) == pytest.approx(0.03125)
+    assert mcnemar_exact_p(3, 3) == 1.0
+    # paired on the same sequences: only the discordant ones count
+    trials = [
+        {"object": "mug", "recon": "partial", "seed": i,
+         "methods": {"baseline": dict.fromkeys(METRICS, i < 2), "pugs": dict.fromkeys(METRICS, i < 7)}}
+        for i in range(10)
+    ]  # fmt: skip
+    rows = paired_tests(trials, ["mug"], ["partial"])
+    assert [(r["metric"], r["baseline_only"], r["pugs_only"]) for r in rows] == [
+        (m, 0, 5) for m in METRICS
+    ]
+    assert rows[0]["mcnemar_p"] == pytest.approx(0.0625)
 
 
 def _fake_results() -> dict:
@@ -79,9 +101,110 @@ def test_evaluate_ci_variant(tmp_path: Path) -> None:
     # the physics is deterministic: re-scoring the stored grasps reproduces every outcome
     again = rescore(res)
     assert [c["successes"] for c in again["cells"]] == [c["successes"] for c in res["cells"]]
+    # the paired test of baseline against PUGS on the same two sequences, one row per metric
+    assert [p["metric"] for p in res["paired"]] == list(METRICS)
+    assert again["paired"] == res["paired"]
 
 
 def test_evaluate_rejects_bad_arguments(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["evaluate", "--objects", "teapot", "--trials", "1"]) == 1
     assert "teapot" in capsys.readouterr().err
     assert main(["evaluate", "--object-mesh", "x.stl", "--trials", "1"]) == 1  # needs --mass
+
+
+@pytest.mark.parametrize("width", [160, 320, 640])
+def test_disparity_search_reaches_the_nearest_surface(width: int) -> None:
+    """At every --resolution the matcher's disparity range covers the object's nearest surface.
+
+    With the old fixed default of 64 px (16 levels at the 160-px matching resolution) the search
+    reached only 0.40 m at 640 x 480, while the cameras see the object from 0.35 m: 20-40 % of
+    its pixels were matched at a wrong (aliased) disparity and still marked valid. The default
+    search is now sized from the rig to reach ``stereo.min_depth_m``.
+    """
+    from pugsd.core.stereo import StereoDepth, disparity_levels
+    from pugsd.sim import make_sequence
+    from pugsd.sim.evaluate import EvalOptions, _core_config, stereo_reach_m
+
+    opts = EvalOptions(objects=["mug"], recons=["partial"], width=width, height=width * 3 // 4)
+    seq = make_sequence("mug", "partial", n_frames=2, width=opts.width, height=opts.height, seed=0)
+    cfg = _core_config(opts, seq.core_overrides)
+    z_near = min(float(np.nanmin(d[m])) for d, m in zip(seq.depth_gt_m, seq.masks))
+    assert z_near < 0.4  # the case that needed more than 64 px at 640 x 480
+    assert stereo_reach_m(cfg.stereo, seq.rig) < 0.8 * z_near
+    if width == 320:  # the recorded Table I ran at 320 x 240 with 64 px: the same 32 levels
+        assert cfg.stereo.downsample == 2 and disparity_levels(cfg.stereo, seq.rig) == 32
+    # the nearest part of the object is measured, not aliased
+    ds = cfg.stereo.downsample
+    errs = []
+    for f, d, m in zip(seq.frames, seq.depth_gt_m, seq.masks):
+        z = StereoDepth(cfg.stereo).estimate(f).depth_m
+        gt, mm = d[ds // 2 :: ds, ds // 2 :: ds], m[ds // 2 :: ds, ds // 2 :: ds]
+        near = mm & (gt < 0.4)
+        errs.append(np.abs(z - gt)[near])
+    err = np.concatenate(errs)
+    assert err.size > 20 and np.mean(np.isfinite(err)) > 0.8
+    assert np.nanmedian(err) < 0.008  # measured 3 mm at 640 (15 mm with 64 px), 4-8 mm at 160-320
+
+
+def test_explicit_disparity_override_wins() -> None:
+    from pugsd.core.stereo import disparity_levels
+    from pugsd.sim.evaluate import EvalOptions, _core_config
+    from pugsd.sim.render import default_rig
+
+    opts = EvalOptions(width=640, height=480, overrides=["stereo.num_disparities=48"])
+    cfg = _core_config(opts, {})
+    assert cfg.stereo.num_disparities == 48 and cfg.stereo.downsample == 4
+    assert disparity_levels(cfg.stereo, default_rig(640, 480)) == 16
+
+
+def test_user_meshes_with_the_same_name_get_their_own_physics(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two user meshes called thing.stl evaluated in one process are each trialled on themselves
+    (the MuJoCo model cache was keyed by file stem and pose only)."""
+    from types import SimpleNamespace
+
+    import trimesh
+
+    from pugsd.core.pipeline import PugsPipeline
+    from pugsd.sim import evaluate
+    from pugsd.sim.physics import GraspTrial, TrialResult
+
+    paths = []
+    for sub, ext in (("a", (0.04, 0.04, 0.04)), ("b", (0.08, 0.05, 0.03))):
+        (tmp_path / sub).mkdir()
+        p = tmp_path / sub / "thing.stl"
+        trimesh.creation.box(extents=ext).export(p)
+        paths.append((str(p), np.array(ext)))
+
+    class Grasps(SimpleNamespace):
+        def __len__(self) -> int:
+            return len(self.pose_W)
+
+    def one(n: int) -> Grasps:
+        return Grasps(
+            pose_W=np.eye(4)[None].repeat(n, 0), contact_W=np.zeros((n, 3)), width_m=np.full(n, 0.03),
+            baseline_confidence=np.ones(n), sigma2_occ=np.ones(n), pugs_confidence=np.ones(n),
+            grasp_id=np.arange(n),
+        )  # fmt: skip
+
+    fake = SimpleNamespace(
+        grasps=one(1), baseline_grasps=one(1), cloud_W=np.zeros((5, 3)),
+        candidates=SimpleNamespace(valid=np.ones(1, bool)),
+    )  # fmt: skip
+    monkeypatch.setattr(PugsPipeline, "run", classmethod(lambda cls, *a, **k: fake))
+    seen: list[np.ndarray] = []
+
+    def run(self: GraspTrial, pose_W: np.ndarray) -> TrialResult:
+        seen.append(np.sort(self.obj.extents_m))
+        return TrialResult(False, False, False, {})
+
+    monkeypatch.setattr(GraspTrial, "run", run)
+    monkeypatch.setattr(evaluate, "_TRIALS", {})
+    for path, ext in paths:
+        opts = evaluate.EvalOptions(
+            recons=["partial"], methods=["pugs"], trials=1, width=160, height=120, n_frames=1,
+            object_mesh=path, mass_kg=0.3,
+        )  # fmt: skip
+        evaluate._run_job(opts, evaluate.Job("thing", "partial", 0, 0))
+        np.testing.assert_allclose(seen[-1], np.sort(ext), atol=1e-6)
