@@ -299,13 +299,26 @@ class GraspConfig:
         0.01, "farthest-point thinning: minimum distance between kept grasps", unit="m", ge=0.0
     )
     normal_radius_m: float = opt(0.01, "PCA normal radius", unit="m", gt=0.0)
-    friction_cone_deg: float = opt(
-        25.0, "antipodal friction cone half-angle", unit="deg", gt=0.0, lt=90.0
-    )
+    friction_cone_deg: float = opt(25.0, "antipodal friction cone half-angle", unit="deg", gt=0.0, lt=90.0)
     num_orientations: int = opt(8, "approach orientations tried per contact pair", ge=1)
     max_contacts: int = opt(1500, "contacts sampled (farthest point) per proposal", ge=10)
     min_support: int = opt(6, "points required in the closing region", ge=1)
     partner_radius_m: float = opt(0.004, "radius of the partner search cylinder", unit="m", gt=0.0)
+    clearance_m: float = opt(
+        0.005,
+        "margin kept between the observed cloud and the open fingers, the palm and its approach "
+        "(a box cutting into a sampled surface can hold no sample: about the cloud's spacing plus "
+        "its depth error)",
+        unit="m",
+        ge=0.0,
+    )
+    approach_check_m: float = opt(
+        0.2,
+        "straight approach checked behind the palm: the palm's cross-section swept this far back "
+        "along the approach must be free (the arm's pre-grasp stand-off, arm.motion)",
+        unit="m",
+        ge=0.0,
+    )
     gripper: GripperConfig = dataclasses.field(default_factory=GripperConfig)
 
 

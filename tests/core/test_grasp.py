@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -66,37 +67,34 @@ def _best_orientation_loop(
     prop: AntipodalProposer, pts: np.ndarray, tree: cKDTree, p: np.ndarray, b: np.ndarray, w: float,
     views: np.ndarray,
 ) -> tuple[np.ndarray, int, float, float, float] | None:  # fmt: skip
-    """The orientation search one approach at a time with np.cross (the code before the speed-up)."""
-    g = prop.g
+    """The orientation search one approach at a time with np.cross (the shape of the code before
+    the speed-up), with the clearance and the swept approach."""
+    g, c, back = prop.g, prop.cfg.clearance_m, prop.cfg.approach_check_m
     centre = p + 0.5 * w * b
-    half_open = g.max_width_m / 2
-    reach = np.sqrt(
-        (half_open + g.finger_thickness_m) ** 2
-        + (g.finger_length_m / 2 + g.palm_depth_m) ** 2
-        + (max(g.finger_width_m, g.palm_width_m) / 2) ** 2
-    )
-    local = pts[tree.query_ball_point(centre, reach)] - centre
-    if len(local) == 0:
-        return None
+    half_open, half_l = g.max_width_m / 2, g.finger_length_m / 2
+    local = pts - centre  # every point: no search radius to get wrong
     u, v = _orthonormal(b[None])
     view_dir = p - views[np.argmin(((views - p) ** 2).sum(1))]
     view_dir /= max(np.linalg.norm(view_dir), 1e-9)
     best, best_score = None, -1.0
     x = local @ b
-    half_l = g.finger_length_m / 2
     for k in range(prop.cfg.num_orientations):
         th = 2.0 * np.pi * k / prop.cfg.num_orientations
         a = np.cos(th) * u[0] + np.sin(th) * v[0]
         y, z = local @ np.cross(a, b), local @ a
-        in_y, in_z, ax = np.abs(y) <= g.finger_width_m / 2, np.abs(z) <= half_l, np.abs(x)
-        finger = in_y & in_z & (ax >= half_open) & (ax <= half_open + g.finger_thickness_m)
+        ax = np.abs(x)
+        finger = (
+            (np.abs(y) <= g.finger_width_m / 2 + c) & (np.abs(z) <= half_l + c)
+            & (ax >= half_open - c) & (ax <= half_open + g.finger_thickness_m + c)
+        )  # fmt: skip
         palm = (
-            (z < -half_l) & (z >= -half_l - g.palm_depth_m) & (np.abs(y) <= g.palm_width_m / 2)
-            & (ax <= half_open + g.finger_thickness_m)
+            (z < -half_l + c) & (z >= -half_l - g.palm_depth_m - back - c)
+            & (np.abs(y) <= max(g.palm_width_m, g.finger_width_m) / 2 + c)
+            & (ax <= half_open + g.finger_thickness_m + c)
         )  # fmt: skip
         if finger.any() or palm.any():
             continue
-        slab = in_y & in_z & (ax < half_open)
+        slab = (np.abs(y) <= g.finger_width_m / 2) & (np.abs(z) <= half_l) & (ax < half_open)
         support = int(slab.sum())
         if support < prop.cfg.min_support:
             continue
@@ -122,6 +120,58 @@ def test_orientation_search_matches_the_plain_loop(monkeypatch: pytest.MonkeyPat
     np.testing.assert_array_equal(fast.valid, ref.valid)
     for f in ("contact", "baseline", "approach", "width", "confidence", "pose"):
         np.testing.assert_allclose(getattr(fast, f), getattr(ref, f), rtol=0, atol=1e-12, err_msg=f)
+
+
+def _box_distance(q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Euclidean distance from points q (N, 3) to the axis-aligned box [lo, hi] (0 inside)."""
+    return np.linalg.norm(np.maximum(np.maximum(lo - q, q - hi), 0.0), axis=1)
+
+
+def _hand_clearance_m(cfg: GraspConfig, pose: np.ndarray, pts: np.ndarray, back_m: float) -> float:
+    """The smallest distance from a cloud point to the open hand of a grasp pose, with the palm
+    swept ``back_m`` back along the approach. Built from the returned pose alone (the wrist
+    frame: x closing, z approach, finger pads centred at z = depth), as the simulator builds
+    the hand, not from the proposer's own contact frame."""
+    g = cfg.gripper
+    q = (pts - pose[:3, 3]) @ pose[:3, :3]
+    ho, th, hl, d = g.max_width_m / 2, g.finger_thickness_m, g.finger_length_m / 2, g.depth_m
+    fy, py = g.finger_width_m / 2, max(g.palm_width_m, g.finger_width_m) / 2
+    boxes = [
+        ([ho, -fy, d - hl], [ho + th, fy, d + hl]),
+        ([-ho - th, -fy, d - hl], [-ho, fy, d + hl]),
+        ([-ho - th, -py, d - hl - g.palm_depth_m - back_m], [ho + th, py, d - hl]),
+    ]
+    return float(min(_box_distance(q, np.array(lo), np.array(hi)).min() for lo, hi in boxes))
+
+
+def test_grasps_keep_the_clearance_along_their_approach() -> None:
+    """Every grasp keeps ``clearance_m`` from the cloud, its palm swept ``approach_check_m`` back
+    along the approach (the arm's straight approach from its pre-grasp stand-off). Without them
+    the same cloud gives grasps whose palm comes within the margin or sweeps through a
+    neighbouring object: the failure the Table I trials showed (the palm ending a few
+    millimetres inside the object between two sparse samples)."""
+    pts = _surface(box_mesh((0.04, 0.07, 0.12), (0.0, 0.0, 0.06)), 3000)
+    pts = np.vstack(
+        [
+            pts,
+            _surface(cylinder_mesh(0.02, 0.1, (0.09, 0.0, 0.05)), 2000),
+            _surface(box_mesh((0.2, 0.2, 0.01), (0.0, 0.0, 0.2)), 3000),  # a shelf 8 cm above
+        ]
+    )
+    base = GraspConfig(max_contacts=500)
+    assert base.clearance_m == 0.005 and base.approach_check_m == 0.2
+    gs = AntipodalProposer(base).propose(pts, None, VIEWS)
+    valid = np.flatnonzero(gs.valid)
+    assert len(valid) > 30
+    gaps = [_hand_clearance_m(base, gs.pose[i], pts, base.approach_check_m) for i in valid]
+    assert min(gaps) >= base.clearance_m - 1e-9
+    loose = dataclasses.replace(base, clearance_m=0.0, approach_check_m=0.0)
+    gl = AntipodalProposer(loose).propose(pts, None, VIEWS)
+    loose_gaps = np.array(
+        [_hand_clearance_m(base, gl.pose[i], pts, base.approach_check_m) for i in np.flatnonzero(gl.valid)]
+    )
+    assert (loose_gaps < base.clearance_m).sum() >= 10
+    assert (loose_gaps == 0.0).sum() >= 5  # a swept palm through the shelf or the cylinder
 
 
 def test_pose_convention() -> None:
