@@ -190,3 +190,15 @@ def test_usable_keys_are_accepted() -> None:
         {}, ["daemon.prefix=robot1/pugs", "daemon.node_name=bow", "topics.pose=/nav/pose/"]
     )
     assert (cfg.daemon.prefix, cfg.daemon.node_name, cfg.topics.pose) == ("robot1/pugs", "bow", "/nav/pose/")
+
+
+def test_the_global_log_level_overrides_the_daemons_for_run() -> None:
+    from pugsd.cli import build_parser
+    from pugsd.config import load_config_dict
+    from pugsd.daemon.cli import run_log_level
+
+    cfg = load_config_dict({"daemon": {"log_level": "info"}})
+    assert run_log_level(build_parser().parse_args(["run"]), cfg) == "info"
+    assert run_log_level(build_parser().parse_args(["--log-level", "debug", "run"]), cfg) == "debug"
+    with pytest.raises(SystemExit):  # a typo is an argument error, not a silent WARNING
+        build_parser().parse_args(["--log-level", "verbose", "run"])

@@ -10,7 +10,7 @@ import os
 import signal
 import sys
 
-from pugsd.config import core_of, load_config
+from pugsd.config import PugsdConfig, core_of, load_config
 from pugsd.daemon.app import Daemon, apply_thread_limits
 from pugsd.daemon.logs import setup_logging
 
@@ -41,9 +41,15 @@ def exit_after(daemon: Daemon) -> int:
     return 0
 
 
+def run_log_level(args: argparse.Namespace, cfg: PugsdConfig) -> str:
+    """``pugsd --log-level X run``: X wins over ``[daemon] log_level`` (it used to be ignored)."""
+    given = getattr(args, "log_level", None)
+    return str(given) if given else cfg.daemon.log_level
+
+
 def _run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, args.set or ())
-    setup_logging(cfg.daemon.log_level, cfg.daemon.log_json)
+    setup_logging(run_log_level(args, cfg), cfg.daemon.log_json)
     from pugsd.models import make_pipeline  # torch import: only when serving
 
     daemon = Daemon(cfg, make_pipeline(core_of(cfg)))
