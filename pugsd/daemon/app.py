@@ -246,6 +246,8 @@ class Daemon:
         self._steps_since_frame = 0  # training steps since the newest frame was integrated
         self._last_frame_s: float | None = None  # monotonic time of the last integrated frame
         self._newest_recv_s: float | None = None  # receive time of the newest integrated frame
+        self._last_recv_s: dict[str, float] = {}  # monotonic receive time per input stream
+        self._stale_reported: set[str] = set()  # streams logged as stale and not yet resumed
         self._newest_stamp_ns = 0
         self.grasps_published = 0
 
@@ -594,6 +596,12 @@ class Daemon:
     def _on_inbound(self, item: Inbound) -> None:
         self.ingress.leave()
         self.health.count(f"received.{item.role}")
+        if item.role in _STREAM_ROLES:
+            now = time.monotonic()
+            if item.role in self._stale_reported:
+                self._stale_reported.discard(item.role)
+                log.info("%s: input resumed after %.1f s", item.role, now - self._last_recv_s[item.role])
+            self._last_recv_s[item.role] = now
         if item.lost_before:  # counted by self.upstream; logged like rejections
             self.health.count(f"upstream_gaps.{item.role}")
             n = self.health.counts[f"upstream_gaps.{item.role}"]
@@ -1141,6 +1149,29 @@ class Daemon:
                 self.health.count("resets")
                 log.info("reset: map cleared")
 
+    def input_ages_s(self, now: float | None = None) -> dict[str, float]:
+        """Seconds since each input stream (left/right image, depth, pose) last sent."""
+        t = time.monotonic() if now is None else now
+        return {r: round(t - t0, 3) for r, t0 in sorted(self._last_recv_s.items())}
+
+    def stale_inputs(self, now: float | None = None) -> list[str]:
+        """The streams that sent before and have been silent for ``daemon.input_stale_s``."""
+        limit = self.cfg.daemon.input_stale_s
+        if limit <= 0:
+            return []
+        return [r for r, age in self.input_ages_s(now).items() if age > limit]
+
+    def _report_stale(self, stale: list[str]) -> None:
+        """Log each stream once when it goes stale (``_on_inbound`` logs its return)."""
+        ages = self.input_ages_s()
+        for r in stale:
+            if r not in self._stale_reported:
+                self._stale_reported.add(r)
+                log.warning(
+                    "%s: no message for %.1f s (daemon.input_stale_s = %.1f); grasps are not updated "
+                    "from it", r, ages[r], self.cfg.daemon.input_stale_s,
+                )  # fmt: skip
+
     def status(self) -> dict[str, Any]:
         try:
             pstats = self.pipeline.stats()
@@ -1158,6 +1189,7 @@ class Daemon:
             **snap,
             "mailboxes": {b.name: b.stats() for b in (self.stereo_box, self.depth_box, self.commands)},
             "ingress": {"pending": self.ingress.pending, "dropped": self.ingress.dropped},
+            "inputs": {"age_s": self.input_ages_s(), "stale": self.stale_inputs()},
             "upstream": self.upstream.snapshot(),
             "waiting": {
                 "pose_gate": len(self.gate),
@@ -1181,11 +1213,13 @@ class Daemon:
             except Exception as exc:
                 log.warning("status publish failed: %s", exc)
             c = st["counts"]
+            stale = st["inputs"]["stale"]
+            self._report_stale(stale)
             self.notifier.send(
                 f"STATUS=frames {c.get('frames.stereo', 0) + c.get('frames.depth', 0)}, "
                 f"integrated {c.get('integrated', 0)}, ready {self.ready}, "
                 f"grasps {self.grasps_published}, dropped {self.dropped_total()}, "
-                f"rejected {c.get('rejected', 0)}"
+                f"rejected {c.get('rejected', 0)}" + (f", stale input: {' '.join(stale)}" if stale else "")
             )
 
     async def _watchdog_worker(self) -> None:
@@ -1220,6 +1254,7 @@ class Daemon:
 
 
 _SIDE_ACTIVE_S = 2.0  # a mask/std topic counts as active this long after its last message
+_STREAM_ROLES = ("left_image", "right_image", "depth", "pose")  # inputs that flow continuously
 _UNHEALTHY_RELOG_S = 300.0  # an unchanged unhealthy state is logged again this often
 _NUMBER = re.compile(r"\d+(?:\.\d+)?")
 

@@ -114,6 +114,14 @@ class DaemonConfig:
         unit="s",
         gt=0.0,
     )
+    input_stale_s: float = opt(
+        2.0,
+        "an input stream (left/right image, depth, pose) silent this long after it last sent is "
+        "reported stale in the status, the STATUS= line and the log (0: off); the watchdog is "
+        "not affected: a silent camera is not a hung daemon",
+        unit="s",
+        ge=0.0,
+    )
     max_consecutive_failures: int = opt(
         20, "a stage failing this many calls in a row is unhealthy (watchdog pings stop)", ge=1
     )

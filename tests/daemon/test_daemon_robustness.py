@@ -22,7 +22,7 @@ from pugsd.daemon.app import Daemon
 from pugsd.wire import codec
 from pugsd.wire.keys import topic_key
 from pugsd.wire.types import IMAGE
-from tests.daemon.conftest import RIG, FakePipeline, daemon_config_dict, wait_for
+from tests.daemon.conftest import RIG, FakePipeline, Source, daemon_config_dict, wait_for
 from tests.daemon.test_daemon_inprocess import DaemonThread, RecordingNotifier, pose_at, start_with_source
 
 COV = np.eye(6) * 1e-6
@@ -435,6 +435,44 @@ def test_a_disparity_search_short_of_min_depth_is_logged_once_per_rig(
         wait_for(lambda: _passed_on(d, pipe) == 3, 10.0, "three frames passed on")
         msgs = [r.getMessage() for r in caplog.records if "disparity search reaches" in r.getMessage()]
         assert len(msgs) == 1 and "only 0.050 m" in msgs[0] and "0.010 m" in msgs[0], msgs
+    finally:
+        src.close()
+        dt.stop()
+
+
+def test_a_silent_input_is_reported_stale_and_its_return_logged(
+    port: int, client: zenoh.Session, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A camera or pose source that stops is named in the status, the STATUS= line and the log
+    (once), without touching the watchdog; its return is logged and clears it."""
+    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    cfg = daemon_config_dict(port, input_stale_s=0.4, status_rate_hz=20.0)
+    pipe = FakePipeline()
+    notifier = RecordingNotifier()
+    dt = DaemonThread(Daemon(load_config_dict(cfg), pipe, notifier=notifier)).start()
+    src = Source(client)
+    d = dt.daemon
+    try:
+        wait_for(lambda: "READY=1" in notifier.sent, 10.0, "READY")
+        src.wait_matching()
+        src.infos()
+        src.stereo(10**9, pose_at(0.0))
+        wait_for(lambda: d.health.counts.get("received.pose", 0) == 1, 5.0, "the first frame")
+        assert d.stale_inputs() == []
+        wait_for(lambda: d.stale_inputs() == ["left_image", "pose", "right_image"], 5.0, "stale inputs")
+        wait_for(
+            lambda: any("stale input: left_image pose right_image" in m for m in notifier.sent),
+            5.0,
+            "the STATUS= line",
+        )
+        time.sleep(0.3)  # several more status rounds: the log says it once per stream
+        stale_logs = [r.getMessage() for r in caplog.records if "no message for" in r.getMessage()]
+        assert sorted(m.split(":")[0] for m in stale_logs) == ["left_image", "pose", "right_image"]
+        assert d.latest_status is not None and "pose" in d.latest_status["inputs"]["stale"]
+        assert d.health.problems() == []  # a silent camera is not a hung daemon
+        src.put("pose", codec.encode_pose_with_covariance(2 * 10**9, np.eye(4), COV))
+        wait_for(lambda: "pose" not in d.stale_inputs(), 5.0, "the pose back")
+        assert any("pose: input resumed" in r.getMessage() for r in caplog.records)
     finally:
         src.close()
         dt.stop()
