@@ -1164,13 +1164,13 @@ class Daemon:
     def _report_stale(self, stale: list[str]) -> None:
         """Log each stream once when it goes stale (``_on_inbound`` logs its return)."""
         ages = self.input_ages_s()
-        for r in stale:
-            if r not in self._stale_reported:
-                self._stale_reported.add(r)
-                log.warning(
-                    "%s: no message for %.1f s (daemon.input_stale_s = %.1f); grasps are not updated "
-                    "from it", r, ages[r], self.cfg.daemon.input_stale_s,
-                )  # fmt: skip
+        new = [r for r in stale if r not in self._stale_reported]
+        if new:
+            self._stale_reported.update(new)
+            log.warning(
+                "input silent: %s (daemon.input_stale_s = %.1f s)",
+                ", ".join(f"{r} for {ages[r]:.1f} s" for r in new), self.cfg.daemon.input_stale_s,
+            )  # fmt: skip
 
     def status(self) -> dict[str, Any]:
         try:
