@@ -248,6 +248,7 @@ class Daemon:
         self._newest_recv_s: float | None = None  # receive time of the newest integrated frame
         self._last_recv_s: dict[str, float] = {}  # monotonic receive time per input stream
         self._stale_reported: set[str] = set()  # streams logged as stale and not yet resumed
+        self._short_search_rig: tuple[float, float, int] | None = None  # rig warned of, see _stereo_rig
         self._newest_stamp_ns = 0
         self.grasps_published = 0
 
@@ -748,7 +749,10 @@ class Daemon:
             self._rig = codec.stereo_rig_from_infos(left, right)
             scfg = self.cfg.stereo
             near_m = stereo_reach_m(scfg, self._rig)
-            if near_m > scfg.min_depth_m * 1.001:
+            rig_key = (self._rig.left.fx, self._rig.baseline_m, self._rig.left.width)
+            # CameraInfo usually comes with every image and resets _rig: warn once per rig
+            if near_m > scfg.min_depth_m * 1.001 and rig_key != self._short_search_rig:
+                self._short_search_rig = rig_key
                 log.warning(
                     "stereo: on this rig (fx %.1f px, baseline %.3f m) the disparity search reaches "
                     "only %.3f m, not stereo.min_depth_m = %.3f m: a nearer surface gets a wrong "

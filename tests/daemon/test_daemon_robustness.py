@@ -430,6 +430,7 @@ def test_a_disparity_search_short_of_min_depth_is_logged_once_per_rig(
     d = dt.daemon
     try:
         for i in range(3):
+            src.infos()  # CameraInfo with every frame, as ROS cameras publish it
             src.stereo(10**9 + i * 10**8, pose_at(0.01 * i), seed=i)
             time.sleep(0.05)
         wait_for(lambda: _passed_on(d, pipe) == 3, 10.0, "three frames passed on")
