@@ -1,7 +1,8 @@
 """The bench's daemon throughput trial at the given rates only (the ladder stops at the first rate
 held, so it never measures 10 Hz on its own): frame age at integrate, newest frame -> grasps.
 
-Usage: OMP_NUM_THREADS=1 python throughput_at.py 10 [RATE ...]   (writes /tmp/prop/tp10.json)
+Usage: OMP_NUM_THREADS=1 python throughput_at.py 10 [RATE ...]   (writes throughput.json here;
+throughput-10hz.json beside this script is that file from the 2026-11-23 run)
 """
 
 import dataclasses
@@ -25,5 +26,5 @@ for t in out["trials"]:
         "newest->grasps p50", lat.get("newest_frame_to_grasps", {}).get("p50_ms"),
         "grasps", t["grasps_published"],
     )  # fmt: skip
-with open("/tmp/prop/tp10.json", "w") as f:
+with open("throughput.json", "w") as f:
     json.dump(out, f, default=str)
