@@ -16,6 +16,7 @@ class Notifier:
     def __init__(self, address: str | None = None) -> None:
         addr = address if address is not None else os.environ.get("NOTIFY_SOCKET", "")
         self.address = "\0" + addr[1:] if addr.startswith("@") else addr  # '@': abstract namespace
+        self.failures = 0  # consecutive failed sends (the log names the first, then every 100th)
 
     @property
     def enabled(self) -> bool:
@@ -30,8 +31,13 @@ class Notifier:
                 s.connect(self.address)
                 s.sendall("\n".join(fields).encode())
         except OSError as exc:
-            log.warning("sd_notify to %r failed: %s", self.address, exc)
+            self.failures += 1
+            if self.failures == 1 or self.failures % 100 == 0:  # STATUS and WATCHDOG go every second
+                log.warning("sd_notify to %r failed (%d in a row): %s", self.address, self.failures, exc)
             return False
+        if self.failures:
+            log.info("sd_notify to %r works again after %d failures", self.address, self.failures)
+            self.failures = 0
         return True
 
 

@@ -1,6 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """sd_notify against a real AF_UNIX datagram socket (path and abstract namespace)."""
 
+import logging
 import os
 import socket
 import uuid
@@ -57,3 +58,21 @@ def test_watchdog_interval(monkeypatch: pytest.MonkeyPatch) -> None:
     assert watchdog_interval_s() == pytest.approx(5.0)
     monkeypatch.setenv("WATCHDOG_PID", str(os.getpid() + 1))
     assert watchdog_interval_s() is None
+
+
+def test_a_missing_notify_socket_is_logged_once_not_every_second(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """STATUS= and WATCHDOG= go out every second: a socket gone for an hour used to write 7200
+    warnings to the journal. Now the first failure and every 100th are logged, and the recovery."""
+    caplog.set_level(logging.INFO, logger="pugsd.daemon.notify")
+    path = str(tmp_path / "notify.sock")
+    n = Notifier(path)
+    for _ in range(250):
+        assert not n.send("STATUS=x")
+    warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 3 and "(1 in a row)" in warnings[0].getMessage()  # 1st, 100th, 200th
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as srv:
+        srv.bind(path)
+        assert n.send("READY=1") and n.failures == 0
+        assert any("works again after 250 failures" in r.getMessage() for r in caplog.records)
