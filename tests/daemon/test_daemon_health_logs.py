@@ -41,6 +41,14 @@ def test_json_log_lines() -> None:
     assert out["logger"] == "pugsd.x" and out["reason"] == "bad_pose"
 
 
+def test_json_log_lines_keep_the_stack() -> None:
+    """``log.warning(..., stack_info=True)``: the stack is in the line (it was dropped)."""
+    stack = "Stack (most recent call last):\n  here"
+    rec = logging.LogRecord("pugsd.x", logging.WARNING, "f.py", 1, "where", None, None, sinfo=stack)
+    out = json.loads(JsonFormatter().format(rec))
+    assert out["stack"].endswith("here") and out["msg"] == "where"
+
+
 def test_setup_logging_json(monkeypatch: pytest.MonkeyPatch) -> None:
     buf = io.StringIO()
     monkeypatch.setattr("sys.stderr", buf)
