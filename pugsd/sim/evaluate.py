@@ -24,8 +24,6 @@ import numpy as np
 from pugsd.sim.objects import ObjectSpec, get_object, load_object_mesh
 
 if TYPE_CHECKING:
-    from pugsd.config import StereoConfig
-    from pugsd.core.camera import StereoRig
     from pugsd.sim.sequence import SyntheticSequence
 
 log = logging.getLogger(__name__)
@@ -140,13 +138,6 @@ def _object(opts: EvalOptions, name: str) -> ObjectSpec:
     return get_object(name)
 
 
-def stereo_reach_m(stereo: StereoConfig, rig: StereoRig) -> float:
-    """The nearest depth (m) the pipeline's matcher (``StereoConfig``) can measure on ``rig``."""
-    from pugsd.core.stereo import reach_m
-
-    return reach_m(stereo, rig)
-
-
 def _nearest_object_depth_m(seq: SyntheticSequence) -> float:
     """The smallest true z-depth of the object over a sequence's left views (inf if never seen)."""
     near = [float(np.nanmin(d[m])) for d, m in zip(seq.depth_gt_m, seq.masks) if m.any()]
@@ -174,6 +165,7 @@ _TRIALS: dict[tuple[str, str | None, float | None, str], Any] = {}
 def _run_job(opts: EvalOptions, job: Job) -> dict[str, Any]:
     """Render, run the pipeline, and trial each method's top grasp (one worker's unit of work)."""
     from pugsd.core.pipeline import PugsPipeline
+    from pugsd.core.stereo import reach_m as stereo_reach_m
     from pugsd.sim.physics import GraspTrial
     from pugsd.sim.sequence import make_sequence
 
@@ -196,7 +188,8 @@ def _run_job(opts: EvalOptions, job: Job) -> dict[str, Any]:
     if z_near < z_reach:
         log.warning(
             "%s/%s seed %d: the object comes to %.3f m, nearer than the disparity search reaches "
-            "(%.3f m); raise stereo.num_disparities",
+            "(%.3f m); lower stereo.min_depth_m (with stereo.num_disparities = 0) or raise "
+            "stereo.num_disparities",
             job.object_name, job.recon, job.seed, z_near, z_reach,
         )  # fmt: skip
     out: dict[str, Any] = {"object": job.object_name, "recon": job.recon, "seed": job.seed}

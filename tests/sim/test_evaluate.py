@@ -122,8 +122,9 @@ def test_disparity_search_reaches_the_nearest_surface(width: int) -> None:
     search is now sized from the rig to reach ``stereo.min_depth_m``.
     """
     from pugsd.core.stereo import StereoDepth, disparity_levels
+    from pugsd.core.stereo import reach_m as stereo_reach_m
     from pugsd.sim import make_sequence
-    from pugsd.sim.evaluate import EvalOptions, _core_config, stereo_reach_m
+    from pugsd.sim.evaluate import EvalOptions, _core_config
 
     opts = EvalOptions(objects=["mug"], recons=["partial"], width=width, height=width * 3 // 4)
     seq = make_sequence("mug", "partial", n_frames=2, width=opts.width, height=opts.height, seed=0)
