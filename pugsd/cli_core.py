@@ -8,7 +8,7 @@ import sys
 import time
 
 from pugsd import __version__
-from pugsd.config import core_of, dump_config, load_config
+from pugsd.config import config_warnings, core_of, dump_config, load_config
 from pugsd.core.types import ScoredGrasps
 from pugsd.errors import ConfigError
 
@@ -31,6 +31,8 @@ def _check_config(args: argparse.Namespace) -> int:
                 f"{exc} (`pugsd run` refuses it unless [daemon] allow_non_loopback = true)"
             ) from None
     zenoh_config(cfg.zenoh)  # zenoh's own parser: unknown keys and bad values
+    for w in config_warnings(cfg):
+        sys.stderr.write(f"{args.file}: warning: {w}\n")
     sys.stdout.write(f"{args.file}: ok\n")
     return 0
 

@@ -362,6 +362,21 @@ def core_of(cfg: PugsdConfig) -> CoreConfig:
     return CoreConfig(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(CoreConfig)})
 
 
+def config_warnings(cfg: PugsdConfig) -> list[str]:
+    """Settings that are each valid but do not fit together; ``pugsd check-config`` prints them
+    and ``pugsd run`` logs them at start (neither refuses: the user may mean it)."""
+    out: list[str] = []
+    pre_m = cfg.arm.motion.pregrasp_distance_m
+    if cfg.arm.enabled and cfg.grasp.approach_check_m < pre_m:
+        out.append(
+            f"grasp.approach_check_m = {cfg.grasp.approach_check_m:g} m is shorter than "
+            f"arm.motion.pregrasp_distance_m = {pre_m:g} m: the arm approaches in a straight line "
+            f"from its stand-off, and the first {pre_m - cfg.grasp.approach_check_m:.3g} m of that "
+            "line (from the stand-off) are not checked against the cloud"
+        )
+    return out
+
+
 def _set_dotted(data: dict[str, Any], dotted: str, value: Any) -> None:
     parts = dotted.split(".")
     node = data

@@ -202,3 +202,24 @@ def test_the_global_log_level_overrides_the_daemons_for_run() -> None:
     assert run_log_level(build_parser().parse_args(["--log-level", "debug", "run"]), cfg) == "debug"
     with pytest.raises(SystemExit):  # a typo is an argument error, not a silent WARNING
         build_parser().parse_args(["--log-level", "verbose", "run"])
+
+
+def test_check_config_warns_when_the_approach_check_is_shorter_than_the_arms_stand_off(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The proposer checks the straight approach grasp.approach_check_m back; the arm starts it
+    arm.motion.pregrasp_distance_m back. Both valid alone, so a warning, not a refusal."""
+    f = tmp_path / "arm.toml"
+    f.write_text("[arm]\nenabled = true\n[grasp]\napproach_check_m = 0.12\n")
+    assert main(["check-config", str(f)]) == 0
+    err = capsys.readouterr().err
+    assert "warning: grasp.approach_check_m = 0.12 m is shorter than" in err
+    assert "arm.motion.pregrasp_distance_m = 0.2 m" in err and "first 0.08 m" in err
+    for text in (
+        "[arm]\nenabled = true\n",  # the defaults agree (0.2 m, 0.2 m)
+        "[grasp]\napproach_check_m = 0.12\n",  # no arm: nothing approaches
+        "[arm]\nenabled = true\n[arm.motion]\npregrasp_distance_m = 0.1\n[grasp]\napproach_check_m = 0.12\n",
+    ):
+        f.write_text(text)
+        assert main(["check-config", str(f)]) == 0
+        assert "warning" not in capsys.readouterr().err, text

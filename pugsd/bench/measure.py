@@ -459,13 +459,14 @@ def daemon_feed(
         th = threading.Thread(target=feed_guarded, name="bench-camera", daemon=True)
         th.start()
         await asyncio.to_thread(th.join)
-        # drain: wait until nothing is queued and the integrated count stops moving
+        # drain: wait until nothing is queued (messages handed over by zenoh's callback threads
+        # but not yet taken by the loop included) and the integrated count stops moving
         t_d = time.monotonic()
         last, still_since = -1, time.monotonic()
         while time.monotonic() - t_d < drain_timeout_s:
             st = daemon.status()
             n = int(st["counts"].get("integrated", 0))
-            queued = st["mailboxes"]["stereo"]["queued"] + st["mailboxes"]["depth"]["queued"]
+            queued = drain_queued(st)
             if n != last:
                 last, still_since = n, time.monotonic()
             if queued == 0 and not st["waiting"]["pose_gate"] and time.monotonic() - still_since > 1.0:
@@ -506,6 +507,16 @@ def daemon_feed(
 
     asyncio.run(main())
     return out
+
+
+def drain_queued(st: dict[str, Any]) -> int:
+    """Messages the daemon still holds for integration (its status): the ingress queue from
+    zenoh's callback threads and the stereo and depth mailboxes."""
+    return (
+        int(st["ingress"]["pending"])
+        + int(st["mailboxes"]["stereo"]["queued"])
+        + int(st["mailboxes"]["depth"]["queued"])
+    )
 
 
 def _drop_counts(st: dict[str, Any]) -> dict[str, int]:
@@ -679,6 +690,10 @@ def daemon_last_frame(
         "train_steps_at_grasps": r.get("train_steps_at_grasps"),
         "ready": bool(st.get("ready")),
         "agreement_with_paper": agreement,
+        # the daemon's own counters (received per topic, paired, depth, integrated, failures...)
+        # and the sequence-number tracker: a frame missing without a drop is diagnosable
+        "status_counts": dict(st["counts"]),
+        "upstream": st.get("upstream"),
     }
     rho = None if agreement is None else agreement["spearman_sigma2_occ"]
     write(

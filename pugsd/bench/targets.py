@@ -4,6 +4,7 @@ printed table."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -12,6 +13,17 @@ Writer = Callable[[str], None]
 
 def _row(name: str, required: str, measured: Any, ok: bool | None, note: str = "") -> dict[str, Any]:
     return {"target": name, "required": required, "measured": measured, "pass": ok, "note": note}
+
+
+def _judge_rho(rho: Any, note: str) -> tuple[bool | None, str]:
+    """A Spearman figure against its 0.9 target: a NaN (undefined correlation, e.g. a
+    non-finite sigma2_occ) gets no verdict and says so, rather than a bare FAIL."""
+    if rho is None:
+        return None, note
+    if isinstance(rho, float) and math.isnan(rho):
+        nan_note = "Spearman undefined (NaN): non-finite or constant sigma2_occ"
+        return None, "; ".join(n for n in (nan_note, note) if n)
+    return rho >= 0.9, note
 
 
 def _later_cloud(later: dict[str, Any]) -> str:
@@ -66,8 +78,9 @@ def evaluate_targets(r: dict[str, Any]) -> list[dict[str, Any]]:
             dnote = quick_note
             if drho is None:
                 dnote = dnote or _daemon_cloud_note(ag)
+            dok, dnote = _judge_rho(drho, dnote)
             rows.append(_row(f"Spearman daemon's sigma2_occ vs paper ({traj})", ">= 0.9", drho,
-                             None if drho is None else drho >= 0.9, dnote))  # fmt: skip
+                             dok, dnote))  # fmt: skip
         ratio = c["ratio_paper_over_streaming"]
         rows.append(_row(f"paper / streaming time ({traj})", ">= 50x", ratio, ratio >= 50.0,
                          quick_note))  # fmt: skip
@@ -91,8 +104,9 @@ def evaluate_targets(r: dict[str, Any]) -> list[dict[str, Any]]:
                 f"{pm['spearman_sigma2_occ']:.3f} (synchronous, "
                 f"{pm['last_frame_to_grasps_s']:.2f} s)"
             )
-        rows.append(_row(f"Spearman streaming sigma2_occ vs paper ({traj})", ">= 0.9", rho,
-                         None if rho is None else rho >= 0.9, quick_note or fnote))  # fmt: skip
+        ok, snote = _judge_rho(rho, quick_note or fnote)
+        rows.append(_row(f"Spearman streaming sigma2_occ vs paper ({traj})", ">= 0.9", rho, ok,
+                         snote))  # fmt: skip
     for traj, dm in (r.get("daemon_alone") or {}).items():  # --no-pipeline
         dl = dm.get("last_frame_to_grasps_s")
         rows.append(_row(f"daemon last frame -> its grasps ({traj})", "<= 1.0 s", dl,

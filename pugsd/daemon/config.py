@@ -41,7 +41,9 @@ class DaemonConfig:
     )
     side_image_wait_s: float = opt(
         0.1,
-        "while masks (or depth std images) arrive, how long a frame waits for its own",
+        "while masks (or depth std images) arrive, how long a frame waits for its own; before the "
+        "first one, and after they lapse, one frame waits too (at most half of pose_wait_s): "
+        "its images can come before its mask",
         unit="s",
         ge=0.0,
     )

@@ -50,8 +50,12 @@ class SyntheticCamera:
         self.sent = 0
 
     def wait_matching(self, timeout_s: float) -> bool:
+        """Wait until a subscriber matches every topic this camera publishes, not only the
+        images and the pose: a put before its route exists is lost. (The maskless first frames
+        the bench saw were another cause, keys reordered on the way: the daemon now waits for a
+        first frame's mask, see ``Daemon._side_missing``.)"""
         t0 = time.monotonic()
-        while not all(self.pubs[r].matching for r in ("left_image", "right_image", "pose")):
+        while not all(self.pubs[r].matching for r in self.ROLES):
             if time.monotonic() - t0 > timeout_s:
                 return False
             time.sleep(0.02)

@@ -238,7 +238,7 @@ def _run_job(opts: EvalOptions, job: Job) -> dict[str, Any]:
 
         path = Path(opts.figures_dir) / f"{job.object_name}_{job.recon}_seed{job.seed}.png"
         title = f"{job.object_name}, {RECON_TITLES.get(job.recon, job.recon)}, seed {job.seed}"
-        grasp_figure(res, seq, path, title=title)
+        grasp_figure(res, seq, path, title=title, gripper=cfg.grasp.gripper)
         out["figure"] = str(path)
     log.info(
         "%s/%s seed %d: %s (%.1f s)",

@@ -8,21 +8,30 @@ from typing import Any
 
 import numpy as np
 
+from pugsd.config import GripperConfig
 
-def gripper_lines(pose_W: np.ndarray, width_m: float, depth_m: float = 0.09,
-                  finger_length_m: float = 0.045) -> list[np.ndarray]:
-    """Polylines (each (k, 3)) of a parallel-jaw gripper skeleton at a Contact-GraspNet pose."""
+
+def gripper_lines(
+    pose_W: np.ndarray, width_m: float, gripper: GripperConfig | None = None
+) -> list[np.ndarray]:
+    """Polylines (each (k, 3)) of a parallel-jaw gripper skeleton at a Contact-GraspNet pose: the
+    fingers (``finger_length_m`` long, centred on the finger-pad line ``depth_m`` along the
+    approach) joined by the palm line, and the palm block (``palm_depth_m``) behind it; the
+    geometry the proposer checks (``grasp.gripper``, default the Bravo 7 jaws)."""
+    g = GripperConfig() if gripper is None else gripper
     hw = 0.5 * width_m
-    z0, z1 = depth_m - 0.5 * finger_length_m, depth_m + 0.5 * finger_length_m
+    z0, z1 = g.depth_m - 0.5 * g.finger_length_m, g.depth_m + 0.5 * g.finger_length_m
     local = [
         np.array([[-hw, 0, z1], [-hw, 0, z0], [hw, 0, z0], [hw, 0, z1]]),
-        np.array([[0, 0, z0], [0, 0, z0 - 0.04]]),
+        np.array([[0, 0, z0], [0, 0, z0 - g.palm_depth_m]]),
     ]
     R, t = pose_W[:3, :3], pose_W[:3, 3]
     return [p @ R.T + t for p in local]
 
 
-def grasp_figure(res: Any, seq: Any, path: str | Path, title: str = "") -> Path:
+def grasp_figure(
+    res: Any, seq: Any, path: str | Path, title: str = "", gripper: GripperConfig | None = None
+) -> Path:
     """Reconstruction coloured by PUGS confidence; baseline top grasp red, PUGS top grasp green.
 
     ``res`` is a ``PipelineResult``, ``seq`` the ``SyntheticSequence`` it came from. The left panel
@@ -66,7 +75,7 @@ def grasp_figure(res: Any, seq: Any, path: str | Path, title: str = "") -> Path:
         ):
             if len(grasps) == 0:
                 continue
-            for i, line in enumerate(gripper_lines(grasps.pose_W[0], float(grasps.width_m[0]))):
+            for i, line in enumerate(gripper_lines(grasps.pose_W[0], float(grasps.width_m[0]), gripper)):
                 ax.plot(*line.T, color=colour, lw=2.5, label=label if i == 0 else None)
         ax.set_xlim(centre[0] - span, centre[0] + span)
         ax.set_ylim(centre[1] - span, centre[1] + span)

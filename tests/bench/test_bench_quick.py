@@ -125,7 +125,12 @@ def test_quick_paper_vs_streaming(quick_json: dict[str, Any]) -> None:
         assert pm["num_inducing"] != quick_json["settings"]["num_inducing"]
         assert _finite_nonneg(pm["last_frame_to_grasps_s"]) and pm["svgp_steps"] >= 3 * 4
         assert pm["spearman_sigma2_occ"] is None or -1.0 <= pm["spearman_sigma2_occ"] <= 1.0
-        ag = c["daemon"]["agreement_with_paper"]
+        dm = c["daemon"]
+        # the daemon's own counters are kept (for the frame that goes missing with no drop
+        # counted, now and then: an open bug, see docs/bench-history/2026-11-23-camera-mask-race/)
+        assert dm["status_counts"]["integrated"] == dm["integrated"] <= dm["frames"]
+        assert "lost" in dm["upstream"]
+        ag = dm["agreement_with_paper"]
         assert ag["cloud_received"] in (True, False)
         if ag["cloud_received"]:
             assert 0.0 <= ag["shared_fraction"] <= 1.0
@@ -511,3 +516,33 @@ def test_a_quick_run_says_so_on_every_row_it_judges() -> None:
     for t in evaluate_targets(r):
         if t["pass"] is not None:
             assert "quick run" in t["note"], t
+
+
+def test_an_undefined_spearman_gets_no_verdict_and_says_why() -> None:
+    """NaN >= 0.9 is False: without this the row read FAIL with no word on why."""
+    pvs = {"streaming_last_frame_to_grasps_s": 0.5, "paper_last_frame_to_grasps_s": 40.0,
+           "ratio_paper_over_streaming": 80.0, "spearman_sigma2_occ": float("nan"),
+           "spearman_paper_vs_paper_other_seed": 0.9,
+           "daemon": {"last_frame_to_grasps_s": 0.6, "agreement_with_paper": {
+               "cloud_received": True, "spearman_sigma2_occ": float("nan"),
+               "shared_fraction": 1.0}}}  # fmt: skip
+    r = _result(paper_vs_streaming={"partial": pvs})
+    for name in ("Spearman streaming sigma2_occ vs paper", "Spearman daemon's sigma2_occ vs paper"):
+        row = _row(r, name)
+        assert row["pass"] is None, name
+        assert row["note"].startswith("Spearman undefined (NaN)"), row
+    assert "paper vs paper, other seed: 0.900" in _row(r, "Spearman streaming")["note"]
+    pvs["spearman_sigma2_occ"] = 0.95
+    assert _row(r, "Spearman streaming sigma2_occ vs paper")["pass"] is True
+
+
+def test_the_drain_waits_for_messages_still_in_the_ingress_queue() -> None:
+    """A message zenoh handed over but the loop has not taken yet is not drained: before, the
+    throughput trial's drain looked at the mailboxes only and could judge a rate while the last
+    frames sat in the ingress queue."""
+    st = {"ingress": {"pending": 3, "dropped": 0},
+          "mailboxes": {"stereo": {"queued": 0}, "depth": {"queued": 0}}}  # fmt: skip
+    assert measure.drain_queued(st) == 3
+    st["ingress"]["pending"] = 0
+    st["mailboxes"]["depth"]["queued"] = 1
+    assert measure.drain_queued(st) == 1

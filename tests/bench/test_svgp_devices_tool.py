@@ -59,3 +59,18 @@ def test_measure_runs_the_pipeline_on_an_exported_problem(tmp_path: Path) -> Non
     }
     assert row["algorithm1_20k_lines_1_2_default"]["sigma2_occ_median_ms"] > 0
     assert result["machine"]["gpu"] is None or isinstance(result["machine"]["gpu"], str)
+
+
+def test_each_streaming_schedule_runs_once() -> None:
+    """With a single ``--inducing`` M the (M, 4) run came twice and its row was overwritten."""
+    import importlib.machinery
+    import importlib.util
+
+    path = str(ROOT / "tools" / "bench-svgp-devices")
+    loader = importlib.machinery.SourceFileLoader("bench_svgp_devices", path)
+    spec = importlib.util.spec_from_loader(loader.name, loader)
+    assert spec is not None
+    tool = importlib.util.module_from_spec(spec)
+    loader.exec_module(tool)
+    assert tool.streaming_schedules((250, 500)) == [(250, 4), (500, 4), (500, 8), (500, 16)]
+    assert tool.streaming_schedules((500,)) == [(500, 4), (500, 8), (500, 16)]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import open3d as o3d
@@ -12,10 +13,12 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
+import pugsd.core.grasp.proposer as proposer_module
 from pugsd.config import CoreConfig, GraspConfig
 from pugsd.core.grasp.proposer import (
     AntipodalProposer,
     TorchScriptProposer,
+    _cross,
     _orthonormal,
     farthest_point_subset,
     grasp_poses,
@@ -65,7 +68,7 @@ def test_cylinder_grasp_width_is_the_diameter() -> None:
 
 def _best_orientation_loop(
     prop: AntipodalProposer, pts: np.ndarray, tree: cKDTree, p: np.ndarray, b: np.ndarray, w: float,
-    views: np.ndarray,
+    views: np.ndarray, bound: object = None,
 ) -> tuple[np.ndarray, int, float, float, float] | None:  # fmt: skip
     """The orientation search one approach at a time with np.cross (the shape of the code before
     the speed-up), with the clearance and the swept approach."""
@@ -108,15 +111,36 @@ def _best_orientation_loop(
     return best
 
 
-def test_orientation_search_matches_the_plain_loop(monkeypatch: pytest.MonkeyPatch) -> None:
-    """All approaches projected at once give the grasps of one approach at a time."""
+@pytest.mark.parametrize(("scene", "min_valid"), [("objects", 50), ("far_box", 25), ("stray", 10)])
+def test_orientation_search_matches_the_plain_loop(
+    monkeypatch: pytest.MonkeyPatch, scene: str, min_valid: int
+) -> None:
+    """All approaches projected at once give the grasps of one approach at a time. With the
+    objects alone every search ball holds the whole cloud (the ball query is skipped); with a far
+    box none does (the KD-tree's ball query). Stray points (stereo speckle) around the objects
+    put hands against every band of the collision tests (finger faces, palm, swept prism), not
+    only against the objects' own surfaces."""
     pts = _surface(box_mesh((0.04, 0.07, 0.12), (0.0, 0.0, 0.06)))
     pts = np.vstack([pts, _surface(cylinder_mesh(0.02, 0.1, (0.09, 0.0, 0.05)), 3000)])
-    prop = AntipodalProposer(GraspConfig(max_contacts=300))
+    if scene == "stray":
+        rng = np.random.default_rng(3)
+        pts = np.vstack([pts, rng.uniform([-0.06, -0.07, 0.0], [0.15, 0.07, 0.16], (20, 3))])
+    if scene == "far_box":
+        pts = np.vstack([pts, _surface(box_mesh((0.05, 0.05, 0.05), (0.7, 0.0, 0.025)), 2000)])
+    prop = AntipodalProposer(GraspConfig(max_contacts=450 if scene == "far_box" else 300))
+    queries: list[int] = []
+
+    class CountingTree(cKDTree):  # type: ignore[misc]
+        def query_ball_point(self, *a: Any, **k: Any) -> Any:
+            queries.append(1)
+            return super().query_ball_point(*a, **k)
+
+    monkeypatch.setattr(proposer_module, "cKDTree", CountingTree)
     fast = prop.propose(pts, None, VIEWS)
+    assert (len(queries) > 0) == (scene == "far_box")
     monkeypatch.setattr(prop, "_best_orientation", lambda *a: _best_orientation_loop(prop, *a))
     ref = prop.propose(pts, None, VIEWS)
-    assert fast.valid.sum() > 50
+    assert fast.valid.sum() > min_valid
     np.testing.assert_array_equal(fast.valid, ref.valid)
     for f in ("contact", "baseline", "approach", "width", "confidence", "pose"):
         np.testing.assert_allclose(getattr(fast, f), getattr(ref, f), rtol=0, atol=1e-12, err_msg=f)
@@ -261,3 +285,10 @@ def test_fast_farthest_point_subset_is_the_greedy_fps_set(seed: int) -> None:
     assert len(np.unique(fast)) == 600
     assert np.array_equal(farthest_point_subset(pts, 5000, seed), np.arange(2000))
     assert len(farthest_point_subset(pts[:0], 10, seed)) == 0
+
+
+def test_cross_is_nps_cross_to_the_bit() -> None:
+    rng = np.random.default_rng(5)
+    a, b = rng.normal(size=(500, 3)) * 1e3, rng.normal(size=(500, 3)) * 1e-3
+    assert np.array_equal(_cross(a, b), np.cross(a, b))
+    assert np.array_equal(_cross(a, np.array([[1.0, 0.0, 0.0]])), np.cross(a, [[1.0, 0.0, 0.0]]))

@@ -48,3 +48,19 @@ def test_demo_shows_grasps_within_a_minute(tmp_path: Path) -> None:
     sent, integrated, dropped, _lost = (int(g) for g in m.groups())
     assert integrated >= 1 and integrated + dropped <= sent, m.group(0)
     assert list(out.glob("*.mcap")) and (out / "grasps.png").stat().st_size > 10_000
+
+
+def test_the_synthetic_camera_waits_for_a_route_on_every_topic_it_publishes() -> None:
+    """It waited for the images and the pose only: a mask or CameraInfo put before its route
+    existed would be lost."""
+    from types import SimpleNamespace
+
+    from pugsd.daemon.demo import SyntheticCamera
+
+    cam = SyntheticCamera.__new__(SyntheticCamera)
+    cam.pubs = {r: SimpleNamespace(matching=True) for r in SyntheticCamera.ROLES}
+    assert cam.wait_matching(0.05)
+    for role in SyntheticCamera.ROLES:
+        cam.pubs[role].matching = False
+        assert not cam.wait_matching(0.05), role
+        cam.pubs[role].matching = True

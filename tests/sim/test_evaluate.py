@@ -209,3 +209,21 @@ def test_user_meshes_with_the_same_name_get_their_own_physics(
         )  # fmt: skip
         evaluate._run_job(opts, evaluate.Job("thing", "partial", 0, 0))
         np.testing.assert_allclose(seen[-1], np.sort(ext), atol=1e-6)
+
+
+def test_figures_draw_the_configured_gripper() -> None:
+    """The figure's gripper is the proposer's (``grasp.gripper``), not a fixed size."""
+    from pugsd.config import GripperConfig
+    from pugsd.sim.figures import gripper_lines
+
+    T_W_G = np.eye(4)
+    T_W_G[:3, :3] = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # approach a = +x
+    T_W_G[:3, 3] = [1.0, 2.0, 3.0]
+    g = GripperConfig(depth_m=0.12, finger_length_m=0.06, palm_depth_m=0.02)
+    fingers, palm = gripper_lines(T_W_G, 0.05, g)
+    # fingertips at depth + L/2 along the approach, 0.05 m apart along the closing axis b (= -z)
+    np.testing.assert_allclose(fingers, [[1.15, 2.0, 3.025], [1.09, 2.0, 3.025],
+                                         [1.09, 2.0, 2.975], [1.15, 2.0, 2.975]], atol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(palm, [[1.09, 2.0, 3.0], [1.07, 2.0, 3.0]], atol=1e-12)
+    default = gripper_lines(T_W_G, 0.05)[0]
+    assert default[0, 0] == pytest.approx(1.0 + 0.09 + 0.0225)  # the Bravo 7 defaults
