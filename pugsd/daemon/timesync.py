@@ -113,7 +113,8 @@ class PoseBuffer:
     A pose stamped more than ``max_gap_ns`` before the newest one means the pose source's clock went
     back (a restarted source, a replay loop, a stepped clock; zenoh delivers one publisher's samples
     in order): the buffer starts afresh from it (``jumps_back`` counts these), keeping only the newest
-    covariance. Kept, the old timeline's poses would stay "newest" and every later pose would be
+    covariance. An image stamped that far back waits (for the restarted source's poses) rather than
+    failing at once: its pose may come after it. Kept, the old timeline's poses would stay "newest" and every later pose would be
     evicted on arrival once the ring is full, so no frame would get a pose again.
     """
 
@@ -186,6 +187,10 @@ class PoseBuffer:
         if i == len(st):
             return PoseLookup("wait", reason="no pose after the image stamp yet")
         if i == 0:
+            if stamp_ns < st[-1] - self.max_gap_ns:
+                # as far back as a clock jump: the pose source may have restarted and its first
+                # pose of the new timeline not be here yet (zenoh does not order different keys)
+                return PoseLookup("wait", reason="image is older than every buffered pose by a clock jump")
             return PoseLookup("fail", reason="image is older than every buffered pose")
         a, b = self._samples[i - 1], self._samples[i]
         if b.stamp_ns - a.stamp_ns > self.max_gap_ns:

@@ -413,6 +413,34 @@ def test_frames_get_poses_again_after_the_pose_clock_jumps_back(
         dt.stop()
 
 
+@pytest.mark.parametrize("pose_first", [True, False])
+def test_frames_after_a_pose_clock_jump_are_kept_when_images_come_first(
+    port: int, client: zenoh.Session, pose_first: bool
+) -> None:
+    """zenoh does not order different keys: after a restart with an earlier clock, a frame's images
+    can come before its pose, while the buffer still holds only the old timeline. The frame used to
+    be dropped at once ("older than every buffered pose"); it now waits for the restarted source."""
+    cfg = daemon_config_dict(port)
+    cfg["queues"] = {"poses": 8}
+    pipe = FakePipeline()
+    dt, src = start_with_source(load_config_dict(cfg), client, pipe)
+    d = dt.daemon
+    try:
+        for i in range(5):
+            src.put("pose", codec.encode_pose_with_covariance(1000 * 10**9 + i * 10**8, np.eye(4), COV))
+        wait_for(lambda: d.health.counts.get("poses", 0) == 5, 5.0, "the old timeline's poses")
+        for i in range(3):  # the source restarts at t = 5 s
+            src.stereo(5 * 10**9 + i * 10**8, pose_at(0.01 * i), seed=i, pose_first=pose_first)
+            time.sleep(0.05)
+        wait_for(lambda: _passed_on(d, pipe) + sum(d.health.dropped.values()) >= 3, 10.0, "three frames passed on or dropped")
+        time.sleep(0.1)
+        assert _passed_on(d, pipe) == 3, d.health.snapshot().get("dropped")
+        assert d.status()["waiting"]["pose_clock_jumps_back"] == 1
+    finally:
+        src.close()
+        dt.stop()
+
+
 def test_a_disparity_search_short_of_min_depth_is_logged_once_per_rig(
     port: int, client: zenoh.Session, caplog: pytest.LogCaptureFixture
 ) -> None:

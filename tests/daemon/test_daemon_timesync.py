@@ -64,6 +64,15 @@ def test_pose_buffer_interpolates_and_takes_latest_covariance() -> None:
     assert buf.lookup(300).state == "ready"
     assert buf.lookup(301).state == "wait"  # no pose after it yet
     assert buf.lookup(50).state == "fail"  # older than every pose
+    # as far back as a clock jump (max_gap before the newest pose): it may be the new timeline's
+    # first frame, whose pose is on its way, so it waits; the pose then restarts the buffer
+    far = PoseBuffer(capacity=10, max_gap_ns=100, default_cov=cov_default)
+    far.add(PoseSample(10_000, np.eye(4), None))
+    far.add(PoseSample(10_050, np.eye(4), None))
+    assert far.lookup(9_960).state == "fail"  # older, but within max_gap of the newest
+    assert far.lookup(9_940).state == "wait"
+    far.add(PoseSample(9_940, np.eye(4), None))
+    assert far.jumps_back == 1 and far.lookup(9_940).state == "ready"
     # before any covariance: the default
     buf2 = PoseBuffer(10, 10**9, cov_default)
     buf2.add(PoseSample(0, np.eye(4), None))
@@ -81,11 +90,16 @@ def test_pose_buffer_refuses_large_gaps_and_is_bounded() -> None:
     for t in (2000, 3000, 4000):
         buf.add(PoseSample(t, np.eye(4), None))
     assert len(buf) == 3
-    # out-of-order arrival is sorted in
+    # 3500 is more than max_gap before the newest (4000): a clock jump, the buffer starts afresh
     buf.add(PoseSample(3500, np.eye(4), None))
-    assert buf.lookup(3200).state == "fail"  # 3000 was evicted? no: gap 3000..3500 > 100
+    assert buf.jumps_back == 1 and len(buf) == 1
+    assert buf.lookup(3450).state == "fail"  # older than every pose, within max_gap
+    assert buf.lookup(3200).state == "wait"  # as far back as a jump: its pose may yet come
     buf.add(PoseSample(3550, np.eye(4), None))
     assert buf.lookup(3520).state == "ready"
+    # a late pose within max_gap of the newest is sorted in, not a jump
+    buf.add(PoseSample(3460, np.eye(4), None))
+    assert buf.jumps_back == 1 and len(buf) == 3 and buf.lookup(3480).state == "ready"
 
 
 def test_exact_pairer() -> None:
