@@ -528,6 +528,9 @@ def _drop_counts(st: dict[str, Any]) -> dict[str, int]:
         "unpaired": int(st["waiting"]["unpaired_dropped"]),
         "unpaired_waiting": int(st["waiting"]["unpaired"]),  # halves whose partner never came
         "lost_before_daemon": sum(st["upstream"]["lost"].values()),  # sequence gaps
+        # numbers below a publisher's first heard: the bench camera starts after the daemon
+        # subscribed and matched, so these were lost on the way (zenoh's DROP lost a first frame)
+        "lost_before_first_seen": sum(st["upstream"].get("before_first", {}).values()),
         "pose_wait_and_other": int(c.get("dropped", 0)),
         "rejected": int(c.get("rejected", 0)),
     }

@@ -40,13 +40,22 @@ Writer = Callable[[str], None]
 
 class SyntheticCamera:
     """Publishes StereoFrames as a stereo driver plus localiser would: CameraInfo x2, the pose
-    (PoseWithCovarianceStamped), the object mask, then the left and right images, one stamp."""
+    (PoseWithCovarianceStamped), the object mask, then the left and right images, one stamp.
+
+    Its puts use CongestionControl.BLOCK (a reliable, keep-all source, as rmw_zenoh maps
+    RELIABLE + KEEP_ALL): under DROP, zenoh drops a large put that finds no free TX batch within
+    ``wait_before_drop`` (1 ms by default) even on an idle loopback link, silently, and upstream
+    of any sequence number the daemon can check. The bench saw it lose a whole first frame
+    (mask and both images, the pose delivered) in about one run in fifteen while the daemon
+    was starting; the demo, the tests and the bench measure the daemon, so their source must
+    not lose frames of its own. ``congestion_control`` picks another policy."""
 
     ROLES = ("left_info", "right_info", "pose", "mask", "left_image", "right_image")
 
-    def __init__(self, session: zenoh.Session, topics: Any) -> None:
+    def __init__(self, session: zenoh.Session, topics: Any, congestion_control: Any = None) -> None:
         self.topics = topics
-        self.pubs = {r: Publisher(session, key_for(topics, r)) for r in self.ROLES}
+        cc = zenoh.CongestionControl.BLOCK if congestion_control is None else congestion_control
+        self.pubs = {r: Publisher(session, key_for(topics, r), congestion_control=cc) for r in self.ROLES}
         self.sent = 0
 
     def wait_matching(self, timeout_s: float) -> bool:

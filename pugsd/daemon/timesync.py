@@ -113,9 +113,10 @@ class PoseBuffer:
     A pose stamped more than ``max_gap_ns`` before the newest one means the pose source's clock went
     back (a restarted source, a replay loop, a stepped clock; zenoh delivers one publisher's samples
     in order): the buffer starts afresh from it (``jumps_back`` counts these), keeping only the newest
-    covariance. An image stamped that far back waits (for the restarted source's poses) rather than
-    failing at once: its pose may come after it. Kept, the old timeline's poses would stay "newest" and every later pose would be
-    evicted on arrival once the ring is full, so no frame would get a pose again.
+    covariance. Kept, the old timeline's poses would stay "newest" and every later pose would be
+    evicted on arrival once the ring is full, so no frame would get a pose again. An image stamped
+    that far before the newest pose waits (for the restarted source's poses) rather than failing
+    at once: its pose may come after it.
     """
 
     def __init__(self, capacity: int, max_gap_ns: int, default_cov: np.ndarray) -> None:

@@ -70,9 +70,12 @@ class SequenceTracker:
     in order, so this should stay 0). A number 1 after a higher one is a publisher that restarted
     under the same GID (a fixed zenoh id): counted as ``restarts``, and its numbering starts
     afresh. Samples without a valid attachment (plain zenoh publishers, zenoh-bridge-ros2dds keys)
-    are counted as ``untracked``. At most ``max_publishers`` GIDs are remembered per source (least
-    recently seen forgotten); a forgotten publisher that returns starts afresh. Thread-safe: zenoh
-    may call subscribers from several threads.
+    are counted as ``untracked``. The first number heard from a publisher is its baseline; the
+    numbers below it are counted as ``before_first`` (sent before we subscribed, or lost on the way:
+    a tracker cannot tell the two apart, a source started after pugsd can). At most
+    ``max_publishers`` GIDs are remembered per source (least recently seen forgotten); a forgotten
+    publisher that returns starts afresh (and its numbers below the new baseline count again).
+    Thread-safe: zenoh may call subscribers from several threads.
     """
 
     def __init__(self, max_publishers: int = 32) -> None:
@@ -82,6 +85,7 @@ class SequenceTracker:
         self.late: Counter[str] = Counter()
         self.restarts: Counter[str] = Counter()
         self.untracked: Counter[str] = Counter()
+        self.before_first: Counter[str] = Counter()
         self._lock = threading.Lock()
 
     def observe(self, source: str, attachment: bytes | None) -> int:
@@ -100,6 +104,8 @@ class SequenceTracker:
             if last is not None and seq == 1 and last > 1:  # restarted: resync
                 self.restarts[source] += 1
                 last = None
+            elif last is None and seq > 1:
+                self.before_first[source] += seq - 1
             elif last is not None and seq <= last:
                 self.late[source] += 1
                 seen.move_to_end(att.gid)
@@ -120,5 +126,6 @@ class SequenceTracker:
                 "late": dict(self.late),
                 "restarts": dict(self.restarts),
                 "untracked": dict(self.untracked),
+                "before_first": dict(self.before_first),
                 "publishers": {k: len(v) for k, v in self._last.items()},
             }

@@ -432,7 +432,8 @@ def test_frames_after_a_pose_clock_jump_are_kept_when_images_come_first(
         for i in range(3):  # the source restarts at t = 5 s
             src.stereo(5 * 10**9 + i * 10**8, pose_at(0.01 * i), seed=i, pose_first=pose_first)
             time.sleep(0.05)
-        wait_for(lambda: _passed_on(d, pipe) + sum(d.health.dropped.values()) >= 3, 10.0, "three frames passed on or dropped")
+        settled = lambda: _passed_on(d, pipe) + sum(d.health.dropped.values()) >= 3  # noqa: E731
+        wait_for(settled, 10.0, "three frames passed on or dropped")
         time.sleep(0.1)
         assert _passed_on(d, pipe) == 3, d.health.snapshot().get("dropped")
         assert d.status()["waiting"]["pose_clock_jumps_back"] == 1

@@ -101,6 +101,7 @@ def test_sequence_tracker_counts_gaps_late_and_untracked_per_publisher() -> None
         "late": {"img": 1},
         "restarts": {},
         "untracked": {"img": 2},
+        "before_first": {"img": 6, "pose": 4},  # 1-6 of A, 1-4 of A on pose; B began at 1
         "publishers": {"img": 2, "pose": 1},
     }
 
@@ -117,6 +118,7 @@ def test_sequence_tracker_forgets_the_least_recent_publisher() -> None:
     assert t.observe("x", encode_attachment(50, 0, g[0])) == 0  # back: a new baseline
     assert t.observe("x", encode_attachment(5, 0, g[1])) == 0  # g[1] forgotten in turn
     assert t.snapshot()["lost"] == {}
+    assert t.snapshot()["before_first"] == {"x": 49 + 4}  # a returning publisher counts again
 
 
 def test_sequence_tracker_resyncs_when_a_publisher_restarts_with_the_same_gid() -> None:
@@ -132,5 +134,6 @@ def test_sequence_tracker_resyncs_when_a_publisher_restarts_with_the_same_gid() 
     assert t.observe("img", encode_attachment(53, 0, g)) == 2  # gaps are seen again at once
     snap = t.snapshot()
     assert snap["restarts"] == {"img": 1} and snap["late"] == {} and snap["lost"] == {"img": 2}
+    assert snap["before_first"] == {}  # a restart begins at 1 again: nothing before it
     assert t.observe("img", encode_attachment(53, 0, g)) == 0  # a repeat is still late
     assert t.snapshot()["late"] == {"img": 1}
