@@ -83,6 +83,9 @@ def test_quick_json_is_well_formed(quick_json: dict[str, Any]) -> None:
     m = r["machine"]
     assert m["logical_cores"] >= 1 and m["torch_threads"] >= 1
     assert m["device"] in ("cpu", "cuda") and isinstance(m["cpu_model"], str)
+    from importlib import metadata
+
+    assert m["packages"]["gpytorch"] == metadata.version("gpytorch")  # read from the environment
     assert r["settings"]["downsample"] >= 1 and r["settings"]["n_frames"] == 3
 
 
