@@ -23,9 +23,11 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
+import ctypes
 import json
 import logging
 import math
+import os
 import re
 import sys
 import threading
@@ -96,6 +98,25 @@ def apply_thread_limits(cfg: Any) -> None:
     torch = sys.modules.get("torch")
     if cfg.daemon.torch_threads > 0 and torch is not None:
         torch.set_num_threads(cfg.daemon.torch_threads)
+
+
+_M_ARENA_MAX = -8  # glibc malloc.h
+
+
+def apply_malloc_arena_max(n: int) -> bool:
+    """``[daemon] malloc_arena_max``: cap glibc's malloc arenas (``mallopt(M_ARENA_MAX, n)``) for
+    the arenas created from now on, so call it before the threads start. Returns whether it was
+    set: not for ``n`` = 0, off glibc, or when the ``MALLOC_ARENA_MAX`` environment variable
+    already chose (glibc read it at start)."""
+    if n <= 0 or "MALLOC_ARENA_MAX" in os.environ or not sys.platform.startswith("linux"):
+        return False
+    try:
+        mallopt = ctypes.CDLL("libc.so.6").mallopt
+    except (OSError, AttributeError):  # musl and others: no mallopt
+        return False
+    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+    mallopt.restype = ctypes.c_int
+    return bool(mallopt(_M_ARENA_MAX, n))
 
 
 class InputRejected(PugsdError):

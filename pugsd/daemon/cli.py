@@ -11,7 +11,7 @@ import signal
 import sys
 
 from pugsd.config import PugsdConfig, core_of, load_config
-from pugsd.daemon.app import Daemon, apply_thread_limits
+from pugsd.daemon.app import Daemon, apply_malloc_arena_max, apply_thread_limits
 from pugsd.daemon.logs import setup_logging
 
 log = logging.getLogger(__name__)
@@ -49,6 +49,7 @@ def run_log_level(args: argparse.Namespace, cfg: PugsdConfig) -> str:
 
 def _run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, args.set or ())
+    apply_malloc_arena_max(cfg.daemon.malloc_arena_max)  # before torch and zenoh start threads
     setup_logging(run_log_level(args, cfg), cfg.daemon.log_json)
     from pugsd.models import make_pipeline  # torch import: only when serving
 

@@ -26,7 +26,7 @@ import zenoh
 from pugsd.config import PugsdConfig, core_of, load_config_dict
 from pugsd.core.camera import StereoRig
 from pugsd.core.types import StereoFrame
-from pugsd.daemon.app import Daemon, apply_thread_limits
+from pugsd.daemon.app import Daemon, apply_malloc_arena_max, apply_thread_limits
 from pugsd.errors import ConfigError, PugsdError
 from pugsd.wire import codec
 from pugsd.wire.publisher import Publisher
@@ -330,6 +330,7 @@ def run_demo(
 ) -> int:
     """Run the demo for ``duration_s``; returns 0 when scored grasps were received."""
     cfg = demo_config(listen, overrides)
+    apply_malloc_arena_max(cfg.daemon.malloc_arena_max)  # before the daemon's threads start
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.monotonic()

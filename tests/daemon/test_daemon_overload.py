@@ -6,7 +6,11 @@ is never blocked (publisher puts stay fast; the callbacks only hand bytes to the
 from __future__ import annotations
 
 import json
+import os
+import platform
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -150,3 +154,53 @@ def test_overload_real_pipeline(tmp_path: Path, port: int, client: zenoh.Session
     # bounded: no further growth once warmed up (model, TSDF, allocator pools), and a sane total
     assert growth < 150 and rss[-1][1] < 4096, summary
     assert pub["put_ms_p50"] < 5.0 and pub["put_ms_max"] < 500, summary
+
+
+_ARENA_PROBE = """
+import ctypes, sys, threading
+from pugsd.daemon.app import apply_malloc_arena_max
+applied = apply_malloc_arena_max(int(sys.argv[1]))
+libc = ctypes.CDLL("libc.so.6")
+libc.malloc.restype = ctypes.c_void_p
+libc.malloc.argtypes = [ctypes.c_size_t]
+barrier = threading.Barrier(6)
+held = []
+def work():
+    held.append([libc.malloc(4096) for _ in range(64)])  # all six threads alive at once
+    barrier.wait()
+ts = [threading.Thread(target=work) for _ in range(6)]
+for t in ts:
+    t.start()
+for t in ts:
+    t.join()
+sys.stdout.write(f"applied={applied}\\n")
+sys.stdout.flush()
+libc.malloc_stats()  # one "Arena N:" block per arena, on stderr
+"""
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="mallopt(M_ARENA_MAX) is glibc's")
+@pytest.mark.parametrize("arena_max", [0, 1, 2])
+def test_malloc_arena_max_caps_glibcs_arenas(arena_max: int) -> None:
+    """``[daemon] malloc_arena_max``: six threads allocating at once get at most that many
+    arenas (glibc's default gives them several); 0 leaves glibc's default."""
+    env = {k: v for k, v in os.environ.items() if k != "MALLOC_ARENA_MAX"}
+    r = subprocess.run(
+        [sys.executable, "-c", _ARENA_PROBE, str(arena_max)],
+        capture_output=True, text=True, timeout=60, env=env, check=True,
+    )  # fmt: skip
+    arenas = sum(line.startswith("Arena ") for line in r.stderr.splitlines())
+    assert f"applied={arena_max > 0}" in r.stdout
+    if arena_max:
+        assert arenas == arena_max, r.stderr
+    else:
+        assert arenas >= 3, r.stderr
+
+
+def test_malloc_arena_max_leaves_an_explicit_environment_alone(monkeypatch: pytest.MonkeyPatch) -> None:
+    from pugsd.daemon.app import apply_malloc_arena_max
+
+    monkeypatch.setenv("MALLOC_ARENA_MAX", "4")  # glibc read it at start: it wins
+    assert apply_malloc_arena_max(2) is False
+    monkeypatch.delenv("MALLOC_ARENA_MAX")
+    assert apply_malloc_arena_max(0) is False
