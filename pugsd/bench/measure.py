@@ -79,7 +79,7 @@ def machine_info(device: str) -> dict[str, Any]:
         "load_average_at_start": [round(x, 2) for x in os.getloadavg()],
         # the float arithmetic the SVGP runs on: the agreement figures move with it (the same code
         # and frames gave 0.459 and 0.698 on two set-ups, see docs/performance.md)
-        "torch_cpu_capability": _torch_cpu_capability(),
+        "torch_cpu_capability": str(torch.backends.cpu.get_cpu_capability()),  # torch >= 2.1
         "packages": _package_versions(
             ("numpy", "scipy", "gpytorch", "linear_operator", "opencv-python-headless", "open3d")
         ),
@@ -87,13 +87,6 @@ def machine_info(device: str) -> dict[str, Any]:
     if torch.cuda.is_available():
         info["cuda_device"] = torch.cuda.get_device_name(0)
     return info
-
-
-def _torch_cpu_capability() -> str | None:
-    try:
-        return str(torch.backends.cpu.get_cpu_capability())
-    except Exception:  # older torch: not reported
-        return None
 
 
 def _package_versions(names: Sequence[str]) -> dict[str, str | None]:
