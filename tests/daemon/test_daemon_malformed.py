@@ -15,10 +15,11 @@ import pytest
 import zenoh
 
 from pugsd.config import load_config_dict
+from pugsd.core.camera import PinholeCamera
 from pugsd.wire import codec
 from pugsd.wire.codec import serialize
-from pugsd.wire.types import IMAGE, POSE_COV_STAMPED, msg_class
-from tests.daemon.conftest import FakePipeline, daemon_config_dict, query_json, wait_for
+from pugsd.wire.types import CAMERA_INFO, IMAGE, POSE_COV_STAMPED, msg_class
+from tests.daemon.conftest import RIG, FakePipeline, daemon_config_dict, query_json, wait_for
 from tests.daemon.test_daemon_inprocess import start_with_source
 
 
@@ -137,3 +138,85 @@ def test_each_kind_of_bad_input_is_rejected_and_counted(
         src.close()
         dt.stop()
     time.sleep(0)
+
+
+def raw_camera_info(cam: PinholeCamera, fx: float, baseline_m: float = 0.0) -> bytes:
+    """A CameraInfo of ``cam``'s size whose K and P carry ``fx`` (NaN, 0, ...) as given."""
+    K = cam.K.copy()
+    K[0, 0] = fx
+    P = np.zeros((3, 4))
+    P[:, :3] = K
+    P[0, 3] = -fx * baseline_m
+    RoI = msg_class("sensor_msgs/msg/RegionOfInterest")
+    m = msg_class(CAMERA_INFO)(
+        header=_header(0),
+        height=cam.height,
+        width=cam.width,
+        distortion_model="plumb_bob",
+        d=np.zeros(5),
+        k=K.reshape(-1),
+        r=np.eye(3).reshape(-1),
+        p=P.reshape(-1),
+        binning_x=0,
+        binning_y=0,
+        roi=RoI(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+    )
+    return serialize(m, CAMERA_INFO)
+
+
+def test_bad_camera_info_is_rejected_and_frames_go_on_with_the_last_good_one(
+    port: int, client: zenoh.Session, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A CameraInfo that cannot describe a camera (NaN or zero focal length) is rejected and the
+    rig of the last good pair stays in use. A pair that is valid alone but not a rig (left and
+    right of different sizes) costs the frames it meets, counted against camera_info, until a
+    consistent pair comes."""
+    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    cfg = load_config_dict(daemon_config_dict(port))
+    pipe = FakePipeline()
+    dt, src = start_with_source(cfg, client, pipe)
+    d = dt.daemon
+    try:
+
+        def received(role: str) -> int:
+            return int(d.health.counts.get(f"received.{role}", 0))
+
+        wait_for(lambda: received("left_info") and received("right_info"), 10.0, "the first CameraInfo")
+        n_left, n_right = received("left_info"), received("right_info")
+        src.put("left_info", raw_camera_info(RIG.left, float("nan")))
+        src.put("right_info", raw_camera_info(RIG.left, 0.0, RIG.baseline_m))
+        want = {"left_info: bad_camera_info": 1, "right_info: bad_camera_info": 1}
+        wait_for(lambda: dict(d.health.rejected) == want, 10.0, f"rejections ({dict(d.health.rejected)})")
+        assert received("left_info") == n_left + 1 and received("right_info") == n_right + 1
+        logged = [r.getMessage() for r in caplog.records if "rejected" in r.getMessage()]
+        assert any("non-finite K or P" in m for m in logged), logged
+        assert any("invalid intrinsics" in m for m in logged), logged
+
+        # frames still pair and integrate on the earlier, good CameraInfo
+        src.stereo(10**9, np.eye(4))
+        wait_for(lambda: 10**9 in pipe.integrated, 10.0, "a frame after the bad CameraInfo")
+        assert pipe.frames[-1].camera == RIG.left
+
+        # a right camera of another size: each alone decodes, together they are no rig
+        other = PinholeCamera(fx=60.0, fy=60.0, cx=31.5, cy=23.5, width=32, height=48)
+        n_right = received("right_info")
+        src.put("right_info", codec.encode_camera_info(other, 0, "right", RIG.baseline_m))
+        wait_for(lambda: received("right_info") == n_right + 1, 10.0, "the mismatched CameraInfo")
+        src.stereo(2 * 10**9, np.eye(4))
+        want["camera_info: wrong_size"] = 1
+        wait_for(lambda: dict(d.health.rejected) == want, 10.0, f"rejections ({dict(d.health.rejected)})")
+        assert 2 * 10**9 not in pipe.integrated
+        assert any("left and right image sizes differ" in m for m in caplog.messages)
+
+        # a consistent pair again: frames flow
+        n_right = received("right_info")
+        src.infos()
+        wait_for(lambda: received("right_info") == n_right + 1, 10.0, "the corrected CameraInfo")
+        src.stereo(3 * 10**9, np.eye(4))
+        wait_for(lambda: 3 * 10**9 in pipe.integrated, 10.0, "a frame after the rig was corrected")
+        assert dict(d.health.rejected) == want
+        st = query_json(client, "pugs/status")
+        assert st["rejected"] == want
+    finally:
+        src.close()
+        dt.stop()
