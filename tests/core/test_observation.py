@@ -10,8 +10,8 @@ from pugsd.config import ObservationConfig
 from pugsd.core.camera import PinholeCamera
 from pugsd.core.geometry import make_T, skew
 from pugsd.core.observation import Observation, backproject_camera, to_world
-from pugsd.core.types import DepthFrame
-from pugsd.errors import CovarianceError, EmptyCloudError, ImageSizeError, PoseError
+from pugsd.core.types import DepthFrame, check_covariance, check_pose
+from pugsd.errors import CovarianceError, EmptyCloudError, ImageSizeError, InputError, PoseError
 
 
 def _rot_z(deg: float) -> np.ndarray:
@@ -104,3 +104,89 @@ def test_bad_inputs_are_typed_errors() -> None:
     frame = DepthFrame(1, np.full((24, 32), np.nan, np.float32), cam, np.eye(4))
     with pytest.raises(EmptyCloudError):
         Observation(ObservationConfig(), 0.001).backproject(frame)
+
+
+def _pose(rot: np.ndarray | None = None, last_row: tuple[float, ...] = (0, 0, 0, 1)) -> np.ndarray:
+    T = np.eye(4)
+    if rot is not None:
+        T[:3, :3] = rot
+    T[3] = last_row
+    return T
+
+
+@pytest.mark.parametrize(
+    ("T", "message"),
+    [
+        (np.eye(3), "expected a 4x4 transform"),
+        (_pose(np.diag([1.0, 1.0, -1.0])), r"not orthonormal with det \+1"),  # a reflection
+        (_pose(np.diag([1.0, 1.0, 1.01])), "not orthonormal"),  # a scaled axis
+        (_pose(last_row=(0, 0, 0.1, 1)), "last row"),
+        (_pose(np.full((3, 3), np.inf)), "non-finite"),
+    ],
+)
+def test_a_pose_that_is_no_rigid_transform_is_a_pose_error(T: np.ndarray, message: str) -> None:
+    with pytest.raises(PoseError, match=message):
+        check_pose(T, "T_W_C")
+
+
+def test_check_pose_accepts_a_rotation_and_returns_float64() -> None:
+    c, s = np.cos(0.3), np.sin(0.3)
+    T = _pose(np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], np.float32))
+    out = check_pose(T)
+    assert out.dtype == np.float64 and np.allclose(out, T, atol=1e-7)
+
+
+@pytest.mark.parametrize(
+    ("C", "message"),
+    [
+        (np.eye(3), "expected 6x6"),
+        (np.diag([1.0, 1, 1, 1, 1, np.nan]), "non-finite"),
+        (np.eye(6) + np.triu(np.ones((6, 6)), 1) * 0.1, "not symmetric"),
+        (np.diag([1e-6, 1e-6, 1e-6, 1e-6, 1e-6, -1e-7]), "not positive semi-definite"),
+    ],
+)
+def test_a_covariance_that_is_no_covariance_is_a_covariance_error(C: np.ndarray, message: str) -> None:
+    with pytest.raises(CovarianceError, match=message):
+        check_covariance(C, 6, "pose_cov")
+
+
+def test_check_covariance_judges_relative_to_its_scale_and_symmetrises() -> None:
+    # mm^2-scale variances with float32-level asymmetry: accepted and made exactly symmetric
+    C = np.diag([4e-6, 4e-6, 4e-6, 1e-8, 1e-8, 1e-8])
+    C[0, 1], C[1, 0] = 1e-7, 1e-7 * (1 + 1e-9)
+    out = check_covariance(C, 6)
+    assert np.array_equal(out, out.T) and out[0, 1] == pytest.approx(1e-7)
+    # a zero covariance (a pose without uncertainty) is PSD
+    assert not check_covariance(np.zeros((6, 6)), 6).any()
+    # rank-deficient but PSD: accepted; the same matrix pushed just below zero is not
+    v = np.arange(1.0, 7.0)
+    assert check_covariance(np.outer(v, v) * 1e-6, 6).shape == (6, 6)
+    with pytest.raises(CovarianceError):
+        check_covariance(np.outer(v, v) * 1e-6 - np.eye(6) * 1e-10, 6)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"sigma_m": np.zeros((10, 10), np.float32)}, "sigma_m is"),
+        ({"mask": np.ones((24, 31), bool)}, "mask is"),
+    ],
+)
+def test_depth_frame_side_images_must_match_the_camera(kwargs: dict[str, np.ndarray], message: str) -> None:
+    cam = PinholeCamera(100, 100, 15.5, 11.5, 32, 24)
+    with pytest.raises(ImageSizeError, match=message):
+        DepthFrame(1, np.zeros((24, 32), np.float32), cam, np.eye(4), **kwargs)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        ((0.0, 100, 15.5, 11.5, 32, 24), "invalid intrinsics"),
+        ((100, -1.0, 15.5, 11.5, 32, 24), "invalid intrinsics"),
+        ((100, 100, np.nan, 11.5, 32, 24), "invalid intrinsics"),
+        ((100, 100, 15.5, 11.5, 0, 24), "invalid image size"),
+    ],
+)
+def test_a_camera_without_valid_intrinsics_is_an_input_error(args: tuple[float, ...], message: str) -> None:
+    with pytest.raises(InputError, match=message):
+        PinholeCamera(*args)
