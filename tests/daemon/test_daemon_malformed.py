@@ -220,3 +220,39 @@ def test_bad_camera_info_is_rejected_and_frames_go_on_with_the_last_good_one(
     finally:
         src.close()
         dt.stop()
+
+
+def test_a_pair_that_does_not_match_or_a_depth_image_of_another_size_is_rejected(
+    port: int, client: zenoh.Session
+) -> None:
+    """Valid messages that do not fit together: a stereo pair with different encodings (mono8 and
+    rgb8 of the right size) and a depth image of another size than its CameraInfo. Each frame is
+    rejected, charged to the input at fault; the next good frame integrates."""
+    cfg = load_config_dict(daemon_config_dict(port))
+    pipe = FakePipeline()
+    dt, src = start_with_source(cfg, client, pipe)
+    d = dt.daemon
+    try:
+        h, w = RIG.left.height, RIG.left.width
+        src.put("pose", codec.encode_pose_with_covariance(10**9, np.eye(4), np.eye(6) * 1e-6))
+        src.put("left_image", codec.encode_image(np.zeros((h, w), np.uint8), 10**9, "left"))
+        src.put("right_image", codec.encode_image(np.zeros((h, w, 3), np.uint8), 10**9, "right", "rgb8"))
+        want = {"right_image: wrong_encoding": 1}
+        wait_for(lambda: dict(d.health.rejected) == want, 10.0, f"rejections ({dict(d.health.rejected)})")
+
+        src.put("depth_info", codec.encode_camera_info(RIG.left, 0, "depth"))
+        wait_for(lambda: d.health.counts.get("received.depth_info", 0) >= 1, 10.0, "the depth CameraInfo")
+        src.put("pose", codec.encode_pose_with_covariance(2 * 10**9, np.eye(4), np.eye(6) * 1e-6))
+        src.put("depth", codec.encode_image(np.full((h, w - 1), 0.5, np.float32), 2 * 10**9, "depth"))
+        want["depth: wrong_size"] = 1
+        wait_for(lambda: dict(d.health.rejected) == want, 10.0, f"rejections ({dict(d.health.rejected)})")
+        assert not pipe.integrated
+
+        src.stereo(3 * 10**9, np.eye(4))
+        src.put("pose", codec.encode_pose_with_covariance(4 * 10**9, np.eye(4), np.eye(6) * 1e-6))
+        src.put("depth", codec.encode_image(np.full((h, w), 0.5, np.float32), 4 * 10**9, "depth"))
+        wait_for(lambda: {3 * 10**9, 4 * 10**9} <= set(pipe.integrated), 10.0, "the good frames")
+        assert dict(d.health.rejected) == want
+    finally:
+        src.close()
+        dt.stop()
