@@ -91,6 +91,16 @@ def test_arm_execute_query(port: int, client: zenoh.Session, sim_process: int) -
         rep = reports[-1]
         assert rep["ok"] is True and rep["grasp_id"] == 7, rep
         assert_pose_within_convergence(rep)
+        # grasp 8 sits at the arm's base: refused before any motion, reported, and the daemon
+        # takes the next request
+        got.clear()
+        ok, text = _ask(client, key, "8")
+        assert ok and text == "accepted: grasp 8", text
+        assert got.wait(30.0), "no arm report for the refused grasp"
+        rep = reports[-1]
+        assert rep["ok"] is False and rep["grasp_id"] == 8 and "unreachable" in rep["error"], rep
+        assert dt.daemon.arm_report == rep
+        assert not dt.daemon._busy.get("arm")
     finally:
         sub.undeclare()
         dt.stop(15.0)
