@@ -12,10 +12,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import types
-import typing
 from collections.abc import Mapping
-from typing import Any, TypeVar, Union, get_args, get_origin, get_type_hints
+from typing import Any, TypeVar, get_args, get_origin, get_type_hints
 
 from pugsd.errors import ConfigError
 
@@ -35,13 +33,8 @@ def opt(
 ) -> Any:
     """Declare a config field with its documentation, unit and range."""
     meta = {"doc": doc, "unit": unit, "ge": ge, "gt": gt, "le": le, "lt": lt, "choices": choices}
-    if isinstance(default, (list, dict)):
-        frozen_default = json.loads(json.dumps(default))
-        return dataclasses.field(
-            default_factory=lambda: json.loads(json.dumps(frozen_default)), metadata=meta
-        )
-    if dataclasses.is_dataclass(default):
-        return dataclasses.field(default_factory=lambda: default, metadata=meta)
+    if isinstance(default, (list, dict)) or dataclasses.is_dataclass(default):
+        raise TypeError("opt() takes immutable scalar or tuple defaults; use a default_factory")
     return dataclasses.field(default=default, metadata=meta)
 
 
@@ -50,38 +43,20 @@ def _type_name(tp: Any) -> str:
 
 
 def _coerce(value: Any, tp: Any, path: str) -> Any:
-    """Check ``value`` against the annotation ``tp``; widen int to float; recurse into sections."""
+    """Check ``value`` against the annotation ``tp`` (a section, ``tuple[X, ...]``, ``dict``, ``float``,
+    ``int``, ``bool`` or ``str``); widen int to float; recurse into sections."""
     origin = get_origin(tp)
     if dataclasses.is_dataclass(tp) and isinstance(tp, type):
         if not isinstance(value, Mapping):
             raise ConfigError(f"{path}: expected a table, got {type(value).__name__}")
         return build(tp, value, path)
-    if origin in (Union, types.UnionType):
+    if origin is tuple:  # tuple[X, ...]: a TOML array of any length
         args = get_args(tp)
-        if value is None and type(None) in args:
-            return None
-        errors = []
-        for a in args:
-            if a is type(None):
-                continue
-            try:
-                return _coerce(value, a, path)
-            except ConfigError as exc:
-                errors.append(str(exc))
-        raise ConfigError(errors[0] if errors else f"{path}: invalid value")
-    if origin is typing.Literal:
-        if value not in get_args(tp):
-            raise ConfigError(f"{path}: {value!r} is not one of {list(get_args(tp))}")
-        return value
-    if origin in (tuple,):
-        args = get_args(tp)
+        if len(args) != 2 or args[1] is not Ellipsis:
+            raise ConfigError(f"{path}: unsupported config type {tp}")
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"{path}: expected an array, got {type(value).__name__}")
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_coerce(v, args[0], f"{path}[{i}]") for i, v in enumerate(value))
-        if len(value) != len(args):
-            raise ConfigError(f"{path}: expected {len(args)} values, got {len(value)}")
-        return tuple(_coerce(v, a, f"{path}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+        return tuple(_coerce(v, args[0], f"{path}[{i}]") for i, v in enumerate(value))
     if origin in (dict,) or tp is dict:
         if not isinstance(value, Mapping):
             raise ConfigError(f"{path}: expected a table, got {type(value).__name__}")

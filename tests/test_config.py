@@ -52,6 +52,15 @@ def test_every_key_is_documented() -> None:
         ({"stereo": {"block_size": 4}}, "block_size: must be odd"),
         ({"svgp": {"ngd_lr": True}}, "svgp.ngd_lr: expected a number"),
         ({"observation": {"regulariser_m": 0}}, "observation.regulariser_m: 0.0 must be greater"),
+        ({"fof": 3}, "fof: expected a table, got int"),
+        ({"arm": {"kinematics": {"joint_signs": 1.0}}}, "arm.kinematics.joint_signs: expected an array"),
+        (
+            {"arm": {"kinematics": {"joint_signs": [1.0, "x"]}}},
+            "arm.kinematics.joint_signs[1]: expected a number, got str",
+        ),
+        ({"zenoh": []}, "zenoh: expected a table, got list"),
+        ({"svgp": {"device": 1}}, "svgp.device: expected a string, got int"),
+        ({"daemon": {"log_json": "yes"}}, "daemon.log_json: expected true or false, got str"),
     ],
 )
 def test_bad_values_name_the_dotted_path(data: dict, message: str) -> None:  # type: ignore[type-arg]
@@ -86,9 +95,7 @@ def test_cli_check_config_exit_codes(tmp_path: Path) -> None:
     ko = subprocess.run([*run, str(bad)], capture_output=True, text=True, timeout=60)
     assert ko.returncode == 1
     assert "grasp.gama: unknown key" in ko.stderr
-    v = subprocess.run(
-        [sys.executable, "-m", "pugsd", "version"], capture_output=True, text=True, timeout=60
-    )
+    v = subprocess.run([sys.executable, "-m", "pugsd", "version"], capture_output=True, text=True, timeout=60)
     assert v.returncode == 0 and v.stdout.startswith("pugsd ")
 
 
@@ -223,3 +230,28 @@ def test_check_config_warns_when_the_approach_check_is_shorter_than_the_arms_sta
         f.write_text(text)
         assert main(["check-config", str(f)]) == 0
         assert "warning" not in capsys.readouterr().err, text
+
+
+def test_config_sections_declare_only_types_the_loader_checks() -> None:
+    """Every field of every section is a section, ``tuple[X, ...]``, dict, float, int, bool or str,
+    and opt() refuses mutable defaults (a shared list would leak between configs)."""
+    import dataclasses
+    import typing
+
+    from pugsd.config import PugsdConfig
+    from pugsd.configbase import opt
+
+    def walk(cls: type) -> None:
+        for name, tp in typing.get_type_hints(cls).items():
+            if dataclasses.is_dataclass(tp):
+                walk(tp)  # type: ignore[arg-type]
+                continue
+            origin = typing.get_origin(tp)
+            if origin is tuple:
+                assert typing.get_args(tp)[1] is Ellipsis, (cls, name, tp)
+            else:
+                assert tp in (dict, float, int, bool, str) or origin is dict, (cls, name, tp)
+
+    walk(PugsdConfig)
+    with pytest.raises(TypeError, match="default_factory"):
+        opt([1.0], "a list")
