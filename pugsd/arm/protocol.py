@@ -12,7 +12,7 @@ import enum
 import logging
 import math
 import struct
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -248,9 +248,6 @@ class Packet:
             raise DecodeError(f"{self.name}: {len(self.data)} data bytes is not a float array")
         return struct.unpack(f"<{n}f", self.data)
 
-    def to_wire(self) -> bytes:
-        return encode_frame(self)
-
 
 def encode_payload(packet_id: int, values: Values | Sequence[float] | Sequence[int]) -> bytes:
     """Typed values -> data bytes for ``packet_id`` (checks kind and count)."""
@@ -326,10 +323,6 @@ def encode_frame(packet: Packet) -> bytes:
     body = packet.data + bytes((packet.packet_id, packet.device_id, len(packet.data) + 4))
     raw = body + bytes((crc8(body),))
     return bytes(cobs.encode(raw)) + b"\x00"
-
-
-def encode_frames(packets: Iterable[Packet]) -> bytes:
-    return b"".join(encode_frame(p) for p in packets)
 
 
 def decode_frame(chunk: bytes) -> Packet:

@@ -141,9 +141,6 @@ class SimBravo7:
     def joint_speeds(self) -> np.ndarray:
         return np.array([abs(self.axes[d].vel) for d in JOINT_DEVICES])
 
-    def modes(self) -> dict[int, int]:
-        return {d: a.mode for d, a in self.axes.items()}
-
     def set_flags(self, device_id: int, flags: HardwareStatus) -> None:
         ax = self.axes[device_id]
         ax.flags = flags

@@ -63,14 +63,6 @@ class PinholeCamera:
         x = (u - self.cx - self.skew * y) / self.fx
         return np.stack([x, y, np.ones_like(x)], axis=-1)
 
-    def project(self, points_C: np.ndarray) -> np.ndarray:
-        """Project camera-frame points (N, 3) to pixels (N, 2)."""
-        p = np.asarray(points_C, dtype=np.float64)
-        z = p[:, 2]
-        u = (self.fx * p[:, 0] + self.skew * p[:, 1]) / z + self.cx
-        v = self.fy * p[:, 1] / z + self.cy
-        return np.stack([u, v], axis=-1)
-
 
 @dataclass(frozen=True, slots=True)
 class StereoRig:
@@ -82,6 +74,3 @@ class StereoRig:
     def __post_init__(self) -> None:
         if not np.isfinite(self.baseline_m) or self.baseline_m <= 0:
             raise InputError(f"invalid stereo baseline {self.baseline_m} m")
-
-    def scaled(self, factor: int) -> StereoRig:
-        return StereoRig(self.left.scaled(factor), self.baseline_m)

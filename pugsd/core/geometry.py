@@ -20,10 +20,6 @@ def skew(v: np.ndarray) -> np.ndarray:
     )
 
 
-def transform_points(T_A_B: np.ndarray, points_B: np.ndarray) -> np.ndarray:
-    return np.asarray(points_B) @ T_A_B[:3, :3].T + T_A_B[:3, 3]
-
-
 def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = R

@@ -526,10 +526,6 @@ def decode_grasp_array(data: bytes) -> ScoredGrasps:
     )
 
 
-def grasp_array_frame_id(data: bytes) -> str:
-    return str(deserialize(data, GRASP_ARRAY).header.frame_id)
-
-
 # ---------------------------------------------------------------------------------------------
 # visualization_msgs/MarkerArray
 

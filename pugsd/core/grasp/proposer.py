@@ -45,9 +45,6 @@ class GraspSet:
     def __len__(self) -> int:
         return int(self.width.shape[0])
 
-    def subset(self, idx: np.ndarray) -> GraspSet:
-        return GraspSet(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
-
 
 def grasp_poses(
     contact: np.ndarray,
