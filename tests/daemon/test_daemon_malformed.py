@@ -17,7 +17,7 @@ import zenoh
 from pugsd.config import load_config_dict
 from pugsd.core.camera import PinholeCamera
 from pugsd.wire import codec
-from pugsd.wire.codec import serialize
+from pugsd.wire.codec import deserialize, serialize
 from pugsd.wire.types import CAMERA_INFO, IMAGE, POSE_COV_STAMPED, msg_class
 from tests.daemon.conftest import RIG, FakePipeline, daemon_config_dict, query_json, wait_for
 from tests.daemon.test_daemon_inprocess import start_with_source
@@ -141,26 +141,12 @@ def test_each_kind_of_bad_input_is_rejected_and_counted(
 
 
 def raw_camera_info(cam: PinholeCamera, fx: float, baseline_m: float = 0.0) -> bytes:
-    """A CameraInfo of ``cam``'s size whose K and P carry ``fx`` (NaN, 0, ...) as given."""
-    K = cam.K.copy()
-    K[0, 0] = fx
-    P = np.zeros((3, 4))
-    P[:, :3] = K
-    P[0, 3] = -fx * baseline_m
-    RoI = msg_class("sensor_msgs/msg/RegionOfInterest")
-    m = msg_class(CAMERA_INFO)(
-        header=_header(0),
-        height=cam.height,
-        width=cam.width,
-        distortion_model="plumb_bob",
-        d=np.zeros(5),
-        k=K.reshape(-1),
-        r=np.eye(3).reshape(-1),
-        p=P.reshape(-1),
-        binning_x=0,
-        binning_y=0,
-        roi=RoI(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
-    )
+    """A CameraInfo of ``cam`` whose K and P carry ``fx`` (NaN, 0, ...) as given."""
+    m = deserialize(codec.encode_camera_info(cam, 0, "x", baseline_m), CAMERA_INFO)
+    m.k, m.p = m.k.copy(), m.p.copy()  # decoded arrays are read-only views
+    m.k[0] = fx
+    m.p[0] = fx
+    m.p[3] = -fx * baseline_m
     return serialize(m, CAMERA_INFO)
 
 
