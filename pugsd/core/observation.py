@@ -6,8 +6,12 @@ Eq. 2: ``Sigma_pc = J_d sigma_d^2 J_d^T = sigma_d^2 r r^T`` (rank 1, exact since
 Eq. 3: ``mu_pw = R mu_pc + t``;
   ``rotated`` (default): ``Sigma_pw = R Sigma_pc R^T + Sigma_t``
       ``= sigma_d^2/mu_d^2 (mu_pw - t)(mu_pw - t)^T + Sigma_t``, optionally with the rotation term
-      ``G Sigma_xi G^T``, ``G = [I, -[mu_pw]_x]`` from the 6x6 pose covariance (which then supplies
-      ``Sigma_t`` as its translation block);
+      ``G Sigma_pose G^T``, ``G = [I, -[mu_pw - t]_x]`` from the 6x6 pose covariance (which then
+      supplies ``Sigma_t`` as its translation block). The pose covariance is ROS's
+      (PoseWithCovariance): ``(dt, phi)``, the error of the camera centre and a small rotation
+      about the world axes through it (``t = t_bar + dt``, ``R = exp(phi^) R_bar``), so that
+      ``delta p = dt + phi x (p - t) = dt - [p - t]_x phi``. The lever arm is measured from the
+      camera, not from the world origin: the result does not depend on where the map's origin is;
   ``paper_literal``: ``Sigma_pw = Sigma_pc + Sigma_t`` (camera-frame needle, not rotated).
 A regulariser ``eps^2 I`` keeps every covariance invertible (the needle has rank 1).
 """
@@ -65,9 +69,9 @@ def to_world(
     else:
         cov_W = np.einsum("ij,njk,lk->nil", R, cov_C, R)
         if rotation_term:
-            # first order in a left perturbation xi = (rho, phi): delta p = rho - [p]_x phi
+            # first order in the pose error (dt, phi): delta p = dt - [p - t]_x phi (module doc)
             G = np.concatenate(
-                [np.broadcast_to(np.eye(3), (len(mu_W), 3, 3)), -skew(mu_W)], axis=2
+                [np.broadcast_to(np.eye(3), (len(mu_W), 3, 3)), -skew(mu_W - t)], axis=2
             )  # (N, 3, 6)
             cov_W = cov_W + np.einsum("nij,jk,nlk->nil", G, pose_cov, G)
         else:

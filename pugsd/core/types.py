@@ -2,8 +2,10 @@
 """Data that flows between the PUGS stages.
 
 Conventions: ``T_W_C`` is the 4x4 transform taking camera-frame points to the world frame.
-``pose_cov`` is the 6x6 covariance of a left perturbation ``T = exp(xi^) T_bar`` with
-``xi = (rho, phi)`` (translation first, metres and radians, world frame); its top-left 3x3 block
+``pose_cov`` is the 6x6 covariance of the camera pose's error in ROS's convention
+(``geometry_msgs/PoseWithCovariance``: x, y, z, rotation about the fixed X, Y, Z axes): ``(dt, phi)``
+with ``t = t_bar + dt`` the camera centre's error and ``R = exp(phi^) R_bar`` a small rotation about
+the world axes through the camera centre (metres and radians, world frame); its top-left 3x3 block
 is the paper's translation covariance ``Sigma_t``. Times are ``stamp_ns`` integers.
 """
 
@@ -62,7 +64,7 @@ class StereoFrame:
     right: np.ndarray
     rig: StereoRig
     T_W_C: np.ndarray  # (4, 4) left camera -> world
-    pose_cov: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))  # (6, 6) (rho, phi)
+    pose_cov: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))  # (6, 6) (dt, phi)
     mask: np.ndarray | None = None  # (H, W) bool, True on the object
 
     def __post_init__(self) -> None:

@@ -2,7 +2,7 @@
 """Time synchronisation of the inputs: stereo pairs by exact stamp, poses interpolated on SE(3).
 
 Pure buffers (no asyncio, no zenoh): the daemon feeds them on the loop thread and polls them.
-``T_W_C`` is camera -> world; ``pose_cov`` is the 6x6 (rho, phi) covariance of pugsd.core.types.
+``T_W_C`` is camera -> world; ``pose_cov`` is the 6x6 (dt, phi) covariance of pugsd.core.types.
 """
 
 from __future__ import annotations

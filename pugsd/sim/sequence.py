@@ -14,7 +14,9 @@ Trajectories (camera on a sphere around the object's bounding-box centre, lookin
   variance sigma_d^2 = 0.01 m^2 (``core_overrides``).
 
 Each reported pose ``T_W_C`` is the true pose perturbed by ``exp(xi^)`` (left perturbation, world
-frame) with ``xi = (rho, phi) ~ N(0, pose_cov)``; ``pose_cov`` is reported with the frame.
+frame) with ``xi = (rho, phi) ~ N(0, pose_covariance(spec))``. The frame reports that noise's
+covariance in the convention of pugsd.core.types (ROS's: camera-centre error ``dt``, rotation
+``phi`` about the world axes through the camera), ``reported_pose_covariance``.
 """
 
 from __future__ import annotations
@@ -167,8 +169,19 @@ def camera_path(
 
 
 def pose_covariance(spec: TrajectorySpec) -> np.ndarray:
-    """The 6x6 (rho, phi) pose covariance reported with every frame of a trajectory."""
+    """The 6x6 covariance of ``xi = (rho, phi)``, the trajectory's pose noise (``perturb_pose``)."""
     return np.diag([spec.sigma_t_m**2] * 3 + [spec.sigma_r_rad**2] * 3)
+
+
+def reported_pose_covariance(T_W_C: np.ndarray, cov_xi: np.ndarray) -> np.ndarray:
+    """The (dt, phi) covariance (pugsd.core.types) of the pose ``exp(xi^) T_W_C``, xi ~ N(0, cov_xi).
+
+    To first order ``t' = t + rho + phi x t``, so ``dt = rho - [t]_x phi``: ``B cov_xi B^T`` with
+    ``B = [[I, -[t]_x], [0, I]]``; the rotation error ``phi`` is the same in both.
+    """
+    B = np.eye(6)
+    B[:3, 3:] = -skew(np.asarray(T_W_C, float)[:3, 3])
+    return B @ np.asarray(cov_xi, float) @ B.T
 
 
 # ----------------------------------------------------------------------------- sequence
@@ -267,7 +280,7 @@ def make_sequence(
                 right=right,
                 rig=rig,
                 T_W_C=T_rep,
-                pose_cov=cov,
+                pose_cov=reported_pose_covariance(T_rep, cov),
                 mask=mask,
             )
         )

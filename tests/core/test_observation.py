@@ -60,19 +60,36 @@ def test_rotated_covariance_equals_closed_form() -> None:
 
 
 def test_rotation_term_matches_monte_carlo() -> None:
-    """G Sigma_xi G^T with G = [I, -[p]_x] is the first-order spread under small rotations."""
-    rng = np.random.default_rng(2)
-    pose_cov = np.diag([1e-6, 1e-6, 1e-6, 1e-5, 2e-5, 3e-5])
-    p = np.array([[0.2, -0.4, 1.0]])
-    _, cov_W = to_world(p, np.zeros((1, 3, 3)), np.eye(4), pose_cov, "rotated", True, 0.0)
-    G = np.hstack([np.eye(3), -skew(p[0])])
-    np.testing.assert_allclose(cov_W[0], G @ pose_cov @ G.T, atol=1e-18)
-    xi = rng.multivariate_normal(np.zeros(6), pose_cov, size=200_000)
+    """Eq. 3 with the rotation term is the first-order spread of world points when the camera
+    pose's error is ``(dt, phi)`` in ROS's convention (``t = t_bar + dt``, ``R = exp(phi^) R_bar``)
+    and the depth has its own noise: a rotated, offset camera, a correlated pose covariance and a
+    non-zero camera-frame covariance, against samples of exactly that model."""
     from scipy.spatial.transform import Rotation
 
-    Rs = Rotation.from_rotvec(xi[:, 3:]).as_matrix()
-    samples = np.einsum("nij,j->ni", Rs, p[0]) + xi[:, :3]
-    np.testing.assert_allclose(np.cov(samples.T), cov_W[0], rtol=0.05, atol=2e-8)
+    rng = np.random.default_rng(2)
+    R = _rot_z(37.0) @ np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0.0]])
+    t = np.array([0.4, -0.3, 0.6])
+    A = rng.normal(size=(6, 6)) * np.r_[[1e-3] * 3, [3e-3] * 3]
+    pose_cov = A @ A.T  # translation-rotation correlated
+    ray = np.array([[0.1, -0.05, 1.0]])
+    d, s2 = 0.8, 4e-6
+    mu_C, cov_C = backproject_camera(np.array([d]), ray, np.array([s2]))
+    mu_W, cov_W = to_world(mu_C, cov_C, make_T(R, t), pose_cov, "rotated", True, 0.0)
+    G = np.hstack([np.eye(3), -skew(mu_W[0] - t)])
+    np.testing.assert_allclose(cov_W[0], R @ cov_C[0] @ R.T + G @ pose_cov @ G.T, rtol=1e-12)
+    n = 200_000
+    xi = rng.multivariate_normal(np.zeros(6), pose_cov, size=n)
+    depth = d + np.sqrt(s2) * rng.standard_normal(n)
+    Rs = Rotation.from_rotvec(xi[:, 3:]).as_matrix() @ R
+    samples = np.einsum("nij,nj->ni", Rs, depth[:, None] * ray) + t + xi[:, :3]
+    np.testing.assert_allclose(np.cov(samples.T), cov_W[0], rtol=0.03, atol=3e-9)
+    # the lever arm is the camera's, so the covariance does not depend on where the map's origin
+    # is: the same camera and point 500 m away give the same covariance (a lever arm from the
+    # origin would give metres of spread for these milliradians)
+    off = np.array([500.0, -200.0, 30.0])
+    mu_W2, cov_W2 = to_world(mu_C, cov_C, make_T(R, t + off), pose_cov, "rotated", True, 0.0)
+    np.testing.assert_allclose(mu_W2[0], mu_W[0] + off, atol=1e-9)
+    np.testing.assert_allclose(cov_W2[0], cov_W[0], rtol=1e-9)
 
 
 def test_regulariser_makes_rank_one_invertible() -> None:

@@ -15,7 +15,13 @@ from pugsd.core.geometry import look_at
 from pugsd.sim import make_sequence, object_pose
 from pugsd.sim.objects import get_object
 from pugsd.sim.render import OBJECT_ID, World, default_rig, render_stereo
-from pugsd.sim.sequence import TRAJECTORY_SPECS, perturb_pose, pose_covariance, se3_exp
+from pugsd.sim.sequence import (
+    TRAJECTORY_SPECS,
+    perturb_pose,
+    pose_covariance,
+    reported_pose_covariance,
+    se3_exp,
+)
 
 
 def _sphere_world(r: float, c: np.ndarray) -> World:
@@ -101,16 +107,23 @@ def test_deterministic_for_a_seed() -> None:
 
 
 def test_pose_noise_follows_its_covariance() -> None:
+    """The covariance a frame reports is that of its pose noise in the core's convention:
+    ``dt = t - t_true`` and ``phi = log(R R_true^T)``, estimated from 20000 noisy poses."""
+    from scipy.spatial.transform import Rotation
+
     rng = np.random.default_rng(0)
-    cov = pose_covariance(TRAJECTORY_SPECS["noisy_partial"])
+    cov_xi = pose_covariance(TRAJECTORY_SPECS["noisy_partial"])
     T0 = look_at(np.array([0.3, -0.3, 0.3]), np.zeros(3))
-    dt = np.array([perturb_pose(T0, cov, rng)[:3, 3] - T0[:3, 3] for _ in range(4000)])
-    # left perturbation: translation error = J rho + (R(phi) - I) t; at |t| ~ 0.5 m the rotation
-    # adds sigma_r |t| per axis, so compare the covariance of the translation error with that
-    sig_t = np.sqrt(cov[0, 0])
-    assert np.std(dt, axis=0).min() > 0.9 * sig_t
-    assert np.std(dt, axis=0).max() < 1.1 * np.hypot(sig_t, np.sqrt(cov[3, 3]) * 0.52)
-    assert np.abs(dt.mean(axis=0)).max() < 4 * sig_t / np.sqrt(4000) * 2
+    Ts = [perturb_pose(T0, cov_xi, rng) for _ in range(20_000)]
+    err = np.array(
+        [np.r_[T[:3, 3] - T0[:3, 3], Rotation.from_matrix(T[:3, :3] @ T0[:3, :3].T).as_rotvec()] for T in Ts]
+    )
+    reported = reported_pose_covariance(T0, cov_xi)
+    scale = np.sqrt(np.outer(np.diag(reported), np.diag(reported)))
+    np.testing.assert_allclose(np.cov(err.T) / scale, reported / scale, atol=0.03)
+    # the rotation noise about the world origin moves the camera centre: dt is correlated with phi
+    assert np.abs(reported[:3, 3:]).max() > 0.5 * cov_xi[3, 3] * 0.3
+    assert np.abs(err.mean(axis=0) / np.sqrt(np.diag(reported))).max() < 4 / np.sqrt(20_000) * 2
     # se3_exp of a pure translation is a translation
     T = se3_exp(np.array([0.1, -0.2, 0.3, 0, 0, 0]))
     np.testing.assert_allclose(T[:3, 3], [0.1, -0.2, 0.3])
