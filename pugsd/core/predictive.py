@@ -29,6 +29,7 @@ from typing import Any
 import gpytorch
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from pugsd.config import SvgpConfig
 from pugsd.errors import ConfigError, EmptyCloudError, ModelNotReadyError
@@ -49,17 +50,29 @@ def resolve_num_inducing(num_inducing: int, device_type: str) -> int:
     return NUM_INDUCING_AUTO_CUDA if device_type == "cuda" else NUM_INDUCING_AUTO_CPU
 
 
-def farthest_point_sample(points: np.ndarray, m: int, seed: int = 0) -> np.ndarray:
-    """Indices of ``m`` farthest-point samples (greedy, O(N m))."""
+def farthest_point_sample(
+    points: np.ndarray, m: int, seed: int = 0, chosen: np.ndarray | None = None
+) -> np.ndarray:
+    """Indices of ``m`` farthest-point samples (greedy, O(N m)). With ``chosen`` (K, 3) points
+    already in the sample, the greedy sample continues from them (the first pick is the point
+    farthest from them, not a random one)."""
     n = len(points)
     if n == 0:
         return np.zeros(0, dtype=np.int64)
     m = min(m, n)
-    rng = np.random.default_rng(seed)
     idx = np.empty(m, dtype=np.int64)
-    idx[0] = rng.integers(n)
-    d2 = ((points - points[idx[0]]) ** 2).sum(1)
-    for i in range(1, m):
+    if m == 0:
+        return idx
+    if chosen is not None and len(chosen):
+        d2 = np.full(n, np.inf)
+        for c in np.asarray(chosen, dtype=np.float64):
+            d2 = np.minimum(d2, ((points - c) ** 2).sum(1))
+        start = 0
+    else:
+        idx[0] = np.random.default_rng(seed).integers(n)
+        d2 = ((points - points[idx[0]]) ** 2).sum(1)
+        start = 1
+    for i in range(start, m):
         idx[i] = int(np.argmax(d2))
         d2 = np.minimum(d2, ((points - points[idx[i]]) ** 2).sum(1))
     return idx
@@ -279,7 +292,7 @@ class OccupancySVGP:
             self._init_model(x, y)
         else:
             try:
-                moved = self._cover_new_region(x, new_idx)
+                moved = self._grow_inducing(x) + self._cover_new_region(x, new_idx)
             except (RuntimeError, ValueError) as exc:  # NotPSDError while re-projecting q(u)
                 self._recover(exc, n)
                 return TrainStats(self.total_steps, float("nan"), False, 0, n)
@@ -363,6 +376,40 @@ class OccupancySVGP:
         slope = self.elbo_slope()
         return slope is not None and abs(slope) < self.cfg.ready_elbo_slope
 
+    def _grow_inducing(self, x: np.ndarray) -> int:
+        """Add inducing points while the model has fewer than ``min(M, N)``: the model was created
+        on a store smaller than M (a first frame that saw little, the first one after a reset) and
+        would otherwise keep that count for good.
+
+        The new points continue the farthest-point sample of the store from the current inducing
+        points; the model is rebuilt with the same hyperparameters and q(u) re-projected onto the
+        larger set (``_whitened_posterior_at``), so the posterior does not jump; the optimizers
+        start afresh (their parameters changed shape). Returns the number of points added."""
+        assert self.model is not None and self.likelihood is not None
+        vs = self.model.variational_strategy
+        Z = vs.inducing_points.detach()
+        m_old = len(Z)
+        m_target = min(self.num_inducing, len(x))
+        if m_old >= m_target:
+            return 0
+        add = farthest_point_sample(x, m_target - m_old, chosen=Z.double().cpu().numpy())
+        with torch.no_grad():
+            Z_new = torch.cat([Z, self._t(x[add])])
+            m_w, S_w = self._whitened_posterior_at(Z_new)
+            model = _SVGP(Z_new, self.natural, self.cfg.kernel, self.cfg.lengthscale_init_m)
+            model = model.to(device=self.device, dtype=self.dtype)
+            model.covar_module.load_state_dict(self.model.covar_module.state_dict())
+            model.variational_strategy.variational_params_initialized.fill_(1)
+        self.model = model
+        self._write_whitened_q(m_w, S_w)
+        self._mll = gpytorch.mlls.VariationalELBO(self.likelihood, self.model, num_data=len(x))
+        self._make_optimizers(len(x))
+        self._save_good_state()  # a later failure restores this model, not one of the old size
+        self.version += 1
+        self._moves.append((self.total_steps, m_target - m_old))
+        log.info("SVGP: %d inducing points added (%d of %d)", m_target - m_old, m_target, self.num_inducing)
+        return m_target - m_old
+
     def _cover_new_region(self, x: np.ndarray, new_idx: np.ndarray) -> int:
         """Swap inducing points into newly observed regions and re-project q(u) (Sec. 5.1).
 
@@ -415,7 +462,7 @@ class OccupancySVGP:
         np.fill_diagonal(D, np.inf)
         thresh = self.cfg.spread_factor * float(np.median(D.min(1)))
         cand = x[new_idx]
-        dc = np.sqrt(((cand[:, None, :] - Z[None, :, :]) ** 2).sum(-1)).min(1)
+        dc = cKDTree(Z).query(cand)[0]  # distance to the nearest inducing point (no (n, M, 3) temporary)
         kmax = max(1, int(0.3 * m))
         fresh = np.zeros(m, dtype=bool)  # placed in this update: not removed again
         k = 0
@@ -472,6 +519,13 @@ class OccupancySVGP:
 
         Float64 throughout (float32 algebra, without the nugget, changed predictive variances by
         ~10 % on an identity re-projection). The prior mean is zero (``_SVGP``)."""
+        m_new, S_new = self._whitened_posterior_at(Z_new)
+        assert self.model is not None
+        self.model.variational_strategy.inducing_points.data.copy_(Z_new)
+        self._write_whitened_q(m_new, S_new)  # also drops the cached factors of Kzz (Z changed)
+
+    def _whitened_posterior_at(self, Z_new: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The whitened q(v_new) = N(m, S) that ``_reproject`` writes for ``Z_new`` (any count)."""
         assert self.model is not None
         model = self.model
         vs = model.variational_strategy
@@ -497,8 +551,7 @@ class OccupancySVGP:
             tmp = torch.linalg.solve_triangular(L_new, cov, upper=False)
             S_new = torch.linalg.solve_triangular(L_new, tmp.mT, upper=False).mT
             S_new = 0.5 * (S_new + S_new.mT) + 1e-10 * eye_new
-            vs.inducing_points.data.copy_(Z_new)
-            self._write_whitened_q(m_new, S_new)  # also drops the cached factors of Kzz (Z changed)
+        return m_new, S_new
 
     def _write_whitened_q(
         self, m_w: torch.Tensor, S_w: torch.Tensor, S_inv: torch.Tensor | None = None

@@ -49,9 +49,56 @@ def test_variance_low_near_data_high_far(trained: tuple[OccupancySVGP, np.ndarra
 
 
 def test_eq8_scaling(trained: tuple[OccupancySVGP, np.ndarray]) -> None:
+    """Eq. 8 on the predictions in the units asked for: with targets trained divided by ``s``
+    (``svgp.output_units = "density"``), the mean maps back as ``s mu``, the variance as
+    ``s^2 var``, and Eq. 8 applies to those."""
     m, x = trained
     mu, var, var_pred = m.predict(x[:50])
     np.testing.assert_allclose(var_pred, var / (1.0 + np.abs(mu)))
+    s = 37.0
+    mu_s, var_s, var_pred_s = m.predict(x[:50], scale=s)
+    np.testing.assert_allclose(mu_s, s * mu, rtol=1e-12)
+    np.testing.assert_allclose(var_s, s**2 * var, rtol=1e-12)
+    np.testing.assert_allclose(var_pred_s, s**2 * var / (1.0 + s * np.abs(mu)), rtol=1e-12)
+    assert not np.allclose(var_pred_s, s**2 * var_pred)  # Eq. 8 after the units, not before
+
+
+def test_inducing_set_grows_when_the_first_store_was_small() -> None:
+    """A model created on a store smaller than M (a first frame that saw little) grows to M once
+    the store has the points; q(u) re-projected onto the larger set keeps the predictions (the
+    added inducing variables follow the prior given the old ones), and training goes on."""
+    rng = np.random.default_rng(0)
+    x1 = rng.uniform(0.0, 0.02, (40, 3))
+    x2 = rng.uniform(-0.1, 0.1, (3000, 3))
+    X = np.vstack([x1, x2])
+    y = _field(X)
+    m = OccupancySVGP(SvgpConfig(num_inducing=120, seed=0, inducing_policy="spread"))
+    m.update(x1, y[:40], np.arange(40), steps=20)
+    assert len(m.model.variational_strategy.inducing_points) == 40
+    q = rng.uniform(-0.1, 0.1, (300, 3))
+    mu0, var0, _ = m.predict(q)
+    st = m.update(X, y, np.zeros(0, np.int64), steps=0)  # no new-region moves: growth only
+    Z = m.model.variational_strategy.inducing_points.detach().numpy()
+    assert len(Z) == 120 and st.inducing_moved == 80
+    mu1, var1, _ = m.predict(q)
+    np.testing.assert_allclose(mu1, mu0, atol=2e-3 * np.abs(mu0).max())
+    np.testing.assert_allclose(var1, var0, rtol=2e-3)
+    # the added points spread over the new data (a farthest-point continuation): the farthest
+    # any observed point is from an inducing point shrinks several-fold
+
+    def gap(Zs: np.ndarray) -> float:
+        return float(np.sqrt(((X[:, None, :] - Zs[None]) ** 2).sum(-1)).min(1).max())
+
+    assert gap(Z) < 0.3 * gap(Z[:40])
+    # and the grown model trains: the ELBO rises on the full store
+    e0 = m.elbo_per_point(X, y)
+    m.update(X, y, np.zeros(0, np.int64), steps=60)
+    assert m.elbo_per_point(X, y) > e0
+    # a store that stays below M grows no further than the store
+    small = OccupancySVGP(SvgpConfig(num_inducing=120, seed=0))
+    small.update(x1[:10], y[:10], np.arange(10), steps=2)
+    small.update(x1, y[:40], np.arange(10, 40), steps=2)
+    assert len(small.model.variational_strategy.inducing_points) == 40
 
 
 def test_reprojection_onto_the_same_points_keeps_predictions(
