@@ -24,7 +24,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from pugsd.config import FofConfig
-from pugsd.errors import ConfigError, EmptyCloudError
+from pugsd.errors import ConfigError, EmptyCloudError, InputError
 
 _LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -176,6 +176,7 @@ class FofStore:
 
     def reset(self) -> None:
         self._index: dict[int, int] = {}
+        self._key_origin: np.ndarray | None = None  # voxel index the hash keys are relative to
         cap = 1024
         self._count = np.zeros(cap)
         self._sum_prec = np.zeros((cap, 3, 3))
@@ -221,8 +222,23 @@ class FofStore:
             setattr(self, name, arr)
 
     def _keys(self, points_W: np.ndarray) -> np.ndarray:
-        ijk = np.floor(points_W / self.cfg.voxel_size_m).astype(np.int64) + (1 << 20)
-        return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+        """Voxel hash keys, 21 bits per axis: voxel indices relative to the first observation's
+        voxel (so that a map far from its frame's origin, e.g. in UTM coordinates, hashes as well
+        as one near it), +-2^20 voxels (+-4194 m at 4 mm). Points beyond that are refused
+        (InputError) before anything is stored: packed, they would collide with other voxels."""
+        ijk = np.floor(points_W / self.cfg.voxel_size_m).astype(np.int64)
+        origin = ijk[0] if self._key_origin is None else self._key_origin
+        rel = ijk - origin + (1 << 20)
+        if rel.min() < 0 or rel.max() >= (1 << 21):
+            far = float(np.abs(rel - (1 << 20)).max()) * self.cfg.voxel_size_m
+            span = (1 << 20) * self.cfg.voxel_size_m
+            raise InputError(
+                f"points {far:.0f} m from the map's first observation along an axis: beyond the "
+                f"voxel hash's +-{span:.0f} m at {self.cfg.voxel_size_m * 1000:g} mm voxels "
+                "(reset the map, or use larger voxels)"
+            )
+        self._key_origin = origin
+        return (rel[:, 0] << 42) | (rel[:, 1] << 21) | rel[:, 2]
 
     def insert(self, points_W: np.ndarray, cov_W: np.ndarray) -> np.ndarray:
         """Add Gaussians; returns the indices of the voxels touched (marked dirty)."""

@@ -16,6 +16,7 @@ from pugsd.core.fof import (
     precision_and_logdet,
     responsibilities,
 )
+from pugsd.errors import InputError
 
 
 def test_two_gaussian_case_by_hand() -> None:
@@ -106,6 +107,29 @@ def test_incremental_targets_match_full_while_views_overlap() -> None:
     # a local change refreshes a neighbourhood, not the store
     store.insert(np.array([[0.05, 0.0, 0.01], [0.0501, 0.001, 0.011]]), np.eye(3)[None].repeat(2, 0) * 1e-6)
     assert 0 < store.update_targets() < 0.5 * len(store)
+
+
+def test_voxel_hash_is_relative_to_the_first_observation_and_refuses_what_it_cannot_key() -> None:
+    """A map far from its frame's origin (UTM easting and northing, 4 km deep) keeps its voxels
+    apart exactly as one at the origin does; points beyond the hash's +-2^20 voxels from the first
+    observation are refused before anything is stored, not folded onto other voxels."""
+    cov = np.tile(np.eye(3) * 1e-6, (4, 1, 1))
+    local = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0021, 0.3, -0.2], [0.0061, 0.3, -0.2]])
+    for offset in ([0.0, 0.0, 0.0], [500_000.0, 4_200_000.0, -4200.0], [-7000.0, 9000.0, 0.0]):
+        s = FofStore(FofConfig(voxel_size_m=0.004))
+        s.insert(local + offset, cov)
+        assert len(s) == 4
+        np.testing.assert_allclose(np.sort(s.mu_W[:4] - offset, axis=0), np.sort(local, axis=0), atol=1e-6)
+    s = FofStore(FofConfig(voxel_size_m=0.004))
+    s.insert(local, cov)
+    with pytest.raises(InputError, match="voxel hash"):
+        s.insert(local + np.array([0.0, 0.0, -4200.0]), cov)
+    assert len(s) == 4 and s.weight.sum() == 4  # nothing of the refused batch was stored
+    s.insert(local + np.array([0.0, 0.0, -4100.0]), cov)  # within +-4194 m of the first observation
+    assert len(s) == 8
+    s.reset()  # a reset re-centres the hash
+    s.insert(local + np.array([0.0, 0.0, -4200.0]), cov)
+    assert len(s) == 4
 
 
 def test_store_cap_evicts_oldest() -> None:
