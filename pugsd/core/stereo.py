@@ -33,11 +33,16 @@ def _gray(img: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
-def _down(img: np.ndarray, factor: int, interp: int) -> np.ndarray:
+def _down(img: np.ndarray, factor: int, interp: int = cv2.INTER_AREA) -> np.ndarray:
+    """Downsample by ``factor`` (``INTER_AREA``: block means of ``factor`` x ``factor`` pixels), the
+    image ``PinholeCamera.scaled(factor)`` describes. A size that is not a multiple of the factor
+    loses its last rows and columns (resizing the whole image would stretch it by
+    ``W / (W // factor)`` instead of ``factor``)."""
     if factor == 1:
         return img
     h, w = img.shape[:2]
-    return cv2.resize(img, (w // factor, h // factor), interpolation=interp)
+    crop = np.ascontiguousarray(img[: h - h % factor, : w - w % factor])
+    return cv2.resize(crop, (w // factor, h // factor), interpolation=interp)
 
 
 def disparity_levels(cfg: StereoConfig, rig: StereoRig) -> int:
@@ -92,8 +97,8 @@ class StereoDepth:
         c = self.cfg
         f = c.downsample
         cam = frame.rig.left.scaled(f)
-        left = _down(_gray(frame.left), f, cv2.INTER_AREA)
-        right = _down(_gray(frame.right), f, cv2.INTER_AREA)
+        left = _down(_gray(frame.left), f)
+        right = _down(_gray(frame.right), f)
         disp = self._matcher(1, frame.rig).compute(left, right).astype(np.float32) / 16.0
         fb = cam.fx * frame.rig.baseline_m
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -110,7 +115,7 @@ class StereoDepth:
         sigma[~np.isfinite(depth)] = np.nan
         color = None
         if frame.left.ndim == 3:
-            color = _down(frame.left, f, cv2.INTER_AREA)
+            color = _down(frame.left, f)
         return DepthFrame(
             stamp_ns=frame.stamp_ns,
             depth_m=depth,

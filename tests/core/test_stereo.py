@@ -102,3 +102,28 @@ def test_a_surface_nearer_than_the_old_fixed_search_gets_its_depth(seq) -> None:
     assert n_auto > 50 and n_old > 50
     assert err_auto < 0.005
     assert err_old > 0.008  # measured 3.1 mm sized from the rig, 11.6 mm with the old 64 px
+
+
+@pytest.mark.parametrize("width", [1280, 1241])
+def test_downsampled_image_matches_the_scaled_camera(width: int) -> None:
+    """The matcher's downsampled image is the one ``PinholeCamera.scaled`` describes, also when the
+    width is not a multiple of the factor: a bright 4x4 block near the right edge lands where the
+    scaled intrinsics put it (a resize of the whole width would stretch it by W / (W // 4))."""
+    from pugsd.core.camera import PinholeCamera
+    from pugsd.core.stereo import _down
+
+    f, height = 4, 64
+    cx, cy = width / 2 - 0.5, height / 2 - 0.5
+    cam = PinholeCamera(fx=900.0, fy=900.0, cx=cx, cy=cy, width=width, height=height)
+    img = np.zeros((height, width), np.uint8)
+    u0, v0 = 1200, 20  # block [u0, u0 + 4) x [v0, v0 + 4): centre (u0 + 1.5, v0 + 1.5)
+    img[v0 : v0 + 4, u0 : u0 + 4] = 255
+    small = _down(img, f).astype(np.float64)
+    sc = cam.scaled(f)
+    assert small.shape == (sc.height, sc.width)
+    uu = np.mgrid[: small.shape[0], : small.shape[1]][1]
+    u_small = (uu * small).sum() / small.sum()
+    # the full-resolution ray through the block's centre, projected with the scaled camera
+    ray = np.linalg.solve(cam.K, [u0 + 1.5, v0 + 1.5, 1.0])
+    u_expected = (sc.K @ ray)[0]
+    assert u_small == pytest.approx(u_expected, abs=0.02)
