@@ -53,8 +53,11 @@ def test_exact_for_quadratic_functions(alpha: float, beta: float, kappa: float) 
     np.testing.assert_allclose(est, exact, rtol=1e-10)
 
 
-def test_total_variance_of_a_linear_field() -> None:
-    """For mu(p) = g^T p and constant predictive variance v: Var = v + g^T S g (exact)."""
+@pytest.mark.parametrize("beta", [0.0, 2.0])
+def test_total_variance_of_a_linear_field(beta: float) -> None:
+    """For mu(p) = g^T p and constant predictive variance v: Var = v + g^T S g (exact). With
+    beta = 2, w_sigma differs from w_mu (at the centre point, where a linear field's spread
+    term vanishes): the predictive variances must be weighted by w_mu (sum 1), not w_sigma."""
     rng = np.random.default_rng(6)
     m = rng.normal(size=(3, 3))
     B = rng.normal(size=(3, 3, 3)) * 0.1
@@ -65,11 +68,13 @@ def test_total_variance_of_a_linear_field() -> None:
     def predict(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return p @ g, np.full(len(p), v)
 
-    mu, var = algorithm1(m, S, predict, form="total")
+    mu, var = algorithm1(m, S, predict, form="total", beta=beta)
     np.testing.assert_allclose(mu, m @ g, rtol=1e-12)
     np.testing.assert_allclose(var, v + np.einsum("i,nij,j->n", g, S, g), rtol=1e-10)
-    _, var_lit = algorithm1(m, S, predict, form="paper_literal")
-    np.testing.assert_allclose(var_lit, v)  # the literal form ignores the spread of the means
+    _, var_lit = algorithm1(m, S, predict, form="paper_literal", beta=beta)
+    # spec 2.8 form (A), sum w_sigma sigma2: ignores the spread of the means; the w_sigma sum to
+    # 2 - alpha^2 + beta
+    np.testing.assert_allclose(var_lit, v * (1.0 + beta))
 
 
 def test_tiny_alpha_warns() -> None:
