@@ -85,6 +85,18 @@ class PoseSample:
     cov: np.ndarray | None  # (6, 6) or None when the message carried no covariance
 
 
+def default_pose_cov(std_translation_m: float, std_rotation_rad: float) -> np.ndarray:
+    """The 6x6 covariance of ``[daemon] pose_std_translation_m`` / ``pose_std_rotation_rad``:
+    given to PoseStamped input, and used before any pose carried a covariance."""
+    return np.diag([std_translation_m**2] * 3 + [std_rotation_rad**2] * 3).astype(np.float64)
+
+
+def carried_cov(cov: np.ndarray | None) -> np.ndarray | None:
+    """A pose message's covariance as the pose buffer takes it: an all-zero matrix (a source
+    that fills none in) counts as none, so the latest real one (or the default) applies."""
+    return cov if cov is not None and np.any(cov != 0.0) else None
+
+
 class PoseLookup:
     """A pose query's outcome: ``ready`` (pose + covariance), ``wait`` or ``fail`` (reason)."""
 

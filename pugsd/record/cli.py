@@ -94,7 +94,9 @@ def _record(args: argparse.Namespace) -> int:
     s = rec.stats
     sys.stderr.write(
         f"pugsd record: {s.written} written, {s.dropped_queue} dropped (slow disk), "
-        f"{s.dropped_error} dropped (disk error), {s.unknown_type} of unknown type\n"
+        f"{s.dropped_error} dropped (disk error), {s.dropped_invalid} dropped (time or sequence out of "
+        f"range), {s.unknown_type} of unknown type, {s.deletes} zenoh deletes skipped, "
+        f"{s.callback_errors} lost to callback errors\n"
     )
     for f in files:
         sys.stdout.write(f"{f}\n")

@@ -6,11 +6,14 @@ Threading: :meth:`Recorder.put` and the zenoh callback only append to a bounded 
 counted when full), so recording never blocks the caller. One writer thread owns the MCAP writer:
 it takes one message at a time, writes ZSTD chunks, closes the open chunk every
 ``flush_interval_s``, rotates files by size and duration, writes each file as ``NAME.mcap.part``
-and renames it to ``NAME.mcap`` when finished. ``stats.written`` counts messages whose chunk
-reached the file; ``stats.buffered`` those in the open chunk. An ``OSError`` from the disk
-(``ENOSPC`` included) is logged and reported in :attr:`Recorder.stats`; the messages of the lost
-chunk and everything after are counted as dropped instead of crashing the host.
-"""
+and renames it to ``NAME.mcap`` when finished. A file name is never reused: the ``.part`` is
+created exclusively and the index bumped while a ``.part`` or ``.mcap`` of that name exists (two
+recorders started in the same second in one directory), and a finished file never replaces one.
+``stats.written`` counts messages whose chunk reached the file; ``stats.buffered`` those in the
+open chunk. An ``OSError`` from the disk (``ENOSPC`` included) is logged and reported in
+:attr:`Recorder.stats`; the messages of the lost chunk and everything after are counted as
+dropped instead of crashing the host. Times and sequence numbers are checked against MCAP's
+unsigned fields before a message reaches the writer: one bad value must not corrupt a chunk."""
 
 from __future__ import annotations
 
@@ -35,17 +38,60 @@ from pugsd.errors import ConfigError, DecodeError
 from pugsd.record.config import RecordConfig
 from pugsd.record.mcapio import ChannelTable, metadata_json, new_writer, versions
 from pugsd.wire.attachment import decode_attachment
-from pugsd.wire.keys import parse_key
+from pugsd.wire.keys import parse_key, strip_topic
 from pugsd.wire.types import known_type
 
 log = logging.getLogger(__name__)
 
 Opener = Callable[[Path], IO[bytes]]
 
+U64_MAX = 2**64 - 1  # MCAP log_time / publish_time are uint64
+U32_MAX = 2**32 - 1  # MCAP sequence is uint32
+_MAX_NAME_TRIES = 10_000
+
 
 def _default_opener(path: Path) -> IO[bytes]:
-    # unbuffered: every record the mcap writer emits reaches the OS at once (crash safety)
-    return open(path, "wb", buffering=0)
+    # unbuffered: every record the mcap writer emits reaches the OS at once (crash safety);
+    # "xb": O_EXCL, never truncates another recorder's file (FileExistsError instead)
+    return open(path, "xb", buffering=0)
+
+
+def _invalid_fields(log_time: int, publish_time: int, sequence: int) -> str:
+    """What does not fit the MCAP Message record ("" when all fit). Checked before
+    ``Writer.add_message``: a value ``struct.pack`` refuses would leave the open chunk with its
+    index and counts updated but the record half written (every later message unreadable)."""
+    bad = []
+    if not 0 <= log_time <= U64_MAX:
+        bad.append(f"log_time {log_time}")
+    if not 0 <= publish_time <= U64_MAX:
+        bad.append(f"publish_time {publish_time}")
+    if not 0 <= sequence <= U32_MAX:
+        bad.append(f"sequence {sequence}")
+    return ", ".join(bad)
+
+
+def _is_delete(sample: Any) -> bool:
+    import zenoh  # the zenoh callback path only
+
+    return bool(getattr(sample, "kind", None) == zenoh.SampleKind.DELETE)
+
+
+def _link_noreplace(src: Path, dst: Path) -> None:
+    """Rename ``src`` to ``dst`` unless ``dst`` exists (FileExistsError then; ``src`` kept).
+    A hard link + unlink is atomic about that; where the filesystem has no hard links, an
+    existence check before the rename (racy only against a writer that ignores O_EXCL)."""
+    try:
+        os.link(src, dst)
+    except FileExistsError:
+        raise
+    except OSError as exc:
+        if exc.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV, errno.EMLINK):
+            raise
+        if dst.exists():
+            raise FileExistsError(errno.EEXIST, "file exists", str(dst)) from None
+        src.rename(dst)
+        return
+    src.unlink()
 
 
 def _fsync(fh: Any) -> None:
@@ -119,15 +165,21 @@ class _Item:
 
 @dataclass
 class RecorderStats:
-    """Counters (read them from any thread; they are updated without locks, monotonically)."""
+    """Counters (read them from any thread; they only grow; those updated from more than one
+    thread are updated under the recorder's lock)."""
 
     received: int = 0
     written: int = 0  # in the file: their chunk was written
     buffered: int = 0  # in the open chunk, not in the file yet
     dropped_queue: int = 0  # oldest dropped because the writer fell behind
-    dropped_error: int = 0  # dropped because the disk failed
+    dropped_error: int = 0  # dropped because the disk failed (or the writer refused the message)
+    dropped_invalid: int = 0  # times or sequence outside the MCAP ranges (uint64 / uint32)
     unknown_type: int = 0  # samples whose ROS type could not be determined
-    bad_attachment: int = 0  # samples without a valid rmw_zenoh attachment (publish_time = log)
+    # samples without a valid rmw_zenoh attachment, or whose source time is negative: publish_time
+    # is then the receive time
+    bad_attachment: int = 0
+    deletes: int = 0  # zenoh DELETE samples (no message to record): skipped
+    callback_errors: int = 0  # samples lost to an exception in the zenoh callback
     files_finished: int = 0
     bytes_written: int = 0  # finished files plus the current file so far
     disk_full: bool = False
@@ -181,7 +233,8 @@ class Recorder:
         self.cfg = cfg
         self.directory = Path(directory if directory is not None else cfg.directory)
         self.queue_size = int(queue_size)
-        self.topic_types = dict(topic_types or {})
+        # ROS topic ("/a/b", normalised as the wire layer does) -> type
+        self.topic_types = {"/" + strip_topic(k): v for k, v in (topic_types or {}).items()}
         self.metadata = {k: dict(v) for k, v in (metadata or {}).items()}
         self._open = opener or _default_opener
         self._clock = clock
@@ -269,13 +322,20 @@ class Recorder:
         publish_time_ns: int | None = None,
         sequence: int = 0,
     ) -> bool:
-        """Queue one message; never blocks. Returns False if it (or an older one) was dropped."""
+        """Queue one message; never blocks. Returns False if it (or an older one) was dropped.
+        Times must fit MCAP's uint64 and ``sequence`` its uint32, else the message is dropped
+        and counted in ``stats.dropped_invalid``."""
         now = self._clock() if log_time_ns is None else int(log_time_ns)
         pub = now if publish_time_ns is None else int(publish_time_ns)
         item = _Item(topic, typename, key, bytes(data), now, pub, int(sequence))
+        bad = _invalid_fields(item.log_time, item.publish_time, item.sequence)
         ok = True
         with self._cv:
             self.stats.received += 1
+            if bad:
+                self.stats.dropped_invalid += 1
+                log.debug("recorder: dropped a %s message: %s out of range", topic, bad)
+                return False
             if self._failed or self._stop:
                 self.stats.dropped_error += 1
                 return False
@@ -306,7 +366,9 @@ class Recorder:
         log_time_ns: int | None = None,
     ) -> bool:
         """Queue a zenoh sample: topic and type from the key (rmw_zenoh) or ``topic_types``
-        (ros2dds); publish time and sequence from the rmw_zenoh attachment when present."""
+        (ros2dds); publish time and sequence from the rmw_zenoh attachment when present. A
+        negative source time (any int64 is valid on the wire, MCAP's publish_time is unsigned)
+        is replaced by the receive time and counted in ``stats.bad_attachment``."""
         now = self._clock() if log_time_ns is None else int(log_time_ns)
         try:
             info = parse_key(key)
@@ -325,7 +387,11 @@ class Recorder:
         if attachment is not None:
             try:
                 att = decode_attachment(attachment)
-                pub, seq = att.source_timestamp_ns, att.sequence_number
+                seq = att.sequence_number
+                if 0 <= att.source_timestamp_ns <= U64_MAX:
+                    pub = att.source_timestamp_ns
+                else:
+                    att = None  # publish_time = receive time, counted below
             except DecodeError:
                 att = None
         if att is None:
@@ -336,8 +402,14 @@ class Recorder:
                         sequence=seq & 0xFFFFFFFF)  # fmt: skip
 
     def on_sample(self, sample: Any) -> None:
-        """zenoh subscriber callback: copies key, payload and attachment, queues; never blocks."""
+        """zenoh subscriber callback: copies key, payload and attachment, queues; never blocks.
+        DELETE samples carry no message: they are skipped and counted in ``stats.deletes``."""
         try:
+            if _is_delete(sample):
+                with self._cv:
+                    self.stats.received += 1
+                    self.stats.deletes += 1
+                return
             now = self._clock()
             att = sample.attachment
             self.put_sample(
@@ -347,7 +419,11 @@ class Recorder:
                 now,
             )
         except Exception as exc:  # never let an exception into zenoh's thread
-            log.warning("recorder: dropped a sample: %s", exc)
+            with self._cv:
+                self.stats.callback_errors += 1
+                n = self.stats.callback_errors
+            if n <= 5 or n % 100 == 0:
+                log.warning("recorder: dropped a sample (%d so far): %s", n, exc)
 
     def subscribe(self, session: Any, key_exprs: Iterable[str]) -> list[Any]:
         """Declare one subscriber per key expression feeding :meth:`on_sample`; ConfigError
@@ -407,6 +483,10 @@ class Recorder:
             return 1.0
         return max(0.01, self.cfg.flush_interval_s - (time.monotonic() - self._last_flush))
 
+    def _count_dropped_error(self, n: int = 1) -> None:
+        with self._cv:  # put() updates it from other threads
+            self.stats.dropped_error += n
+
     def _fail(self, exc: OSError, what: str) -> None:
         self._failed = True
         self.stats.disk_full = exc.errno == errno.ENOSPC
@@ -430,19 +510,25 @@ class Recorder:
 
     def _drop_pending(self) -> None:
         """The open chunk is lost: its messages count as dropped."""
-        self.stats.dropped_error += self._pending
+        self._count_dropped_error(self._pending)
         self._pending = 0
         self.stats.buffered = 0
 
     def _write(self, item: _Item) -> None:
         if self._failed:
-            self.stats.dropped_error += 1
+            self._count_dropped_error()
+            return
+        bad = _invalid_fields(item.log_time, item.publish_time, item.sequence)
+        if bad:  # (put() checks too) never hand add_message what it cannot pack
+            with self._cv:
+                self.stats.dropped_invalid += 1
+            log.warning("recorder: dropped a %s message: %s out of range", item.topic, bad)
             return
         in_chunk = False
         try:
             self._maybe_rotate()
             if self._table is None or self._writer is None:  # failed while rotating
-                self.stats.dropped_error += 1
+                self._count_dropped_error()
                 return
             cid = self._table.channel_id(item.topic, item.typename, item.key)
             self._pending += 1  # before add_message: it may write the chunk (then _commit_chunk)
@@ -451,14 +537,14 @@ class Recorder:
             self.stats.buffered = self._pending
         except OSError as exc:
             if not in_chunk:
-                self.stats.dropped_error += 1
+                self._count_dropped_error()
             self._fail(exc, "write")  # the open chunk, this message included, is dropped
             self._close_file(finish=False)
         except Exception as exc:  # a bad message must not kill the writer thread
             if in_chunk:  # it did not make it into the chunk
                 self._pending = max(0, self._pending - 1)
                 self.stats.buffered = self._pending
-            self.stats.dropped_error += 1
+            self._count_dropped_error()
             self.stats.error = f"write {item.topic}: {type(exc).__name__}: {exc}"
             log.exception("recorder: dropped a %s message", item.topic)
 
@@ -494,11 +580,27 @@ class Recorder:
             return
         self._open_file()
 
+    def _file_name(self) -> str:
+        return f"{self.cfg.name_prefix}_{self._session_stamp}_{self._file_index:03d}.mcap"
+
     def _open_file(self) -> None:
-        self._file_index += 1
-        name = f"{self.cfg.name_prefix}_{self._session_stamp}_{self._file_index:03d}.mcap"
-        self._part = self.directory / (name + ".part")
-        self._fh = _Passthrough(self._open(self._part), on_chunk=self._commit_chunk)
+        """Open the next ``.part`` exclusively: the index is bumped past every name another
+        recorder (same second, same directory) holds as ``.part`` or ``.mcap``."""
+        for _ in range(_MAX_NAME_TRIES):
+            self._file_index += 1
+            final = self.directory / self._file_name()
+            part = final.with_name(final.name + ".part")
+            if final.exists():
+                continue
+            try:
+                f = self._open(part)  # FileExistsError when the name is taken
+            except FileExistsError:
+                continue
+            break
+        else:
+            raise OSError(errno.EEXIST, f"no free file name after {_MAX_NAME_TRIES} tries", str(part))
+        self._part = part
+        self._fh = _Passthrough(f, on_chunk=self._commit_chunk)
         self._writer = new_writer(self._fh, self.cfg.chunk_size_bytes, self.cfg.compression)
         self._table = ChannelTable(self._writer)
         v = versions()
@@ -545,9 +647,8 @@ class Recorder:
                 self._fail(exc, "close")
             ok = False
         if ok:
-            final = part.with_name(part.name[: -len(".part")])
             try:
-                part.replace(final)
+                final = self._publish(part)
             except OSError as exc:
                 self._fail(exc, "rename")
                 return
@@ -557,3 +658,17 @@ class Recorder:
             log.info("recorder: finished %s", final)
         else:
             log.error("recorder: left %s unfinished (use `pugsd mcap recover`)", part)
+
+    def _publish(self, part: Path) -> Path:
+        """Rename the finished ``.part`` to its ``.mcap`` name, or to a later free index when that
+        name has appeared meanwhile: a finished file is never replaced."""
+        final = part.with_name(part.name[: -len(".part")])
+        for _ in range(_MAX_NAME_TRIES):
+            try:
+                _link_noreplace(part, final)
+                return final
+            except FileExistsError:
+                log.warning("recorder: %s exists; not replacing it", final)
+                self._file_index += 1
+                final = self.directory / self._file_name()
+        raise OSError(errno.EEXIST, f"no free file name after {_MAX_NAME_TRIES} tries", str(part))

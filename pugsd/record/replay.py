@@ -1,15 +1,17 @@
 # SPDX-License-Identifier: Apache-2.0
 """``pugsd replay``: run the PUGS pipeline directly on a recording, without zenoh.
 
-Frames are assembled as the daemon does: left/right images paired by exact stamp, the rig from
-the latest left/right CameraInfo, the pose interpolated to the image stamp (SE(3): linear
-translation, slerp rotation) between the bracketing poses, the covariance from the latest pose
-that carries one, the mask by exact stamp. Deterministic for a given file, config and seed.
+Frames are assembled as the daemon does: topic names normalised (``camera_pose`` =
+``/camera_pose/`` = ``/camera_pose``), left/right images paired by exact stamp, the rig from the
+latest left/right CameraInfo, the pose from the daemon's own :class:`PoseBuffer` (interpolated to
+the image stamp between bracketing poses at most ``[daemon] pose_max_gap_s`` apart; the
+covariance from the latest pose that carries a non-zero one, else ``[daemon] pose_std_*``, which
+PoseStamped input also gets), the mask by exact stamp. Deterministic for a given file, config
+and seed.
 """
 
 from __future__ import annotations
 
-import bisect
 import json
 import logging
 from collections.abc import Iterable, Iterator
@@ -21,31 +23,25 @@ import numpy as np
 
 from pugsd.core.camera import StereoRig
 from pugsd.core.types import ScoredGrasps, StereoFrame
-from pugsd.daemon.config import TopicsConfig
-from pugsd.errors import DecodeError, InputError
+from pugsd.daemon.config import DaemonConfig, TopicsConfig
+from pugsd.daemon.timesync import PoseBuffer, PoseLookup, PoseSample, carried_cov, default_pose_cov
+from pugsd.errors import ConfigError, DecodeError, InputError
 from pugsd.record.mcapio import ChannelTable, iter_recording, new_writer, versions
 from pugsd.wire import codec
+from pugsd.wire.keys import strip_topic
 from pugsd.wire.topics import ROLE_TYPES, key_for
 from pugsd.wire.types import POSE_COV_STAMPED
 
 log = logging.getLogger(__name__)
 
+#: poses kept for interpolation (offline there is no reason for the daemon's small real-time ring)
+POSE_CAPACITY = 10_000
+_ROLES = ("left_image", "right_image", "left_info", "right_info", "pose", "mask")
 
-def _slerp_T(T0: np.ndarray, T1: np.ndarray, s: float) -> np.ndarray:
-    q0 = np.array(codec.matrix_to_quat(T0[:3, :3]))
-    q1 = np.array(codec.matrix_to_quat(T1[:3, :3]))
-    d = float(np.dot(q0, q1))
-    if d < 0:
-        q1, d = -q1, -d
-    if d > 0.9995:
-        q = q0 + s * (q1 - q0)
-    else:
-        th = np.arccos(min(1.0, d))
-        q = (np.sin((1 - s) * th) * q0 + np.sin(s * th) * q1) / np.sin(th)
-    T = np.eye(4)
-    T[:3, :3] = codec.quat_to_matrix(*q)
-    T[:3, 3] = (1 - s) * T0[:3, 3] + s * T1[:3, 3]
-    return T
+
+def _norm_topic(topic: str) -> str:
+    """``/a/b`` for ``a/b``, ``/a/b/`` ...: the ROS name the wire layer uses for the key."""
+    return "/" + strip_topic(topic)
 
 
 @dataclass
@@ -63,45 +59,56 @@ class _FrameAssembler:
     def __init__(
         self,
         topics: TopicsConfig,
-        pose_cov: np.ndarray | None,
+        pose_cov: np.ndarray,
         max_pose_gap_ns: int,
         stats: AssembleStats,
         max_pending: int,
+        pose_capacity: int = POSE_CAPACITY,
     ) -> None:
         self.t = topics
-        self.pose_cov = pose_cov
-        self.max_gap = max_pose_gap_ns
+        self.pose_cov = pose_cov  # PoseStamped input, and before any pose carried a covariance
         self.st = stats
         self.max_pending = max_pending
+        # normalised topic -> role (the first role listed wins when two share a topic)
+        self.roles: dict[str, str] = {}
+        for role in reversed(_ROLES):
+            self.roles[_norm_topic(getattr(topics, role))] = role
+        self._seen: dict[str, str] = {}  # recorded topic -> role ("" when none)
         self.left: dict[int, codec.ImageMsg] = {}
         self.right: dict[int, codec.ImageMsg] = {}
         self.masks: dict[int, np.ndarray] = {}
         self.rigs: dict[int, StereoRig | None] = {}  # stamp -> rig when the pair completed
         self.info: dict[str, codec.CameraInfoMsg] = {}
-        self.pstamps: list[int] = []
-        self.poses: list[tuple[np.ndarray, np.ndarray | None]] = []
+        self.poses = PoseBuffer(pose_capacity, int(max_pose_gap_ns), pose_cov)
         self.newest_image = -1
 
+    def _role(self, topic: str) -> str:
+        role = self._seen.get(topic)
+        if role is None:
+            try:
+                role = self.roles.get(_norm_topic(topic), "")
+            except ConfigError:  # not a valid ROS name: none of ours
+                role = ""
+            self._seen[topic] = role
+        return role
+
     def feed(self, topic: str, typename: str, data: bytes) -> list[StereoFrame]:
-        t = self.t
+        role = self._role(topic)
+        if not role:
+            return []
         try:
-            if topic in (t.left_image, t.right_image):
+            if role in ("left_image", "right_image"):
                 img = codec.decode_image(data, ("mono8", "rgb8", "bgr8"))
-                (self.left if topic == t.left_image else self.right)[img.stamp_ns] = img
+                (self.left if role == "left_image" else self.right)[img.stamp_ns] = img
                 if img.stamp_ns in self.left and img.stamp_ns in self.right:
                     self.rigs[img.stamp_ns] = self._rig()
                 self._note_image(img.stamp_ns)
-            elif topic in (t.left_info, t.right_info):
-                self.info["l" if topic == t.left_info else "r"] = codec.decode_camera_info(data)
-            elif topic == t.pose:
+            elif role in ("left_info", "right_info"):
+                self.info["l" if role == "left_info" else "r"] = codec.decode_camera_info(data)
+            elif role == "pose":
                 p = codec.decode_pose(data, typename or POSE_COV_STAMPED, self.pose_cov)
-                i = bisect.bisect_left(self.pstamps, p.stamp_ns)
-                if i < len(self.pstamps) and self.pstamps[i] == p.stamp_ns:
-                    self.poses[i] = (p.T, p.cov)
-                else:
-                    self.pstamps.insert(i, p.stamp_ns)
-                    self.poses.insert(i, (p.T, p.cov))
-            elif topic == t.mask:
+                self.poses.add(PoseSample(p.stamp_ns, p.T, carried_cov(p.cov)))
+            elif role == "mask":
                 mk = codec.decode_image(data, ("mono8",))
                 self.masks[mk.stamp_ns] = mk.array > 0
                 self._note_image(mk.stamp_ns)
@@ -122,39 +129,27 @@ class _FrameAssembler:
             log.warning("replay: %s", exc)
             return None
 
-    def _pose(self, stamp: int) -> tuple[np.ndarray, np.ndarray] | None:
-        j = bisect.bisect_left(self.pstamps, stamp)
-        if j < len(self.pstamps) and self.pstamps[j] == stamp:
-            T = self.poses[j][0]
-        elif 0 < j < len(self.pstamps) and self.pstamps[j] - self.pstamps[j - 1] <= self.max_gap:
-            s = (stamp - self.pstamps[j - 1]) / (self.pstamps[j] - self.pstamps[j - 1])
-            T = _slerp_T(self.poses[j - 1][0], self.poses[j][0], s)
-        else:
-            return None
-        cov = next((c for _, c in reversed(self.poses[: j + 1]) if c is not None), None)
-        return T, (np.zeros((6, 6)) if cov is None else cov)
-
     def _emit(self, final: bool) -> list[StereoFrame]:
         out: list[StereoFrame] = []
         for stamp in sorted(self.rigs):
             # wait for everything of this stamp (mask, a later pose) until a newer image arrives
             if not final and stamp >= self.newest_image:
                 break
-            pose = self._pose(stamp)
-            newer_pose = bool(self.pstamps) and self.pstamps[-1] >= stamp
-            if pose is None and not final and not newer_pose and len(self.rigs) <= self.max_pending:
+            pose: PoseLookup = self.poses.lookup(stamp)
+            if pose.state == "wait" and not final and len(self.rigs) <= self.max_pending:
                 continue  # a bracketing pose may still come
             rig = self.rigs.pop(stamp) or self._rig()  # infos may come after images
             left, right = self.left.pop(stamp), self.right.pop(stamp)
             mask = self.masks.pop(stamp, None)
             if rig is None:
                 self.st.no_info += 1
-            elif pose is None:
+            elif pose.state != "ready" or pose.T_W_C is None or pose.cov is None:
                 self.st.no_pose += 1
+                log.debug("replay: frame %d has no pose: %s", stamp, pose.reason)
             else:
                 try:
                     out.append(StereoFrame(stamp, left.rgb_or_mono(), right.rgb_or_mono(), rig,
-                                           pose[0], pose[1], mask))  # fmt: skip
+                                           pose.T_W_C, pose.cov, mask))  # fmt: skip
                 except InputError as exc:
                     self.st.rejected += 1
                     log.warning("replay: frame %d rejected: %s", stamp, exc)
@@ -177,9 +172,6 @@ class _FrameAssembler:
         keep = max(0, len(self.masks) - 2 * self.max_pending)
         for s in sorted(self.masks)[:keep]:
             del self.masks[s]
-        if len(self.pstamps) > 100_000:  # poses are small; keep a long history anyway
-            del self.pstamps[:50_000]
-            del self.poses[:50_000]
 
     def finish(self) -> list[StereoFrame]:
         return self._emit(final=True)
@@ -189,18 +181,30 @@ def iter_frames(
     paths: Iterable[str | Path],
     topics: TopicsConfig | None = None,
     *,
+    daemon: DaemonConfig | None = None,
     pose_cov: np.ndarray | None = None,
-    max_pose_gap_ns: int = 1_000_000_000,
+    max_pose_gap_ns: int | None = None,
     stats: AssembleStats | None = None,
     max_pending: int = 32,
+    pose_capacity: int = POSE_CAPACITY,
 ) -> Iterator[StereoFrame]:
     """StereoFrames of a recording, streamed in stamp order with bounded memory: left/right
     paired by exact stamp, the rig from the latest CameraInfos when the pair completes, the pose
-    exact or interpolated between bracketing poses (gap <= ``max_pose_gap_ns``), the covariance
-    from the latest pose carrying one, the mask by stamp. ``pose_cov`` is the covariance given to
-    ``PoseStamped`` messages."""
+    exact or interpolated between bracketing poses (the daemon's :class:`PoseBuffer`), the
+    covariance from the latest pose carrying a non-zero one, the mask by stamp.
+
+    ``daemon`` (``[daemon]``, default: its defaults) gives ``max_pose_gap_ns``
+    (``pose_max_gap_s``) and ``pose_cov`` (``pose_std_translation_m`` / ``pose_std_rotation_rad``:
+    the covariance of ``PoseStamped`` input and of frames before any pose carried one) unless
+    these are given explicitly."""
+    d = daemon if daemon is not None else DaemonConfig()
+    if pose_cov is None:
+        pose_cov = default_pose_cov(d.pose_std_translation_m, d.pose_std_rotation_rad)
+    if max_pose_gap_ns is None:
+        max_pose_gap_ns = int(d.pose_max_gap_s * 1e9)
     st = stats if stats is not None else AssembleStats()
-    asm = _FrameAssembler(topics or TopicsConfig(), pose_cov, max_pose_gap_ns, st, max_pending)
+    asm = _FrameAssembler(topics or TopicsConfig(), np.asarray(pose_cov, dtype=np.float64), max_pose_gap_ns,
+                          st, max_pending, pose_capacity)  # fmt: skip
     for m in iter_recording(paths):
         yield from asm.feed(m.topic, m.typename, m.data)
     yield from asm.finish()
@@ -210,13 +214,14 @@ def assemble_frames(
     paths: Iterable[str | Path],
     topics: TopicsConfig | None = None,
     *,
+    daemon: DaemonConfig | None = None,
     pose_cov: np.ndarray | None = None,
-    max_pose_gap_ns: int = 1_000_000_000,
+    max_pose_gap_ns: int | None = None,
     stats: AssembleStats | None = None,
 ) -> list[StereoFrame]:
     """All frames of :func:`iter_frames` as a list."""
-    return list(iter_frames(paths, topics, pose_cov=pose_cov, max_pose_gap_ns=max_pose_gap_ns,
-                            stats=stats))  # fmt: skip
+    return list(iter_frames(paths, topics, daemon=daemon, pose_cov=pose_cov,
+                            max_pose_gap_ns=max_pose_gap_ns, stats=stats))  # fmt: skip
 
 
 @dataclass
@@ -261,7 +266,7 @@ def replay(
 
     pipe = make_pipeline(core_of(cfg), seed)
     n = 0
-    for f in iter_frames(paths, cfg.topics, stats=ast):
+    for f in iter_frames(paths, cfg.topics, daemon=cfg.daemon, stats=ast):
         pipe.add_stereo(f)
         n += 1
         if mode == "streaming":

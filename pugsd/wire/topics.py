@@ -13,6 +13,7 @@ from pugsd.wire.types import (
     MARKER_ARRAY,
     POINT_CLOUD2,
     POSE_COV_STAMPED,
+    POSE_STAMPED,
     STRING,
 )
 
@@ -59,6 +60,14 @@ def subscribe_key_for(topics: Any, role: str) -> str:
     )
 
 
+def role_type(topics: Any, role: str) -> str:
+    """A role's message type where the key does not say (``ros2dds``): ``ROLE_TYPES``, except
+    ``pose``, which is ``[topics] pose_type`` (as the daemon decodes it)."""
+    if role == "pose" and getattr(topics, "pose_type", "PoseWithCovarianceStamped") == "PoseStamped":
+        return POSE_STAMPED
+    return ROLE_TYPES[role]
+
+
 def topic_types(topics: Any, roles: tuple[str, ...] = INPUT_ROLES + OUTPUT_ROLES) -> dict[str, str]:
-    """ROS topic name -> default message type for the given roles."""
-    return {getattr(topics, r): ROLE_TYPES[r] for r in roles}
+    """ROS topic name -> message type for the given roles (:func:`role_type`)."""
+    return {getattr(topics, r): role_type(topics, r) for r in roles}

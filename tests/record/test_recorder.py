@@ -361,3 +361,253 @@ def test_a_bad_message_does_not_stop_the_writer(tmp_path: Path) -> None:
         rec.put("/img", IMAGE, _img(1))
     assert rec.stats.dropped_error == 1 and rec.stats.written == 1 and "/x" in rec.stats.error
     assert len(rec.stats.files) == 1
+
+
+# ------------------------------------------------------------------ review fixes
+
+
+def _read_all(path: str | Path) -> tuple[list[Any], Any]:
+    """Every message record of a file (file order) and its summary, through the mcap reader."""
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        msgs = [m for _, _, m in reader.iter_messages(log_time_order=False)]
+        summary = reader.get_summary()
+    return msgs, summary
+
+
+def test_a_negative_source_timestamp_does_not_corrupt_the_chunk(tmp_path: Path) -> None:
+    """Any int64 is a valid rmw_zenoh source time; MCAP's publish_time is uint64. Before the fix
+    message 5 made struct.pack fail inside add_message after the chunk index was updated: the
+    summary said 10 messages and reading stopped after 4."""
+    key = topic_key("/camera_pose", POSE_COV_STAMPED)
+    gid = bytes(range(16))
+    payloads = [codec.encode_pose_with_covariance(i, np.eye(4), np.eye(6) * 1e-4) for i in range(1, 11)]
+    rec = Recorder(_cfg(tmp_path))
+    with rec:
+        for i, p in enumerate(payloads, start=1):
+            ts = -5 if i == 5 else 1_700_000_000_000_000_000 + i
+            assert rec.put_sample(key, p, encode_attachment(i, ts, gid), 9_000 + i)
+    s = rec.stats
+    assert s.written == 10 and s.dropped_error == 0 and s.bad_attachment == 1 and not s.error
+    (f,) = rec.stats.files
+    msgs, summary = _read_all(f)
+    assert [bytes(m.data) for m in msgs] == payloads  # all ten, intact, in order
+    assert [codec.decode_pose_with_covariance(m.data).stamp_ns for m in msgs] == list(range(1, 11))
+    assert [m.sequence for m in msgs] == list(range(1, 11))
+    pubs = [m.publish_time for m in msgs]
+    assert pubs[4] == msgs[4].log_time == 9_005  # the receive time instead of -5
+    assert pubs[:4] + pubs[5:] == [1_700_000_000_000_000_000 + i for i in (1, 2, 3, 4, 6, 7, 8, 9, 10)]
+    assert summary.statistics.message_count == 10 == len(msgs)
+    assert sum(summary.statistics.channel_message_counts.values()) == 10
+
+
+def test_put_drops_and_counts_times_and_sequences_mcap_cannot_store(tmp_path: Path) -> None:
+    bad = [
+        {"log_time_ns": -1},
+        {"publish_time_ns": -5},
+        {"publish_time_ns": 2**64},
+        {"sequence": 2**32},
+        {"sequence": -1},
+    ]
+    good = [_img(i) for i in range(6)]
+    rec = Recorder(_cfg(tmp_path))
+    with rec:
+        for i, g in enumerate(good):
+            assert rec.put("/img", IMAGE, g, log_time_ns=100 + i, publish_time_ns=2**64 - 1,
+                           sequence=2**32 - 1)  # fmt: skip
+            if i < len(bad):
+                assert not rec.put("/img", IMAGE, _img(99), **{"log_time_ns": 200, **bad[i]})
+    s = rec.stats
+    assert s.dropped_invalid == len(bad) and s.written == len(good) and s.dropped_error == 0
+    assert s.received == len(good) + len(bad)
+    msgs, summary = _read_all(rec.stats.files[0])
+    assert [bytes(m.data) for m in msgs] == good
+    assert {(m.publish_time, m.sequence) for m in msgs} == {(2**64 - 1, 2**32 - 1)}
+    assert summary.statistics.message_count == len(good)
+
+
+def test_the_writer_checks_ranges_before_add_message(tmp_path: Path) -> None:
+    """Defence in depth: an out-of-range item that reaches the writer queue without put() (a
+    future intake path) is dropped and counted, and the chunk stays readable."""
+    from pugsd.record.recorder import _Item
+
+    rec = Recorder(_cfg(tmp_path))
+    with rec:
+        rec.put("/img", IMAGE, _img(1), log_time_ns=1)
+        with rec._cv:
+            rec._q.append(_Item("/img", IMAGE, "", _img(2), 2, -2, 0))
+            rec._q_bytes += len(_img(2))
+            rec._cv.notify()
+        rec.put("/img", IMAGE, _img(3), log_time_ns=3)
+    msgs, summary = _read_all(rec.stats.files[0])
+    assert [bytes(m.data) for m in msgs] == [_img(1), _img(3)]
+    assert summary.statistics.message_count == 2
+    assert rec.stats.dropped_invalid == 1 and rec.stats.written == 2
+
+
+def test_ros2dds_topic_names_are_normalised(tmp_path: Path) -> None:
+    """[topics] names without a leading '/' or with a trailing one (accepted by the config and
+    stripped by the wire layer) were unknown to the recorder: every such sample was dropped."""
+    from pugsd.daemon.config import TopicsConfig
+    from pugsd.wire.topics import key_for, topic_types
+
+    t = TopicsConfig(key_style="ros2dds", left_image="stereo/left/image_raw", pose="/camera_pose/")
+    img = _img(1)
+    pose = codec.encode_pose_with_covariance(1, np.eye(4), np.eye(6) * 1e-4)
+    rec = Recorder(_cfg(tmp_path), topic_types=topic_types(t))
+    with rec:
+        for role, data in (("left_image", img), ("pose", pose), ("right_image", img)):
+            assert rec.put_sample(key_for(t, role), data, None), role
+    assert rec.stats.unknown_type == 0 and rec.stats.written == 3
+    with open(rec.stats.files[0], "rb") as f:
+        got = [(c.topic, sc.name, bytes(m.data)) for sc, c, m in make_reader(f).iter_messages()]
+    assert got == [
+        ("/stereo/left/image_raw", IMAGE, img),
+        ("/camera_pose", POSE_COV_STAMPED, pose),
+        ("/stereo/right/image_raw", IMAGE, img),
+    ]
+
+
+def _fixed_stamp(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every recorder starts "in the same second"."""
+    from datetime import UTC, datetime
+
+    import pugsd.record.recorder as recmod
+
+    fixed = datetime(2026, 1, 2, 3, 4, 5, tzinfo=UTC)
+
+    class _Frozen(datetime):
+        @classmethod
+        def now(cls, tz: Any = None) -> Any:
+            return fixed
+
+    monkeypatch.setattr(recmod, "datetime", _Frozen)
+
+
+def _topics_and_counts(path: Path) -> tuple[set[str], int]:
+    msgs: list[Any] = []
+    with open(path, "rb") as f:
+        msgs = [(c.topic, m) for _, c, m in make_reader(f).iter_messages()]
+    return {t for t, _ in msgs}, len(msgs)
+
+
+def test_recorders_started_in_the_same_second_never_overwrite_each_other(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _fixed_stamp(monkeypatch)
+    # one after the other (a daemon restarted by systemd): the second used to replace the first
+    a = Recorder(_cfg(tmp_path))
+    with a:
+        for i in range(50):
+            a.put("/a", IMAGE, _img(i))
+    b = Recorder(_cfg(tmp_path))
+    with b:
+        for i in range(3):
+            b.put("/b", IMAGE, _img(i))
+    # at the same time (`pugsd record` next to the daemon): "wb" truncated the other's .part
+    c, d = Recorder(_cfg(tmp_path)).start(), Recorder(_cfg(tmp_path)).start()
+    for i in range(7):
+        c.put("/c", IMAGE, _img(i))
+        d.put("/d", IMAGE, _img(i))
+        time.sleep(0.005)
+    c.stop()
+    d.stop()
+    files = [Path(f) for r in (a, b, c, d) for f in r.stats.files]
+    assert len(files) == 4 and len({f.name for f in files}) == 4
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f.name for f in files)
+    assert [_topics_and_counts(f) for f in files] == [({"/a"}, 50), ({"/b"}, 3), ({"/c"}, 7), ({"/d"}, 7)]
+    assert all(f.name.startswith("pugsd_20260102T030405Z_") for f in files)
+
+
+def test_a_finished_file_never_replaces_an_existing_one(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The final name can appear while the .part is written (another writer that finished in
+    between): the rename goes to the next free index instead of replacing it."""
+    _fixed_stamp(monkeypatch)
+    rec = Recorder(_cfg(tmp_path)).start()
+    rec.put("/x", IMAGE, _img(1))
+    deadline = time.monotonic() + 10
+    while not list(tmp_path.glob("*.part")) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    (part,) = tmp_path.glob("*.part")
+    other = part.with_name(part.name[: -len(".part")])
+    other.write_bytes(b"someone else's recording")
+    (mine,) = rec.stop()
+    assert other.read_bytes() == b"someone else's recording"
+    assert mine != other and mine.exists() and not part.exists()
+    assert _topics_and_counts(mine) == ({"/x"}, 1)
+
+
+def test_zenoh_delete_samples_are_skipped_and_counted(tmp_path: Path, daemon_side: Any) -> None:
+    """A DELETE (empty payload) used to be recorded as an empty message that no ros2msg/cdr
+    reader (mcap_ros2, Foxglove) can decode."""
+    from pugsd.wire.keys import subscription_key
+    from pugsd.wire.publisher import Publisher
+    from pugsd.wire.session import close_session, loopback_config, open_session
+
+    session, port = daemon_side
+    other = open_session(loopback_config(connect_ports=[port]), require_loopback=True)
+    key = topic_key("/camera_pose", POSE_COV_STAMPED)
+    poses = [codec.encode_pose_with_covariance(i, np.eye(4), np.eye(6) * 1e-4) for i in (1, 2)]
+    rec = Recorder(_cfg(tmp_path)).start()
+    try:
+        rec.subscribe(session, [subscription_key("/camera_pose")])
+        pub = Publisher(other, key)
+        deadline = time.monotonic() + 10
+        while not pub.matching and time.monotonic() < deadline:
+            time.sleep(0.02)
+        pub.put(poses[0])
+        other.delete(key)
+        pub.put(poses[1])
+        deadline = time.monotonic() + 10
+        while rec.stats.received < 3 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        pub.undeclare()
+    finally:
+        files = rec.stop()
+        close_session(other)
+    with open(files[0], "rb") as f:
+        decoded = list(make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages())
+    assert [bytes(m.message.data) for m in decoded] == poses
+    assert [int(m.decoded_message.header.stamp.nanosec) for m in decoded] == [1, 2]
+    assert rec.stats.deletes == 1 and rec.stats.written == 2 and rec.stats.callback_errors == 0
+
+
+def test_an_exception_in_the_zenoh_callback_is_counted(tmp_path: Path) -> None:
+    class _Payload:
+        def to_bytes(self) -> bytes:
+            raise RuntimeError("payload gone")
+
+    class _Sample:
+        key_expr = topic_key("/camera_pose", POSE_COV_STAMPED)
+        payload = _Payload()
+        attachment = None
+        kind = None
+
+    rec = Recorder(_cfg(tmp_path))
+    with rec:
+        rec.on_sample(_Sample())
+        rec.on_sample(_Sample())
+    assert rec.stats.callback_errors == 2 and rec.stats.as_dict()["callback_errors"] == 2
+    assert rec.stats.written == 0
+
+
+def test_ros2dds_pose_is_recorded_with_the_configured_pose_type(tmp_path: Path) -> None:
+    """ros2dds keys carry no type: with [topics] pose_type = PoseStamped the pose channel must
+    get the PoseStamped schema (it used to be labelled PoseWithCovarianceStamped, undecodable)."""
+    from pugsd.daemon.config import TopicsConfig
+    from pugsd.wire.topics import key_for, topic_types
+    from pugsd.wire.types import POSE_STAMPED
+
+    t = TopicsConfig(key_style="ros2dds", pose_type="PoseStamped")
+    pose = codec.encode_pose_stamped(7, np.eye(4))
+    rec = Recorder(_cfg(tmp_path), topic_types=topic_types(t))
+    with rec:
+        assert rec.put_sample(key_for(t, "pose", POSE_STAMPED), pose, None)
+    with open(rec.stats.files[0], "rb") as f:
+        decoded = list(make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages())
+    assert [(d.schema.name, d.channel.topic, bytes(d.message.data)) for d in decoded] == [
+        (POSE_STAMPED, "/camera_pose", pose)
+    ]
+    assert int(decoded[0].decoded_message.header.stamp.nanosec) == 7

@@ -164,3 +164,143 @@ def test_streaming_assembly_with_late_poses_and_infos(tmp_path: Path, frames_fac
     for a, b in zip(got, frames, strict=True):
         np.testing.assert_allclose(a.T_W_C, b.T_W_C, atol=1e-12)
         np.testing.assert_array_equal(a.mask, b.mask)
+
+
+# ------------------------------------------------------------------ replay assembles like the daemon
+
+
+def _write_pose_recording(
+    path: Path,
+    topics: Any,
+    poses: list[tuple[int, bytes, str]],
+    image_stamps: list[int],
+) -> None:
+    """CameraInfos, the given pose messages (stamp, CDR, type) and one stereo pair per image
+    stamp, on the given topic names (channel topics as written, e.g. without a leading '/')."""
+    from pugsd.core.camera import PinholeCamera, StereoRig
+    from pugsd.record.mcapio import ChannelTable, new_writer
+    from pugsd.wire.types import CAMERA_INFO, IMAGE
+
+    rig = StereoRig(PinholeCamera(100.0, 100.0, 15.5, 11.5, 32, 24), 0.05)
+    msgs: list[tuple[int, str, str, bytes]] = []
+    li, ri = codec.encode_stereo_infos(rig, 1)
+    msgs += [(1, topics.left_info, CAMERA_INFO, li), (1, topics.right_info, CAMERA_INFO, ri)]
+    msgs += [(st, topics.pose, typ, data) for st, data, typ in poses]
+    rng = np.random.default_rng(0)
+    for st in image_stamps:
+        img = codec.encode_image(rng.integers(0, 255, (24, 32), np.uint8), st)
+        msgs += [(st, topics.left_image, IMAGE, img), (st, topics.right_image, IMAGE, img)]
+    msgs.sort(key=lambda m: m[0])
+    with open(path, "wb") as f:
+        w = new_writer(f, 1 << 20)
+        t = ChannelTable(w)
+        for st, topic, typ, data in msgs:
+            w.add_message(t.channel_id(topic, typ), st, data, st)
+        w.finish()
+
+
+class _Capture(_FakePipeline):
+    last: list[Any] = []
+
+    def __init__(self, cfg: Any, seed: int) -> None:
+        super().__init__(cfg, seed)
+        _Capture.last = self.frames
+
+
+def test_replay_gives_posestamped_the_configured_covariance(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Before: PoseStamped frames got an all-zero covariance; the daemon gives them
+    diag(pose_std_translation_m^2 x3, pose_std_rotation_rad^2 x3)."""
+    from pugsd.config import load_config_dict
+    from pugsd.wire.types import POSE_STAMPED
+
+    cfg = load_config_dict({}, ["daemon.pose_std_translation_m=0.003", "daemon.pose_std_rotation_rad=0.02"])
+    stamps = [1_000_000_000 + i * 100_000_000 for i in range(3)]
+    p = tmp_path / "ps.mcap"
+    _write_pose_recording(p, cfg.topics, [(s, codec.encode_pose_stamped(s, np.eye(4)), POSE_STAMPED)
+                                          for s in stamps], stamps)  # fmt: skip
+    monkeypatch.setattr("pugsd.models.make_pipeline", _Capture)
+    res = replay([p], cfg)
+    assert res.frames == 3 and [f.stamp_ns for f in _Capture.last] == stamps
+    want = np.diag([0.003**2] * 3 + [0.02**2] * 3)
+    for f in _Capture.last:
+        np.testing.assert_allclose(f.pose_cov, want, rtol=1e-12)
+
+
+def test_replay_treats_an_all_zero_covariance_as_missing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """As the daemon: a PoseWithCovarianceStamped whose covariance is all zero carries none: the
+    latest real covariance applies, or the configured default before any."""
+    from pugsd.config import load_config_dict
+    from pugsd.wire.types import POSE_COV_STAMPED
+
+    cfg = load_config_dict({}, ["daemon.pose_std_translation_m=0.004", "daemon.pose_std_rotation_rad=0.01"])
+    default = np.diag([0.004**2] * 3 + [0.01**2] * 3)
+    real = np.diag([1e-6] * 3 + [1e-5] * 3)
+    zero = np.zeros((6, 6))
+    stamps = [1_000_000_000 + i * 100_000_000 for i in range(4)]
+    covs = [zero, real, zero, zero]  # the first frame before any real covariance
+
+    def pose(s: int, c: np.ndarray) -> tuple[int, bytes, str]:
+        return s, codec.encode_pose_with_covariance(s, np.eye(4), c), POSE_COV_STAMPED
+
+    p = tmp_path / "zero.mcap"
+    _write_pose_recording(p, cfg.topics, [pose(s, c) for s, c in zip(stamps, covs, strict=True)], stamps)
+    monkeypatch.setattr("pugsd.models.make_pipeline", _Capture)
+    assert replay([p], cfg).frames == 4
+    got = _Capture.last
+    assert [f.stamp_ns for f in got] == stamps
+    for f, want in zip(got, [default, real, real, real], strict=True):
+        np.testing.assert_allclose(f.pose_cov, want, rtol=1e-12)
+
+
+def test_replay_normalises_topic_names(tmp_path: Path) -> None:
+    """[topics] names without a leading '/' (or with a trailing one) match the recorded
+    '/a/b' channels, and a recording whose channels lack the '/' matches the default config."""
+    from pugsd.daemon.config import TopicsConfig
+    from pugsd.wire.types import POSE_COV_STAMPED
+
+    stamps = [1_000_000_000, 1_100_000_000]
+    cov = np.eye(6) * 1e-6
+    poses = [(s, codec.encode_pose_with_covariance(s, np.eye(4), cov), POSE_COV_STAMPED) for s in stamps]
+    plain = TopicsConfig()
+    p = tmp_path / "slash.mcap"
+    _write_pose_recording(p, plain, poses, stamps)  # channels "/stereo/left/image_raw", ...
+    odd = TopicsConfig(left_image="stereo/left/image_raw", right_image="/stereo/right/image_raw/",
+                       pose="camera_pose", left_info="stereo/left/camera_info/")  # fmt: skip
+    st = AssembleStats()
+    assert [f.stamp_ns for f in assemble_frames([p], odd, stats=st)] == stamps, st
+
+    q = tmp_path / "noslash.mcap"
+    _write_pose_recording(q, odd, poses, stamps)  # channels "stereo/left/image_raw", ...
+    st = AssembleStats()
+    assert [f.stamp_ns for f in assemble_frames([q], plain, stats=st)] == stamps, st
+
+
+def test_replay_uses_the_daemon_pose_max_gap(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Poses 0.8 s apart around an image: the daemon (pose_max_gap_s 0.5) gives it no pose;
+    replay used a fixed 1 s and made a frame of it."""
+    from pugsd.config import load_config_dict
+    from pugsd.errors import InputError
+    from pugsd.wire.types import POSE_COV_STAMPED
+
+    cov = np.eye(6) * 1e-6
+    T1 = np.eye(4)
+    T1[:3, 3] = (0.8, 0.0, 0.0)
+    poses = [
+        (1_000_000_000, codec.encode_pose_with_covariance(1_000_000_000, np.eye(4), cov), POSE_COV_STAMPED),
+        (1_800_000_000, codec.encode_pose_with_covariance(1_800_000_000, T1, cov), POSE_COV_STAMPED),
+    ]
+    cfg = load_config_dict({}, [])
+    assert cfg.daemon.pose_max_gap_s == 0.5
+    p = tmp_path / "gap.mcap"
+    _write_pose_recording(p, cfg.topics, poses, [1_400_000_000])
+    monkeypatch.setattr("pugsd.models.make_pipeline", _Capture)
+    with pytest.raises(InputError, match=r"no usable stereo frames.*no_pose=1"):
+        replay([p], cfg)
+    wide = load_config_dict({}, ["daemon.pose_max_gap_s=1.0"])
+    res = replay([p], wide)
+    assert res.frames == 1
+    np.testing.assert_allclose(_Capture.last[0].T_W_C[:3, 3], (0.4, 0.0, 0.0), atol=1e-12)
