@@ -328,3 +328,43 @@ class ArmConfig:
                 f"the telemetry period 1/{t.rate_hz} Hz: lower telemetry.rate_hz to at most "
                 f"{1.0 / (_N_AXES * gap) if gap > 0 else float('inf'):.3g} Hz or shorten the gap",
             )
+        if self.transport == "serial":
+            self._check_serial_load()
+
+    def _check_serial_load(self) -> None:
+        """Serial: what pugsd writes per second must stay within half the line's capacity, so
+        that a stop never waits behind a standing backlog of setpoints and polls."""
+        from pugsd.arm.protocol import (  # here: the config must not pull in the codec at import
+            ALL_AXES,
+            JAW_DEVICE,
+            JOINT_DEVICES,
+            PacketID,
+            encode_frame,
+            make_packet,
+        )
+
+        mo, t, ser = self.motion, self.telemetry, self.serial
+        if self.kinematics.has_km_end_pos:
+            setpoint = [make_packet(0x0E, PacketID.KM_END_POS, [0.0] * 6)]
+        else:
+            setpoint = [make_packet(d, PacketID.POSITION, [0.0]) for d in JOINT_DEVICES]
+        setpoint.append(make_packet(JAW_DEVICE, PacketID.POSITION, [0.0]))
+        sp_bytes = sum(len(encode_frame(p)) for p in setpoint)
+        n_req = len(ALL_AXES) if ser.rs485 else 1
+        if t.mode == "poll":  # every period [POSITION, VELOCITY, MODE] (+ status flags)
+            ids = [PacketID.POSITION, PacketID.VELOCITY, PacketID.MODE, PacketID.HARDWARE_STATUS_FLAGS]
+            req_rate = t.rate_hz
+        else:  # heartbeats: only the status flags are polled
+            ids = [PacketID.HARDWARE_STATUS_FLAGS]
+            req_rate = t.rate_hz / t.status_every
+        req_bytes = n_req * len(encode_frame(make_packet(0xFF, PacketID.REQUEST, ids)))
+        need = mo.setpoint_rate_hz * sp_bytes + req_rate * req_bytes
+        line = ser.baudrate / 10.0  # 8N1: 10 bits per byte
+        _check(
+            need <= 0.5 * line,
+            f"serial link overloaded: arm.motion.setpoint_rate_hz = {mo.setpoint_rate_hz:g} Hz x "
+            f"{sp_bytes} bytes of setpoints plus arm.telemetry.rate_hz = {t.rate_hz:g} Hz of REQUESTs "
+            f"({n_req} x {req_bytes // n_req} bytes{', rs485' if ser.rs485 else ''}) need "
+            f"{need:.0f} bytes/s, more than half of what arm.serial.baudrate = {ser.baudrate} carries "
+            f"({line:.0f} bytes/s; limit {0.5 * line:.0f}): lower the rates or raise the baud rate",
+        )

@@ -7,7 +7,8 @@
     ctl = ArmController(cfg.arm)            # or ArmController(cfg.arm, transport=...)
     await ctl.start()
     report = await ctl.execute_grasp(T_W_G=pose_W, width_m=0.04, grasp_id=3)
-    await ctl.stop()                        # zero velocity + safe mode, cancels a motion
+    await ctl.stop()                        # zero velocity + safe mode, cancels a motion, latches
+    ctl.release_stop()                      # explicit: execute_grasp is refused until then
     ctl.status()                            # joints, modes, flags, link health, watchdog
     await ctl.close()                       # same stop as stop(), then closes the link
 
@@ -97,6 +98,11 @@ def _yield_gil() -> None:
     time.sleep(0)
 
 
+#: modes pugsd never commands during a motion: an axis reporting one was stopped from elsewhere
+#: (another process, ``pugsd arm stop``, the vendor's hand controller)
+_STOPPED_MODES = frozenset({int(Mode.DISABLE), int(Mode.POSITION_HOLD)})
+
+
 def _mode_name(m: int | None) -> str | None:
     if m is None:
         return None
@@ -118,6 +124,7 @@ class AxisState:
     velocity: float | None = None
     mode: int | None = None
     t_position: float = 0.0
+    t_mode: float = 0.0  # when the latest MODE report came in (0: never)
     flags: HardwareStatus = field(default_factory=HardwareStatus)
     t_flags: float = 0.0
     #: POSITION_LIMITS reported by the device as (low, high); the PDF says the floats are
@@ -175,6 +182,10 @@ class ArmLink:
         self._tasks: list[asyncio.Task[None]] = []
         self._waiters: list[tuple[int, set[int], asyncio.Future[None]]] = []
         self.t_start = time.monotonic()
+        self._n_polls = 0
+        self._t_poll = 0.0  # when the latest telemetry poll was sent
+        #: a motion loop sends the polls together with its setpoints (see :meth:`due_poll`)
+        self.polls_with_setpoints = False
 
     async def start(self) -> None:
         await self.transport.open()
@@ -246,27 +257,48 @@ class ArmLink:
         with contextlib.suppress(ArmError):
             await self.send(self._heartbeat_packets(due))
 
+    def _poll_packets(self) -> list[Packet]:
+        """The REQUESTs of the next telemetry poll (none when nothing is due)."""
+        ids: list[int] = []
+        if self.telemetry_mode == "poll":
+            ids = [PacketID.POSITION, PacketID.VELOCITY, PacketID.MODE]
+        if self._n_polls % self.status_every == 0:
+            ids.append(PacketID.HARDWARE_STATUS_FLAGS)
+        self._n_polls += 1
+        self._t_poll = time.monotonic()
+        # RS-485: poll again only once the previous poll's REQUESTs have gone out, so that
+        # no standing backlog builds up (commands have priority in the paced writer anyway)
+        if not ids or self.transport.backlog() >= 16 or self.transport.pending_requests() != 0:
+            return []
+        if self.rs485:
+            return [make_packet(d, PacketID.REQUEST, ids) for d in ALL_AXES]
+        return [make_packet(0xFF, PacketID.REQUEST, ids)]
+
+    def due_poll(self) -> list[Packet]:
+        """A motion loop's share of the telemetry: the poll's REQUESTs if one is due now, to be
+        sent *ahead of* the setpoints in the same write. The replies then show each device's
+        mode just before our setpoint (which switches a POSITION_HOLD device back to POSITION,
+        reach-bpl.md table, MODE): a safe mode commanded from elsewhere between two setpoints is
+        always seen. Not on RS-485 (the paced writer sends commands before REQUESTs) and not in
+        heartbeat mode (the devices report on their own)."""
+        if self.rs485 or self.telemetry_mode != "poll":
+            return []
+        if time.monotonic() - self._t_poll < 0.9 / self.rate_hz:
+            return []
+        return self._poll_packets()
+
     async def _poller(self) -> None:
         period = 1.0 / self.rate_hz
-        n = 0
         while True:
-            ids: list[int] = []
-            if self.telemetry_mode == "poll":
-                ids = [PacketID.POSITION, PacketID.VELOCITY, PacketID.MODE]
-            if n % self.status_every == 0:
-                ids.append(PacketID.HARDWARE_STATUS_FLAGS)
-            n += 1
             if self.telemetry_mode == "heartbeat":
                 await self._refresh_heartbeats()
-            # RS-485: poll again only once the previous poll's REQUESTs have gone out, so that
-            # no standing backlog builds up (commands have priority in the paced writer anyway)
-            if ids and self.transport.backlog() < 16 and self.transport.pending_requests() == 0:
-                if self.rs485:
-                    pk = [make_packet(d, PacketID.REQUEST, ids) for d in ALL_AXES]
-                else:
-                    pk = [make_packet(0xFF, PacketID.REQUEST, ids)]
-                with contextlib.suppress(ArmError):
-                    await self.send(pk)
+            # while a motion loop sends the polls (due_poll), poll here only if it fell behind
+            late = 2.0 * period if self.polls_with_setpoints else 0.0
+            if time.monotonic() - self._t_poll >= late:
+                pk = self._poll_packets()
+                if pk:
+                    with contextlib.suppress(ArmError):
+                        await self.send(pk)
             await asyncio.sleep(period)
 
     async def _reader(self) -> None:
@@ -304,6 +336,7 @@ class ArmLink:
                     ax.velocity_bad = False
             elif ax is not None and pid == PacketID.MODE and p.data:
                 ax.mode = p.data[0]
+                ax.t_mode = now
             elif ax is not None and pid == PacketID.HARDWARE_STATUS_FLAGS:
                 ax.flags = HardwareStatus.from_bytes(p.data)
                 ax.t_flags = now
@@ -456,6 +489,8 @@ class ArmController:
         self._err_hist: list[tuple[float, int]] = []
         self._started = False
         self._stop_sent_at: float | None = None
+        #: the reason of an operator's stop: execute_grasp is refused until release_stop()
+        self.stop_latched: str | None = None
 
     # ---------------------------------------------------------------- lifecycle
 
@@ -472,7 +507,7 @@ class ArmController:
         """Shutdown: zero velocity + safe mode (if the arm may be commanded), then close."""
         if self._started:
             with contextlib.suppress(Exception):
-                await self.stop(reason="shutdown")
+                await self.stop(reason="shutdown", latch=False)
         if self._wd_task is not None:
             self._wd_task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -505,15 +540,21 @@ class ArmController:
     def _stop_packets(self) -> list[Packet]:
         """VELOCITY 0, then the safe mode: to the broadcast id and, in case a device misses the
         broadcast, to every axis individually (commands only; no replies are requested)."""
-        safe = Mode.DISABLE if self.cfg.safety.safe_mode == "disable" else Mode.POSITION_HOLD
+        safe = self._safe_mode()
         devs = (0xFF, *ALL_AXES)
         return [make_packet(d, PacketID.VELOCITY, [0.0]) for d in devs] + [
             make_packet(d, PacketID.MODE, [int(safe)]) for d in devs
         ]
 
-    async def stop(self, reason: str = "requested") -> None:
-        """Abort any motion; send zero velocity to all devices, then the configured safe mode."""
+    async def stop(self, reason: str = "requested", *, latch: bool = True) -> None:
+        """Abort any motion; send zero velocity to all devices, then the configured safe mode.
+
+        ``latch=True`` (an operator's stop: the daemon's ``arm/stop``, user code): execute_grasp
+        is refused from now on, naming ``reason``, until :meth:`release_stop`. The controller's
+        own stops (a failed or cancelled execution, shutdown) pass ``latch=False``."""
         self._abort = self._abort or f"stopped: {reason}"
+        if latch:
+            self._latch(reason)
         await self._send_stop()
         if await self.link.transport.flush(self.STOP_FLUSH_S):
             log.warning("arm stop (%s): zero velocity + %s sent", reason, self.cfg.safety.safe_mode)
@@ -524,6 +565,41 @@ class ArmController:
                 reason,
                 self.cfg.safety.safe_mode,
             )
+
+    def _latch(self, reason: str) -> None:
+        if self.stop_latched is None:
+            self.stop_latched = reason
+            log.warning("arm stop latched (%s): execute is refused until release_stop()", reason)
+
+    def release_stop(self) -> str | None:
+        """Clear a latched stop (an explicit operator action); returns the reason it had, or None
+        if none was latched. Motion still needs an explicit execute afterwards."""
+        was, self.stop_latched = self.stop_latched, None
+        if was is not None:
+            log.warning("arm stop released (was: %s)", was)
+        return was
+
+    def _external_stop(self) -> str | None:
+        """An axis reports DISABLE or POSITION_HOLD during a motion (after activation): someone
+        else stopped the arm. Returns the reason, or None."""
+        for d in ALL_AXES:
+            m = self.link.axes[d].mode
+            if m is not None and m in _STOPPED_MODES:
+                return (
+                    f"device 0x{d:02X} reports {_mode_name(m)}: the arm was stopped from outside this "
+                    "controller (another process, pugsd arm stop, the hand controller)"
+                )
+        return None
+
+    def _safe_everywhere(self) -> bool:
+        """Every axis has reported the safe mode (or DISABLE) since the latest stop was sent."""
+        safe = {int(Mode.DISABLE), int(self._safe_mode())}
+        t = self._stop_sent_at or 0.0
+        axes = [self.link.axes[d] for d in ALL_AXES]
+        return all(ax.mode is not None and ax.mode in safe and ax.t_mode > t for ax in axes)
+
+    def _safe_mode(self) -> Mode:
+        return Mode.DISABLE if self.cfg.safety.safe_mode == "disable" else Mode.POSITION_HOLD
 
     async def _send_stop(self) -> None:
         await self.link.send(self._stop_packets(), urgent=True)
@@ -556,9 +632,18 @@ class ArmController:
                 return f"device 0x{d:02X} hardware flags {ax.flags.names}"
         return None
 
+    #: while tripped the stop is sent again: 3 times RESEND_QUICK_S apart, then every RESEND_SLOW_S
+    RESEND_QUICK_S = 0.1
+    RESEND_SLOW_S = 0.5
+
     async def _watchdog(self) -> None:
+        """Trip on a fault (see _check_health). While tripped, the stop is sent again (the link may
+        have lost it: 3 quick repeats, then every RESEND_SLOW_S, for as long as it takes); the
+        watchdog re-arms only when the fault has cleared *and* every axis reports the safe mode
+        or DISABLE, i.e. the stop is known to have reached the arm."""
         period = self.cfg.safety.watchdog_period_s
         resends = 0
+        faulty = False
         while True:
             await asyncio.sleep(period)
             try:
@@ -566,13 +651,32 @@ class ArmController:
                 if reason is not None and self.trip_reason is None:
                     await self._trip(reason)
                     resends = 0
-                elif reason is not None and resends < 3 and self._stop_sent_at is not None:
-                    if time.monotonic() - self._stop_sent_at > 0.1:
-                        resends += 1
-                        await self._send_stop()
-                elif reason is None and self.trip_reason is not None:
-                    log.warning("arm watchdog re-armed (was: %s)", self.trip_reason)
-                    self.trip_reason = None
+                    faulty = True
+                    continue
+                if self.trip_reason is None:
+                    continue
+                if reason is None:
+                    if self._safe_everywhere():
+                        log.warning(
+                            "arm watchdog re-armed (was: %s); every axis reports the safe mode",
+                            self.trip_reason,
+                        )
+                        self.trip_reason = None
+                        continue
+                    if faulty:  # the link is back: repeat the stop quickly again
+                        faulty = False
+                        resends = 0
+                        log.warning(
+                            "arm watchdog: the fault cleared but the arm does not report %s yet; "
+                            "sending the stop again",
+                            self.cfg.safety.safe_mode,
+                        )
+                else:
+                    faulty = True
+                gap = self.RESEND_QUICK_S if resends < 3 else self.RESEND_SLOW_S
+                if self._stop_sent_at is None or time.monotonic() - self._stop_sent_at >= gap:
+                    resends += 1
+                    await self._send_stop()
             except Exception:
                 log.exception("arm watchdog")
 
@@ -627,6 +731,7 @@ class ArmController:
                 "rx_nonfinite": self.link.nonfinite,
                 "heartbeat_resends": self.link.heartbeat_resends,
             },
+            "stop_latched": self.stop_latched,
             "watchdog": {
                 "bound_s": self.cfg.safety.watchdog_s,
                 "tripped": self.trip_reason,
@@ -780,12 +885,15 @@ class ArmController:
             raw = self.model.to_device(q)
             pk += [make_packet(d, PacketID.POSITION, [float(raw[i])]) for i, d in enumerate(JOINT_DEVICES)]
         pk.append(make_packet(JAW_DEVICE, PacketID.POSITION, [jaw_mm]))
-        await self.link.send(pk)
+        # a due telemetry poll goes first: its MODE replies show each device's mode just before
+        # this setpoint (see ArmLink.due_poll and _external_stop)
+        await self.link.send([*self.link.due_poll(), *pk])
 
     async def _activate(self, within_s: float = 1.0) -> None:
-        """Leave DISABLE/PASSIVE (where control packets are ignored): zero velocity, then
-        POSITION mode (STANDBY with the built-in kinematics), and wait for every axis to report
-        the new mode."""
+        """Leave DISABLE/PASSIVE (where control packets are ignored) or POSITION_HOLD: zero
+        velocity, then POSITION mode (STANDBY with the built-in kinematics), and wait for every
+        axis to report a mode other than those (so that _follow's check for a stop from
+        elsewhere starts from confirmed modes)."""
         self.state = "activate"
         mode = Mode.STANDBY if self.cfg.kinematics.has_km_end_pos else Mode.POSITION
         self._check_abort()
@@ -797,7 +905,7 @@ class ArmController:
         )
         t0 = time.monotonic()
         t_sent = t0
-        inactive = (Mode.DISABLE, Mode.PASSIVE)
+        inactive = (Mode.DISABLE, Mode.PASSIVE, Mode.POSITION_HOLD)
         while True:
             await asyncio.sleep(0.01)
             self._check_abort()
@@ -805,7 +913,7 @@ class ArmController:
             if all(axes[d].mode is not None and axes[d].mode not in inactive for d in ALL_AXES):
                 return
             if time.monotonic() - t0 > within_s:
-                raise ArmError("the arm did not leave DISABLE/PASSIVE mode")
+                raise ArmError("the arm did not leave DISABLE/PASSIVE/POSITION_HOLD mode")
             if time.monotonic() - t_sent > 0.2:  # lost packet: send again
                 await self.link.send([make_packet(0xFF, PacketID.MODE, [int(mode)])])
                 t_sent = time.monotonic()
@@ -850,6 +958,21 @@ class ArmController:
         ``jaw_check="hold"`` accepts a stalled jaw that is no more open than ``jaw_grip_mm``
         (+ tolerance): the object is still held.
         """
+        self.link.polls_with_setpoints = True
+        try:
+            return await self._follow_path(name, path, jaw_from, jaw_to, jaw_check, jaw_grip_mm)
+        finally:
+            self.link.polls_with_setpoints = False
+
+    async def _follow_path(
+        self,
+        name: str,
+        path: Sequence[np.ndarray],
+        jaw_from: float,
+        jaw_to: float,
+        jaw_check: str,
+        jaw_grip_mm: float | None,
+    ) -> PhaseReport:
         mo, s = self.cfg.motion, self.cfg.safety
         self.state = name
         t0 = time.monotonic()
@@ -875,6 +998,14 @@ class ArmController:
             f = 1.0 if seg <= 0 else min(max((u - times[k]) / seg, 0.0), 1.0)
             q_sp = pts[k] + (pts[k + 1] - pts[k]) * f if len(pts) > 1 else pts[0]
             jaw_sp = jaw_from + (jaw_to - jaw_from) * (min(u / t_jaw, 1.0) if t_jaw > 0 else 1.0)
+            # our own stops (stop(), the watchdog) set _abort before they send anything: only a
+            # stop from elsewhere leaves an axis in DISABLE/POSITION_HOLD without it. Activation
+            # has been confirmed (_activate), so these modes are not left over from before.
+            self._check_abort()
+            ext = self._external_stop()
+            if ext is not None:
+                self._latch(ext)  # an operator stopped the arm: keep it stopped
+                raise SafetyError(f"{name}: {ext}")
             qm = self._measured_q()
             lead = float(np.abs(q_sp - qm).max())
             if lead > s.max_setpoint_lead_rad:
@@ -937,6 +1068,11 @@ class ArmController:
         if self._exec_lock.locked():
             raise ArmError("a grasp is already executing")
         async with self._exec_lock:
+            if self.stop_latched is not None:
+                raise SafetyError(
+                    f"stopped ({self.stop_latched}): motion stays refused until the stop is "
+                    "released (release_stop(), the daemon's <prefix>/arm/release)"
+                )
             if self.trip_reason is not None:
                 raise SafetyError(f"watchdog tripped: {self.trip_reason}")
             health = self._check_health()
@@ -1021,10 +1157,10 @@ class ArmController:
                     rep.reason = f"internal error: {type(exc).__name__}: {exc}"
                     log.exception("grasp %d aborted in %s by an unexpected error", grasp_id, rep.state)
                 with contextlib.suppress(Exception):
-                    await self.stop(reason=f"execution failed: {rep.reason}")
+                    await self.stop(reason=f"execution failed: {rep.reason}", latch=False)
             except asyncio.CancelledError:
                 with contextlib.suppress(Exception):
-                    await self.stop(reason="execution cancelled")
+                    await self.stop(reason="execution cancelled", latch=False)
                 raise
             finally:
                 rep.duration_s = time.monotonic() - t0

@@ -18,6 +18,7 @@ import contextlib
 import logging
 import os
 import socket
+import termios
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -153,6 +154,11 @@ class FdStreamTransport(Transport):
     split or abandoned once its first byte is out; packets count in ``tx_packets`` only when
     completely written. New packets are dropped whole (``tx_errors``) while more than
     ``max_pending_bytes`` wait; urgent packets (stops) replace the frames not yet started.
+
+    On a tty (serial port, pty) an urgent send also discards what the kernel still holds in its
+    output queue (``tcflush(TCOFLUSH)``) and the rest of a frame partly written (counted in
+    ``tx_errors``), and writes a lone ``0x00`` first: the receiver ends whatever frame was cut
+    there (at most one garbled frame) and the stop is next, not behind stale setpoints.
     """
 
     name = "fd"
@@ -170,6 +176,8 @@ class FdStreamTransport(Transport):
         self._tx_partial = b""  # rest of a frame already partly written: always finished
         self._tx_partial_packets = 0
         self._writer_registered = False
+        self._isatty: bool | None = None
+        self.tx_flushes = 0  # urgent sends that discarded the kernel's output queue
 
     @property
     def fd(self) -> int:
@@ -227,6 +235,8 @@ class FdStreamTransport(Transport):
             self.stats.tx_errors += sum(max(n, 1) for _, n, _ in self._tx)
             self._tx.clear()
             self._tx_bytes_queued = 0
+        if urgent and self._tty():
+            entries = [*self._discard_kernel_queue(), *entries]
         for entry in entries:
             data, n, _ = entry
             if not urgent and self.tx_pending() + len(data) > self.max_pending_bytes:
@@ -235,6 +245,30 @@ class FdStreamTransport(Transport):
             self._tx.append(entry)
             self._tx_bytes_queued += len(data)
         self._write_pending()
+
+    def _tty(self) -> bool:
+        if self._isatty is None:
+            try:
+                self._isatty = self._fd is not None and os.isatty(self._fd)
+            except OSError:
+                self._isatty = False
+        return self._isatty
+
+    def _discard_kernel_queue(self) -> list[_TxEntry]:
+        """Urgent send on a tty: bytes already handed to the kernel (os.write succeeded) would
+        still go out ahead of the stop. Discard them and the rest of a partly written frame;
+        return the 0x00 that ends the cut frame at the receiver (its decoder then drops one
+        garbled frame and skips the empty chunk)."""
+        try:
+            termios.tcflush(self.fd, termios.TCOFLUSH)
+        except (termios.error, OSError) as exc:
+            log.debug("%s: tcflush: %s", self.name, exc)
+        self.tx_flushes += 1
+        if self._tx_partial:
+            self.stats.tx_errors += max(self._tx_partial_packets, 1)
+            self._tx_partial = b""
+            self._tx_partial_packets = 0
+        return [(b"\x00", 0, None)]
 
     def _write_pending(self) -> None:
         """Write as much of the transmit buffer as the fd takes now; the rest waits."""
@@ -391,8 +425,14 @@ class SerialTransport(FdStreamTransport):
                 xonxoff=False,
                 rtscts=False,
                 dsrdtr=False,
+                exclusive=True,  # one writer only: a second process must not talk to the arm too
             )
         except (serial.SerialException, OSError) as exc:
+            if "exclusively lock" in str(exc):
+                raise ArmError(
+                    f"serial {self.port}: the port is in use by another process (a running pugsd "
+                    "daemon? stop the arm through it: query <prefix>/arm/stop, e.g. pugs/arm/stop)"
+                ) from None
             raise ArmError(f"serial {self.port}: {exc}") from None
         self._fd = self._serial.fileno()
         self._start_reading()

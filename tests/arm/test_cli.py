@@ -282,3 +282,31 @@ def test_bpl_decode_accepts_0x_prefixed_bytes(capsys: pytest.CaptureFixture[str]
     assert json.loads(out)["packets"][0]["values"] == [4.123]
     rc, out = _cli(capsys, "bpl", "decode", "0x09,0x9E,0xEF,0x83", "0X40:0x03:01:08:B8")
     assert rc == 0 and json.loads(out)["packets"][0]["packet"] == "POSITION"
+
+
+def test_stop_while_the_port_is_in_use_says_how(capsys: pytest.CaptureFixture[str]) -> None:
+    """``pugsd arm stop`` on a serial port a daemon holds: a clear error (exit 1) naming the
+    daemon's stop key, instead of a second writer on the line."""
+    import asyncio
+
+    from pugsd.arm.sim import close_pty, make_pty_pair
+    from pugsd.arm.transport import SerialTransport
+
+    master, path = make_pty_pair()
+
+    async def hold() -> SerialTransport:
+        tr = SerialTransport(path)
+        await tr.open()
+        return tr
+
+    loop = asyncio.new_event_loop()
+    try:
+        daemon_side = loop.run_until_complete(hold())
+        rc = main(["arm", "stop", "--set", f"arm.serial.port={path!r}"])
+        err = capsys.readouterr().err
+        assert rc == 1
+        assert "in use by another process" in err and "arm/stop" in err, err
+        loop.run_until_complete(daemon_side.close())
+    finally:
+        loop.close()
+        close_pty(master)

@@ -509,3 +509,18 @@ def test_config_refuses_rs485_heartbeat_and_overloaded_polling() -> None:
     # a minimum jaw travel the grip margin can never reach is refused
     with pytest.raises(ConfigError, match="jaw_min_travel_mm"):
         ArmConfig(motion=ArmMotionConfig(jaw_min_travel_mm=5.0))  # margin is 3 mm of travel
+
+
+def test_config_refuses_an_overloaded_serial_line() -> None:
+    """Serial: setpoints (7 POSITION frames per period) plus telemetry REQUESTs must stay within
+    half the line (baudrate / 10 bytes/s); the defaults use about a third of 115200 baud."""
+    from pugsd.arm.config import ArmMotionConfig, ArmSerialConfig
+
+    assert ArmConfig().transport == "serial"  # defaults: 50 Hz x 70 + 50 Hz x 10 = 4000 of 11520 B/s
+    with pytest.raises(ConfigError, match=r"setpoint_rate_hz = 50 Hz.*4000 bytes/s.*baudrate = 9600"):
+        ArmConfig(serial=ArmSerialConfig(baudrate=9600))
+    with pytest.raises(ConfigError, match=r"setpoint_rate_hz = 80 Hz.*arm.telemetry.rate_hz"):
+        ArmConfig(motion=ArmMotionConfig(setpoint_rate_hz=80.0))  # 80 x 70 + 500 = 6100 > 5760
+    assert ArmConfig(motion=ArmMotionConfig(setpoint_rate_hz=75.0)).motion.setpoint_rate_hz == 75.0
+    # the rule concerns the serial link only
+    assert ArmConfig(transport="udp", serial=ArmSerialConfig(baudrate=9600)).transport == "udp"

@@ -6,8 +6,11 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import fcntl
 import os
 import socket
+import struct
+import termios
 import time
 from typing import Any
 
@@ -18,6 +21,7 @@ from pugsd.arm.config import ArmSafetyConfig, ArmSerialConfig, ArmTelemetryConfi
 from pugsd.arm.protocol import ALL_AXES, Packet, PacketID, StreamDecoder, encode_frame, make_packet
 from pugsd.arm.sim import close_pty, make_pty_pair
 from pugsd.arm.transport import CanReassembler, CanTransport, SerialTransport, UdpTransport
+from pugsd.errors import ArmError
 from tests.arm.helpers import fast_config, reachable_grasp, run, sim_and_controller, wait_state, wait_until
 
 P = PacketID
@@ -40,9 +44,16 @@ async def _read_packets(master: int, n: int, within_s: float = 2.0) -> list[Pack
 # ---------------------------------------------------------------- serial transmit buffer
 
 
-def test_full_serial_buffer_never_truncates_frames_and_the_stop_gets_through() -> None:
-    """The far side stops reading: nothing is written half, packets count only when written,
-    and a stop queued meanwhile goes out (after stale setpoints are dropped) once it reads."""
+def _reader_holds(master: int) -> int:
+    """Bytes the pty master (the arm's side) has received but not read yet."""
+    return int(struct.unpack("i", fcntl.ioctl(master, termios.FIONREAD, b"\0" * 4))[0])
+
+
+def test_full_serial_buffer_drops_frames_whole_and_the_stop_skips_the_kernel_queue() -> None:
+    """The far side stops reading: new packets are dropped whole while the transmit buffer is
+    full, and a stop then goes out ahead of everything not yet received: stale setpoints in user
+    space are dropped, the kernel's output queue is discarded (tcflush), and a lone 0x00 ends the
+    frame that was cut, so the arm reads at most one garbled frame before the stop."""
 
     async def main() -> None:
         master, path = make_pty_pair()
@@ -53,10 +64,13 @@ def test_full_serial_buffer_never_truncates_frames_and_the_stop_gets_through() -
             for _ in range(2000):  # far more than the pty buffer holds
                 await host.send_many(pk)
             assert host.tx_pending() > 0 and host.stats.tx_errors > 0
+            # what the arm's side of a pty has already received: a writer cannot take that back
+            # (on a real UART only the hardware FIFO is beyond tcflush's reach)
+            already = _reader_holds(master)
+            assert already < 8192
             stop = [make_packet(0xFF, P.VELOCITY, [0.0]), make_packet(0xFF, P.MODE, [1])]
             await host.send_urgent(stop)
-            # (no assertion that the stop is still stuck here: the kernel moves pty data on from
-            # its flip buffer asynchronously, so room for two small frames can appear unread)
+            assert host.tx_flushes == 1
             data = bytearray()
             t_end = time.monotonic() + 5.0
             while time.monotonic() < t_end:  # the arm side reads again
@@ -69,16 +83,50 @@ def test_full_serial_buffer_never_truncates_frames_and_the_stop_gets_through() -
             assert await host.flush(0.5)
             dec = StreamDecoder()
             got = dec.feed(bytes(data))
-            assert dec.stats.as_dict()["framing_errors"] == 0 and dec.stats.errors == 0
-            assert got[-2:] == stop  # the stop arrived, last
-            assert host.stats.tx_packets == len(got)  # counted only when written
-            assert host.stats.tx_bytes == len(data)
-            assert host.stats.tx_packets + host.stats.tx_errors == 2000 * 7 + 2
+            assert got[-2:] == stop  # the stop arrived, and nothing after it
+            i = got.index(stop[0])
+            # before it: only what the reader had already received (whole frames) and at most one
+            # garbled frame, the one the flush cut (before the fix: ~2000 stale setpoints)
+            assert i <= already // len(encode_frame(pk[0])) + 1, (i, already)
+            assert len(data) <= already + 1 + sum(len(encode_frame(p)) for p in stop)
+            assert dec.stats.errors <= 1
+            assert host.stats.tx_errors > 0
         finally:
             await host.close()
             close_pty(master)
 
     run(main(), 30)
+
+
+def test_serial_port_is_opened_exclusively() -> None:
+    """A second process (``pugsd arm stop``, ``pugsd arm execute``) cannot open the port the
+    daemon holds, so two writers never talk to the arm at once; the error says how to stop."""
+
+    async def main() -> None:
+        master, path = make_pty_pair()
+        a, b = SerialTransport(path), SerialTransport(path)
+        await a.open()
+        try:
+            with pytest.raises(ArmError, match=r"in use by another process.*arm/stop"):
+                await b.open()
+            await a.send(make_packet(0x02, P.POSITION, [1.0]))
+            await asyncio.sleep(0.05)
+            got = StreamDecoder().feed(os.read(master, 4096))
+            assert [(p.device_id, p.packet_id) for p in got] == [(0x02, P.POSITION)]
+        finally:
+            await a.close()
+            await b.close()
+            close_pty(master)
+        # once the first has closed, the port can be opened again
+        master, path = make_pty_pair()
+        try:
+            c = SerialTransport(path)
+            await c.open()
+            await c.close()
+        finally:
+            close_pty(master)
+
+    run(main(), 20)
 
 
 # ---------------------------------------------------------------- RS-485
