@@ -69,7 +69,8 @@ class StereoConfig:
     )
     sigma_disp_px: float = opt(
         0.5,
-        "disparity std for noise_mode=disparity: sigma_z = z^2 sigma_disp / (f B)",
+        "disparity std for noise_mode=disparity, in pixels of the matched (downsampled) images: "
+        "sigma_z = z^2 sigma_disp / (f B) with f the downsampled focal length",
         unit="px",
         gt=0.0,
     )

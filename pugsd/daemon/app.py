@@ -47,7 +47,7 @@ from pugsd.core.types import DepthFrame, StereoFrame
 from pugsd.daemon.health import Health
 from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier, watchdog_interval_s
-from pugsd.daemon.timesync import ExactPairer, PoseBuffer, PoseGate, PoseSample
+from pugsd.daemon.timesync import ExactPairer, PoseBuffer, PoseGate, PoseSample, carried_cov, default_pose_cov
 from pugsd.errors import DecodeError, PugsdError
 from pugsd.wire import codec
 from pugsd.wire.attachment import SequenceTracker
@@ -136,6 +136,7 @@ def reason_class(exc: BaseException) -> str:
         return exc.reason
     text = str(exc).lower()
     for key, words in (
+        ("out_of_map_range", ("voxel hash",)),
         ("malformed_cdr", ("malformed cdr", "truncated cdr", "cdr encapsulation", "not bytes")),
         ("wrong_type", ("not accepted (expected", "unsupported pose type", "rmw_zenoh key")),
         ("no_camera_info", ("no camerainfo",)),
@@ -221,10 +222,9 @@ class Daemon:
         self.arm_box: Mailbox[tuple[Any, int, float | None]] = Mailbox("arm", 1, Overflow.REJECT)
         self.arm: Any = None  # pugsd.arm.controller.ArmController when [arm] enabled
         self.arm_report: dict[str, Any] | None = None
+        self._arm_stop_tasks: set[asyncio.Task[None]] = set()  # arm/stop requests being sent
         self._last_train_s = 0.0  # time.monotonic() of the last training step
-        default_cov = np.diag([d.pose_std_translation_m**2] * 3 + [d.pose_std_rotation_rad**2] * 3).astype(
-            np.float64
-        )
+        default_cov = default_pose_cov(d.pose_std_translation_m, d.pose_std_rotation_rad)
         self._pose_stamped_cov = default_cov
         self.poses = PoseBuffer(q.poses, int(d.pose_max_gap_s * 1e9), default_cov)
         self.gate: PoseGate[tuple[str, Any, float]] = PoseGate(self.poses, d.pose_wait_s, q.pose_wait)
@@ -243,6 +243,13 @@ class Daemon:
         self._side_undecided = {"mask": True, "depth_std": True}
         self._frame_id = d.world_frame
         self.ingress = IngressGate(d.ingress_limit)
+        # queries and control puts waiting for the loop: bounded like the samples (a flood of
+        # status queries must not pile up callbacks without limit); stops have their own bound,
+        # so that such a flood never turns a stop away
+        self.query_ingress = IngressGate(d.ingress_limit)
+        self.stop_ingress = IngressGate(8)
+        self.deletes_ignored = 0  # zenoh DELETE samples on input keys (they carry no message)
+        self._deletes_lock = threading.Lock()
         self.upstream = SequenceTracker()  # messages lost before they reached pugsd
         self._model_lock = threading.Lock()
         # one thread for depth estimation, one for ingest and training, one for grasp computations
@@ -388,10 +395,18 @@ class Daemon:
 
         self.arm = ArmController(self.cfg.arm)
         await self.arm.start()
-        self._entities.append(
-            self.session.declare_queryable(self.key("arm/execute"), self._bridge_query("arm_execute"))
+        s = self.session
+        for kind in ("arm_execute", "arm_stop", "arm_release"):
+            self._entities.append(s.declare_queryable(self.key(_QUERY_KEYS[kind]), self._bridge_query(kind)))
+        on_put = self._bridge_control_put(self._on_arm_stop_put, self.stop_ingress)
+        self._entities.append(s.declare_subscriber(self.key("arm/stop"), on_put))
+        log.info(
+            "arm enabled (%s); execute on %s, stop on %s, release on %s",
+            self.cfg.arm.transport,
+            self.key("arm/execute"),
+            self.key("arm/stop"),
+            self.key("arm/release"),
         )
-        log.info("arm enabled (%s); execute on %s", self.cfg.arm.transport, self.key("arm/execute"))
 
     async def _stop_arm(self) -> None:
         if self.arm is None:
@@ -416,6 +431,9 @@ class Daemon:
         except (RecursionError, OverflowError, ValueError) as exc:  # deep nesting, huge numbers
             msg = f"arm/execute: unreadable request ({type(exc).__name__})"
             raise InputRejected("bad_request", msg) from None
+        if self.arm.stop_latched is not None:
+            msg = f"stopped ({self.arm.stop_latched}): query {self.key('arm/release')} first"
+            raise InputRejected("stopped", msg[:300])
         result = self.latest_result
         if result is None:
             raise InputRejected("not_ready", "no grasps yet: model not ready")
@@ -424,6 +442,57 @@ class Daemon:
         if self._busy.get("arm") or not self.arm_box.offer((result.grasps, grasp_id, width_m)):
             raise InputRejected("busy", "busy: an arm motion is in progress")
         return f"accepted: grasp {grasp_id}"
+
+    def _arm_stop(self, source: str, query: Any = None) -> None:
+        """``<prefix>/arm/stop`` (query or put): stop the arm at once, here on the event loop, not
+        through the arm mailbox, so it never waits behind a running motion; the stop latches
+        (execute is refused until ``<prefix>/arm/release``). The reply follows once it is sent."""
+        self.health.count("arm.stops")
+        log.warning("arm: stop requested (%s)", source)
+        if len(self._arm_stop_tasks) >= 8:  # a flood of stops: those on their way do the job
+            if query is not None:
+                with query, contextlib.suppress(Exception):
+                    query.reply(self.key("arm/stop"), "stopping: a stop is already being sent")
+            return
+        task = asyncio.get_running_loop().create_task(self._arm_stop_send(source, query), name="arm-stop")
+        self._arm_stop_tasks.add(task)
+        task.add_done_callback(self._arm_stop_tasks.discard)
+
+    async def _arm_stop_send(self, source: str, query: Any) -> None:
+        key = self.key("arm/stop")
+        with query if query is not None else contextlib.nullcontext():
+            try:
+                if self.arm is None:
+                    if query is not None:
+                        query.reply_err("rejected: arm disabled or shut down")
+                    return
+                await self.arm.stop(reason=f"{key} ({source})")
+                if query is not None:
+                    query.reply(
+                        key,
+                        f"stopped: zero velocity and {self.cfg.arm.safety.safe_mode} sent; motion "
+                        f"is refused until {self.key('arm/release')}",
+                    )
+            except Exception as exc:  # a bug: count and log, answer, keep serving
+                self._internal_error("errors.query.arm_stop", "stopping the arm", exc)
+                if query is not None:
+                    with contextlib.suppress(Exception):
+                        query.reply_err(f"internal error: {type(exc).__name__}")
+
+    def _on_arm_release(self) -> str:
+        """``<prefix>/arm/release`` (exact key only): clear a latched stop; returns the reply."""
+        if self.arm is None:
+            raise InputRejected("disabled", "arm disabled: set [arm] enabled = true to allow motion")
+        was = self.arm.release_stop()
+        self.health.count("arm.releases")
+        log.warning("arm: stop released (was: %s)", was)
+        return f"released (was: {was})" if was is not None else "not stopped: nothing to release"
+
+    def _on_arm_stop_put(self, key_expr: str) -> None:
+        if key_expr == self.key("arm/stop"):
+            self._arm_stop("put")
+        else:  # a put on a wildcard (``pugs/**``) is data for someone else, not a stop request
+            self._refuse_wildcard("arm_stop", key_expr)
 
     async def _arm_worker(self) -> None:
         while not self._stopping:
@@ -484,7 +553,8 @@ class Daemon:
         self._entities.append(s.declare_queryable(self.key("grasps/latest"), self._bridge_query("latest")))
         self._entities.append(s.declare_queryable(self.key("status"), self._bridge_query("status")))
         self._entities.append(s.declare_queryable(self.key("reset"), self._bridge_query("reset")))
-        self._entities.append(s.declare_subscriber(self.key("reset"), self._bridge_reset_put))
+        on_reset = self._bridge_control_put(self._on_reset_put, self.query_ingress)
+        self._entities.append(s.declare_subscriber(self.key("reset"), on_reset))
         self._entities.append(s.liveliness().declare_token(self.key(f"alive/{self.cfg.daemon.node_name}")))
 
     def _declare_inputs(self) -> None:
@@ -499,6 +569,10 @@ class Daemon:
         gate, upstream = self.ingress, self.upstream
 
         def on_sample(sample: Any) -> None:  # zenoh thread: copy bytes, hand over, never block
+            if sample.kind == zenoh.SampleKind.DELETE:  # no message: counted, not decoded
+                with self._deletes_lock:
+                    self.deletes_ignored += 1
+                return
             # before the ingress bound, so that what that bound drops is not also counted as lost
             att = sample.attachment
             lost = upstream.observe(role, None if att is None else att.to_bytes())
@@ -515,31 +589,69 @@ class Daemon:
     def _bridge_query(self, kind: str) -> Callable[[Any], None]:
         loop = self._loop
         assert loop is not None
+        gate = self.stop_ingress if kind == "arm_stop" else self.query_ingress
 
-        def on_query(query: Any) -> None:
+        def on_query(query: Any) -> None:  # zenoh thread: hand over (bounded), never block
+            if not gate.enter():
+                with contextlib.suppress(Exception):
+                    if kind == "arm_stop":  # eight stops are on their way already
+                        query.reply(str(query.key_expr), "stopping: a stop is already being sent")
+                    else:
+                        query.reply_err("busy: too many queries waiting; try again")
+                query.drop()
+                return
             try:
-                loop.call_soon_threadsafe(self._on_query, kind, query)
+                loop.call_soon_threadsafe(self._on_query_gated, kind, query, gate)
             except RuntimeError:
+                gate.leave()
                 query.drop()
 
         return on_query
 
-    def _bridge_reset_put(self, sample: Any) -> None:
+    def _on_query_gated(self, kind: str, query: Any, gate: IngressGate) -> None:
+        try:
+            self._on_query(kind, query)
+        finally:
+            gate.leave()
+
+    def _bridge_control_put(self, handle: Callable[[str], None], gate: IngressGate) -> Callable[[Any], None]:
+        """A put on a control key (reset, arm/stop): ``handle(key_expr)`` on the loop, bounded."""
         loop = self._loop
         assert loop is not None
-        with contextlib.suppress(RuntimeError):
-            if str(sample.key_expr) == self.key("reset"):
-                loop.call_soon_threadsafe(self._offer_command, Command("reset", None))
-            else:  # a put on a wildcard (``pugs/**``) must not clear the map
-                loop.call_soon_threadsafe(self._refuse_wildcard, "reset", str(sample.key_expr))
+
+        def gated(key_expr: str) -> None:
+            try:
+                handle(key_expr)
+            finally:
+                gate.leave()
+
+        def on_put(sample: Any) -> None:
+            if not gate.enter():
+                return
+            try:
+                loop.call_soon_threadsafe(gated, str(sample.key_expr))
+            except RuntimeError:
+                gate.leave()
+
+        return on_put
+
+    def _on_reset_put(self, key_expr: str) -> None:
+        if key_expr == self.key("reset"):
+            self._offer_command(Command("reset", None))
+        else:  # a put on a wildcard (``pugs/**``) must not clear the map
+            self._refuse_wildcard("reset", key_expr)
 
     # --- loop-side handlers -----------------------------------------------------------------------
 
     def _on_query(self, kind: str, query: Any) -> None:
         """Answer on the queryable's own key (a wildcard query's replies stay apart under zenoh's
-        consolidation). Queryables that change state (reset, arm/execute) act only on a query for
-        exactly their key; a wildcard query reaching them gets an error reply."""
+        consolidation). Queryables that change state (reset, arm/execute, arm/stop, arm/release)
+        act only on a query for exactly their key; a wildcard query reaching them gets an error
+        reply."""
         key = self.key(_QUERY_KEYS[kind])
+        if kind == "arm_stop" and str(query.key_expr) == key:
+            self._arm_stop("query", query)  # answered by the stop task once the stop is sent
+            return
         with query:
             try:
                 if kind in _STATE_CHANGING and str(query.key_expr) != key:
@@ -560,6 +672,14 @@ class Daemon:
                             exc = InputRejected("refused", str(exc))
                         self._reject("arm", exc)
                         query.reply_err(f"rejected: {exc}")
+                elif kind == "arm_release":
+                    try:
+                        query.reply(key, self._on_arm_release())
+                    except PugsdError as exc:
+                        if not isinstance(exc, InputRejected):
+                            exc = InputRejected("refused", str(exc))
+                        self._reject("arm", exc)
+                        query.reply_err(f"rejected: {exc}")
                 elif kind == "reset":
                     if self._offer_command(Command("reset", None)):
                         query.reply(key, "accepted")
@@ -571,7 +691,7 @@ class Daemon:
                     query.reply_err(f"internal error: {type(exc).__name__}")
 
     def _refuse_wildcard(self, kind: str, asked: str) -> None:
-        source = "arm" if kind == "arm_execute" else kind
+        source = "arm" if kind.startswith("arm_") else kind
         msg = f"{kind} needs exactly {self.key(_QUERY_KEYS[kind])!r}, not {asked[:200]!r}"
         self._reject(source, InputRejected("wildcard_key", msg))
 
@@ -687,7 +807,7 @@ class Daemon:
             if typename not in _POSE_TYPES.values():
                 raise InputRejected("wrong_type", f"pose: type {typename[:100]!r} not accepted")
             pm = codec.decode_pose(data, typename, self._pose_stamped_cov)
-            cov = pm.cov if pm.cov is not None and np.any(pm.cov != 0.0) else None
+            cov = carried_cov(pm.cov)
             jumps = self.poses.jumps_back
             self.poses.add(PoseSample(pm.stamp_ns, pm.T, cov))
             if self.poses.jumps_back != jumps:
@@ -982,7 +1102,7 @@ class Daemon:
                 self.health.observe("frame_age_at_integrate", time.monotonic() - recv_s)
                 self._last_frame_s = time.monotonic()
                 self._newest_recv_s = recv_s
-                self._newest_stamp_ns = max(self._newest_stamp_ns, depth.stamp_ns)
+                self._newest_stamp_ns = self._output_stamp_ns(depth.stamp_ns)
                 self._changed = True
                 self._frame_unpublished = True
                 self._steps_since_frame = 0
@@ -1197,9 +1317,21 @@ class Daemon:
                 self._frame_unpublished = False
                 self._last_frame_s = None
                 self._newest_recv_s = None
+                self._newest_stamp_ns = 0
                 self.elbo = None
                 self.health.count("resets")
                 log.info("reset: map cleared")
+
+    def _output_stamp_ns(self, stamp_ns: int) -> int:
+        """The stamp for outputs after integrating a frame stamped ``stamp_ns``: the newest frame
+        stamp, never going back by a frame integrated out of order, but following the source when
+        its stamps go back by more than ``daemon.pose_max_gap_s`` (a restarted source, a looped
+        recording, a stepped clock: the same test the pose buffer restarts on); a reset starts
+        afresh."""
+        newest = self._newest_stamp_ns
+        if stamp_ns >= newest or newest - stamp_ns > self.poses.max_gap_ns:
+            return stamp_ns
+        return newest
 
     def input_ages_s(self, now: float | None = None) -> dict[str, float]:
         """Seconds since each input stream (left/right image, depth, pose) last sent."""
@@ -1241,6 +1373,8 @@ class Daemon:
             **snap,
             "mailboxes": {b.name: b.stats() for b in (self.stereo_box, self.depth_box, self.commands)},
             "ingress": {"pending": self.ingress.pending, "dropped": self.ingress.dropped},
+            "query_ingress": {"pending": self.query_ingress.pending, "dropped": self.query_ingress.dropped},
+            "deletes_ignored": self.deletes_ignored,
             "inputs": {"age_s": self.input_ages_s(), "stale": self.stale_inputs()},
             "upstream": self.upstream.snapshot(),
             "waiting": {
@@ -1320,8 +1454,17 @@ _WORKER_STAGES: dict[str, tuple[str, ...]] = {
 }
 
 # queryable kind -> its key under the prefix; the state-changing ones answer exact keys only
-_QUERY_KEYS = {"latest": "grasps/latest", "status": "status", "reset": "reset", "arm_execute": "arm/execute"}
-_STATE_CHANGING = frozenset({"reset", "arm_execute"})
+_QUERY_KEYS = {
+    "latest": "grasps/latest",
+    "status": "status",
+    "reset": "reset",
+    "arm_execute": "arm/execute",
+    "arm_stop": "arm/stop",
+    "arm_release": "arm/release",
+}
+# a wildcard query (``pugs/**``, to read the status or discover the API) must not stop the arm
+# mid-grasp or change anything else: these act on a query for exactly their key
+_STATE_CHANGING = frozenset({"reset", "arm_execute", "arm_stop", "arm_release"})
 
 _POSE_TYPES = {"PoseWithCovarianceStamped": POSE_COV_STAMPED, "PoseStamped": POSE_STAMPED}
 

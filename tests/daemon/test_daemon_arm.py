@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from typing import Any
 
 import numpy as np
@@ -116,4 +117,76 @@ def test_arm_execute_refused_when_disabled(port: int, client: zenoh.Session) -> 
         replies = list(client.get("pugs/arm/execute", payload="7", timeout=1.0))
         assert replies == []  # no queryable at all: the arm is disabled by default
     finally:
+        dt.stop(15.0)
+
+
+def test_arm_stop_and_release(port: int, client: zenoh.Session, sim_process: int) -> None:  # noqa: F811
+    """``<prefix>/arm/stop`` stops a running motion at once (not behind it in the arm mailbox),
+    on a query or a put to its exact key, and latches: execute is refused until
+    ``<prefix>/arm/release``. A wildcard query (a status read) changes nothing: the motion goes
+    on."""
+    over = [
+        "arm.enabled=true",
+        "arm.transport=udp",
+        "arm.udp.host='127.0.0.1'",
+        f"arm.udp.port={sim_process}",
+        "arm.udp.local_host='127.0.0.1'",
+        "arm.motion.max_joint_speed_rad_s=0.2",  # a motion of several seconds to stop
+        "arm.safety.watchdog_s=1.0",
+    ]
+    cfg = load_config_dict(daemon_config_dict(port), over)
+    notifier = RecordingNotifier()
+    dt = DaemonThread(Daemon(cfg, FakePipeline(ready_after=10**9), notifier=notifier)).start()
+    reports: list[dict[str, Any]] = []
+    got = threading.Event()
+
+    def on_report(sample: Any) -> None:
+        reports.append(json.loads(sample.payload.to_string()))
+        got.set()
+
+    sub = client.declare_subscriber("pugs/arm/report", on_report)
+    try:
+        wait_for(lambda: "READY=1" in notifier.sent, 15.0, "READY")
+        wait_for(lambda: _try(client, "pugs/arm/release", "", 0.5) is not None, 10.0, "queryable")
+        arm = dt.daemon.arm
+        dt.daemon.latest_result = Result(_grasps(), np.zeros((1, 3)), np.zeros(1), np.zeros(1), 1)
+        ok, text = _ask(client, "pugs/arm/execute", "7")
+        assert ok, text
+        wait_for(lambda: arm.state == "pregrasp", 10.0, "motion")
+        # a wildcard query reaches arm/stop, arm/release and arm/execute: all three refuse it
+        replies = [
+            (r.ok is not None, (r.ok or r.err).payload.to_string())
+            for r in client.get("pugs/arm/*", timeout=5.0)
+        ]
+        assert len(replies) == 3 and all(not ok and "exactly" in text for ok, text in replies), replies
+        time.sleep(0.3)
+        assert arm.stop_latched is None and arm.state == "pregrasp" and not got.is_set()
+        t0 = time.monotonic()
+        ok, text = _ask(client, "pugs/arm/stop", "")
+        assert ok and text.startswith("stopped"), text
+        assert arm.stop_latched is not None
+        assert got.wait(5.0), "no report after the stop"
+        assert time.monotonic() - t0 < 3.0  # not waiting for the motion (several seconds) to end
+        rep = reports[-1]
+        assert rep["ok"] is False and "stopped" in rep["reason"], rep
+        wait_for(lambda: {arm.link.axes[d].mode for d in arm.link.axes} == {1}, 5.0, "DISABLE")
+        ok, text = _ask(client, "pugs/arm/execute", "7")
+        assert not ok and "stopped" in text and "pugs/arm/release" in text, text
+        ok, text = _ask(client, "pugs/arm/release", "")
+        assert ok and text.startswith("released (was: pugs/arm/stop"), text
+        assert arm.stop_latched is None
+        # a put on the exact key stops (and latches) too
+        got.clear()
+        ok, text = _ask(client, "pugs/arm/execute", "7")
+        assert ok, text
+        wait_for(lambda: arm.state == "pregrasp", 10.0, "motion")
+        client.put("pugs/arm/stop", b"")
+        assert got.wait(5.0), "no report after the put"
+        assert reports[-1]["ok"] is False and arm.stop_latched is not None
+        st = dt.daemon.status()
+        # releases: the readiness probe above and the one after the stop
+        assert st["counts"]["arm.stops"] == 2 and st["counts"]["arm.releases"] == 2, st["counts"]
+        assert st["rejected"].get("arm: wildcard_key") == 3, st["rejected"]
+    finally:
+        sub.undeclare()
         dt.stop(15.0)

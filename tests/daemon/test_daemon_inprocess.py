@@ -147,6 +147,49 @@ def test_stereo_to_grasps_query_status_reset(
     assert "STOPPING=1" in notifier.sent
 
 
+def test_grasp_stamps_follow_a_restarted_source_and_a_reset(
+    running: tuple[DaemonThread, FakePipeline, RecordingNotifier], client: zenoh.Session
+) -> None:
+    """Outputs carry the newest frame's stamp. A source whose stamps go back by more than
+    ``daemon.pose_max_gap_s`` (restarted, a looped recording) is followed, not held at the old
+    timeline's maximum; after a reset, stamps only a little older than before are followed too."""
+    _, pipe, _ = running
+    src = Source(client)
+    stamps: list[int] = []
+    sub = client.declare_subscriber(
+        key_for(src.topics, "grasps"),
+        lambda s: stamps.append(codec.decode_grasp_array(s.payload.to_bytes()).stamp_ns),
+    )
+    src.wait_matching()
+    src.infos()
+    time.sleep(0.1)
+
+    def burst(t0: int, n: int = 4) -> int:
+        """n frames 100 ms apart from t0, then the pose after them; the last frame's stamp."""
+        k = len(pipe.integrated)
+        for i in range(n):
+            src.stereo(t0 + i * 100_000_000, pose_at(0.01 * i), seed=i)
+            time.sleep(0.05)
+        t_pose = t0 + n * 100_000_000
+        src.put("pose", codec.encode_pose_with_covariance(t_pose, pose_at(0.1), np.eye(6) * 1e-6))
+        last = t0 + (n - 1) * 100_000_000
+        wait_for(lambda: last in pipe.integrated[k:], 10.0, f"the frame stamped {last} integrated")
+        wait_for(lambda: bool(stamps) and stamps[-1] == last, 10.0, f"grasps stamped {last}")
+        return last
+
+    try:
+        burst(100 * 10**9)
+        burst(1 * 10**9)  # the source restarted: 99 s back, far beyond pose_max_gap_s
+        list(client.get("pugs/reset", timeout=2.0))
+        wait_for(lambda: pipe.resets == 1, 5.0, "reset")
+        # after the reset, frames 0.2 s older than the newest before it (within pose_max_gap_s)
+        burst(1 * 10**9 + 100_000_000, n=1)
+        assert stamps[-1] == 1_100_000_000
+    finally:
+        sub.undeclare()
+        src.close()
+
+
 def test_frames_without_pose_are_dropped_and_counted(
     running: tuple[DaemonThread, FakePipeline, RecordingNotifier], client: zenoh.Session
 ) -> None:

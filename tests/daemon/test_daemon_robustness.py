@@ -22,7 +22,7 @@ from pugsd.daemon.app import Daemon
 from pugsd.wire import codec
 from pugsd.wire.keys import topic_key
 from pugsd.wire.types import IMAGE
-from tests.daemon.conftest import RIG, FakePipeline, Source, daemon_config_dict, wait_for
+from tests.daemon.conftest import RIG, FakePipeline, Source, daemon_config_dict, query_json, wait_for
 from tests.daemon.test_daemon_inprocess import DaemonThread, RecordingNotifier, pose_at, start_with_source
 
 COV = np.eye(6) * 1e-6
@@ -577,6 +577,53 @@ def test_an_undecided_mask_wait_never_outlasts_the_pose_gate(port: int, client: 
             time.sleep(0.2)
         wait_for(lambda: len(pipe.integrated) == 3, 5.0, "three frames integrated")
         assert not d.health.dropped
+    finally:
+        src.close()
+        dt.stop()
+
+
+def test_a_query_flood_is_bounded_and_every_query_answered(port: int, client: zenoh.Session) -> None:
+    """Queries wait for the loop like samples do, bounded by ``daemon.ingress_limit``: while the
+    loop is busy, the queries beyond the bound are answered ``busy`` at once (none piles up, none
+    goes unanswered) and counted; afterwards the daemon answers as before."""
+    pipe = FakePipeline()
+    cfg = load_config_dict(daemon_config_dict(port, ingress_limit=4))
+    dt, src = start_with_source(cfg, client, pipe)
+    d = dt.daemon
+    try:
+        assert dt.loop is not None
+        dt.loop.call_soon_threadsafe(time.sleep, 1.0)  # the loop is busy for a second
+        time.sleep(0.05)
+        handlers = [client.get("pugs/status", timeout=10.0) for _ in range(40)]
+        replies = [list(h) for h in handlers]
+        assert all(len(r) == 1 for r in replies)  # every query answered once
+        busy = [r[0] for r in replies if r[0].err is not None]
+        ok = [r[0] for r in replies if r[0].ok is not None]
+        assert all("busy" in r.err.payload.to_string() for r in busy)
+        assert len(ok) <= 4 + 1 and len(busy) >= 35  # the bound (one may have left meanwhile)
+        assert d.query_ingress.dropped == len(busy) and d.query_ingress.pending == 0
+        st = query_json(client, "pugs/status")
+        assert st["query_ingress"] == {"pending": 1, "dropped": len(busy)}  # 1: this status query
+    finally:
+        src.close()
+        dt.stop()
+
+
+def test_zenoh_delete_samples_on_inputs_are_counted_not_rejected(port: int, client: zenoh.Session) -> None:
+    """A zenoh DELETE on an input key carries no message: it is counted apart, never decoded or
+    charged to the input as malformed, and good frames go on."""
+    pipe = FakePipeline()
+    dt, src = start_with_source(load_config_dict(daemon_config_dict(port)), client, pipe)
+    d = dt.daemon
+    try:
+        for role in ("left_image", "pose"):
+            client.delete(src.pubs[role].key)
+        wait_for(lambda: d.deletes_ignored == 2, 5.0, "two deletes counted")
+        src.stereo(10**9, pose_at(0.0))
+        src.put("pose", codec.encode_pose_with_covariance(2 * 10**9, pose_at(0.1), COV))
+        wait_for(lambda: _passed_on(d, pipe) == 1, 10.0, "the good frame")
+        assert dict(d.health.rejected) == {}
+        assert d.health.counts.get("received.left_image", 0) == 1
     finally:
         src.close()
         dt.stop()
