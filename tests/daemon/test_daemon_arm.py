@@ -51,16 +51,20 @@ def _grasps() -> ScoredGrasps:
     )
 
 
-def test_arm_execute_query(port: int, client: zenoh.Session, sim_process: int) -> None:  # noqa: F811
+def _start_arm_daemon(
+    port: int, client: zenoh.Session, sim_port: int, *overrides: str
+) -> tuple[DaemonThread, list[dict[str, Any]], threading.Event, Any]:
+    """The daemon with the arm on ``pugsd arm sim`` over UDP on 127.0.0.1, READY, and a subscriber
+    collecting its arm reports (``got`` set on each); the caller undeclares ``sub`` and stops
+    ``dt``."""
     over = [
         "arm.enabled=true",
         "arm.transport=udp",
         "arm.udp.host='127.0.0.1'",
-        f"arm.udp.port={sim_process}",
+        f"arm.udp.port={sim_port}",
         "arm.udp.local_host='127.0.0.1'",
-        "arm.motion.max_joint_speed_rad_s=2.0",
-        "arm.motion.jaw_speed_mm_s=150.0",
         "arm.safety.watchdog_s=1.0",  # the simulator is another process on a busy machine
+        *overrides,
     ]
     cfg = load_config_dict(daemon_config_dict(port), over)
     notifier = RecordingNotifier()
@@ -75,6 +79,18 @@ def test_arm_execute_query(port: int, client: zenoh.Session, sim_process: int) -
     sub = client.declare_subscriber("pugs/arm/report", on_report)
     try:
         wait_for(lambda: "READY=1" in notifier.sent, 15.0, "READY")
+    except BaseException:
+        sub.undeclare()
+        dt.stop(15.0)
+        raise
+    return dt, reports, got, sub
+
+
+def test_arm_execute_query(port: int, client: zenoh.Session, sim_process: int) -> None:  # noqa: F811
+    dt, reports, got, sub = _start_arm_daemon(
+        port, client, sim_process, "arm.motion.max_joint_speed_rad_s=2.0", "arm.motion.jaw_speed_mm_s=150.0"
+    )
+    try:
         key = "pugs/arm/execute"
         wait_for(lambda: _try(client, key, "7", 0.5) is not None, 10.0, "queryable")
         ok, text = _ask(client, key, "7")
@@ -125,28 +141,9 @@ def test_arm_stop_and_release(port: int, client: zenoh.Session, sim_process: int
     on a query or a put to its exact key, and latches: execute is refused until
     ``<prefix>/arm/release``. A wildcard query (a status read) changes nothing: the motion goes
     on."""
-    over = [
-        "arm.enabled=true",
-        "arm.transport=udp",
-        "arm.udp.host='127.0.0.1'",
-        f"arm.udp.port={sim_process}",
-        "arm.udp.local_host='127.0.0.1'",
-        "arm.motion.max_joint_speed_rad_s=0.2",  # a motion of several seconds to stop
-        "arm.safety.watchdog_s=1.0",
-    ]
-    cfg = load_config_dict(daemon_config_dict(port), over)
-    notifier = RecordingNotifier()
-    dt = DaemonThread(Daemon(cfg, FakePipeline(ready_after=10**9), notifier=notifier)).start()
-    reports: list[dict[str, Any]] = []
-    got = threading.Event()
-
-    def on_report(sample: Any) -> None:
-        reports.append(json.loads(sample.payload.to_string()))
-        got.set()
-
-    sub = client.declare_subscriber("pugs/arm/report", on_report)
+    slow = "arm.motion.max_joint_speed_rad_s=0.2"  # a motion of several seconds to stop
+    dt, reports, got, sub = _start_arm_daemon(port, client, sim_process, slow)
     try:
-        wait_for(lambda: "READY=1" in notifier.sent, 15.0, "READY")
         wait_for(lambda: _try(client, "pugs/arm/release", "", 0.5) is not None, 10.0, "queryable")
         arm = dt.daemon.arm
         dt.daemon.latest_result = Result(_grasps(), np.zeros((1, 3)), np.zeros(1), np.zeros(1), 1)
