@@ -627,3 +627,38 @@ def test_zenoh_delete_samples_on_inputs_are_counted_not_rejected(port: int, clie
     finally:
         src.close()
         dt.stop()
+
+
+def test_an_error_in_the_zenoh_callback_is_counted_and_the_next_samples_flow(
+    port: int, client: zenoh.Session, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A bug in the zenoh-thread part of the input path (here the sequence tracker) costs only
+    that sample: counted per input in ``bridge_errors``, logged, never raised into zenoh's thread;
+    later samples reach the loop."""
+    caplog.set_level(logging.ERROR, logger="pugsd.daemon.app")
+    pipe = FakePipeline()
+    dt, src = start_with_source(load_config_dict(daemon_config_dict(port)), client, pipe)
+    d = dt.daemon
+    real = d.upstream.observe
+    calls = {"pose": 0}
+
+    def flaky(role: str, att: bytes | None) -> int:
+        if role == "pose":
+            calls["pose"] += 1
+            if calls["pose"] == 1:
+                raise RuntimeError("tracker bug")
+        return real(role, att)
+
+    monkeypatch.setattr(d.upstream, "observe", flaky)
+    try:
+        src.put("pose", codec.encode_pose_with_covariance(10**9, pose_at(0.0), COV))  # lost
+        wait_for(lambda: d.bridge_errors.get("pose") == 1, 5.0, "the lost sample counted")
+        assert any("pose sample lost in the zenoh callback (#1)" in r.getMessage() for r in caplog.records)
+        src.stereo(10**9, pose_at(0.0))  # its own pose (stamp 1 s) comes with it
+        src.put("pose", codec.encode_pose_with_covariance(2 * 10**9, pose_at(0.1), COV))
+        wait_for(lambda: _passed_on(d, pipe) == 1, 10.0, "the next frame")
+        assert d.health.counts.get("received.pose", 0) >= 2
+        assert query_json(client, "pugs/status")["bridge_errors"] == {"pose": 1}
+    finally:
+        src.close()
+        dt.stop()
