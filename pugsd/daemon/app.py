@@ -54,8 +54,8 @@ from pugsd.wire.attachment import SequenceTracker
 from pugsd.wire.keys import parse_key
 from pugsd.wire.publisher import Publisher
 from pugsd.wire.session import close_session, open_session
-from pugsd.wire.topics import INPUT_ROLES, key_for, subscribe_key_for
-from pugsd.wire.types import CAMERA_INFO, IMAGE, POSE_COV_STAMPED, POSE_STAMPED
+from pugsd.wire.topics import INPUT_ROLES, POSE_TYPES, key_for, subscribe_key_for
+from pugsd.wire.types import CAMERA_INFO, IMAGE
 
 log = logging.getLogger(__name__)
 
@@ -821,8 +821,8 @@ class Daemon:
                 self._rig = None  # rebuilt lazily from both infos
             self._poll_gate()
         elif role == "pose":
-            typename = self._msg_type(item, _POSE_TYPES[self.cfg.topics.pose_type])
-            if typename not in _POSE_TYPES.values():
+            typename = self._msg_type(item, POSE_TYPES[self.cfg.topics.pose_type])
+            if typename not in POSE_TYPES.values():
                 raise InputRejected("wrong_type", f"pose: type {typename[:100]!r} not accepted")
             pm = codec.decode_pose(data, typename, self._pose_stamped_cov)
             cov = carried_cov(pm.cov)
@@ -1485,7 +1485,6 @@ _QUERY_KEYS = {
 # mid-grasp or change anything else: these act on a query for exactly their key
 _STATE_CHANGING = frozenset({"reset", "arm_execute", "arm_stop", "arm_release"})
 
-_POSE_TYPES = {"PoseWithCovarianceStamped": POSE_COV_STAMPED, "PoseStamped": POSE_STAMPED}
 
 
 def _bounded_put(d: OrderedDict[int, np.ndarray], key: int, value: np.ndarray, cap: int) -> None:

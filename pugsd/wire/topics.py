@@ -60,11 +60,15 @@ def subscribe_key_for(topics: Any, role: str) -> str:
     )
 
 
+#: ``[topics] pose_type`` -> the ROS type the daemon decodes the pose input as
+POSE_TYPES = {"PoseWithCovarianceStamped": POSE_COV_STAMPED, "PoseStamped": POSE_STAMPED}
+
+
 def role_type(topics: Any, role: str) -> str:
     """A role's message type where the key does not say (``ros2dds``): ``ROLE_TYPES``, except
     ``pose``, which is ``[topics] pose_type`` (as the daemon decodes it)."""
-    if role == "pose" and getattr(topics, "pose_type", "PoseWithCovarianceStamped") == "PoseStamped":
-        return POSE_STAMPED
+    if role == "pose":
+        return POSE_TYPES[getattr(topics, "pose_type", "PoseWithCovarianceStamped")]
     return ROLE_TYPES[role]
 
 
