@@ -45,6 +45,13 @@ def _down(img: np.ndarray, factor: int, interp: int = cv2.INTER_AREA) -> np.ndar
     return cv2.resize(crop, (w // factor, h // factor), interpolation=interp)
 
 
+def _down_mask(mask: np.ndarray, factor: int) -> np.ndarray:
+    """Downsample a boolean mask as ``_down`` does the image: a pixel is on the object when at
+    least half of its ``factor`` x ``factor`` block is (``INTER_NEAREST`` would take the block's
+    top-left pixel, ``(factor - 1) / 2`` px off the centre of the block the depth pixel averages)."""
+    return _down(mask.astype(np.float32), factor) >= 0.5
+
+
 def disparity_levels(cfg: StereoConfig, rig: StereoRig) -> int:
     """SGBM's ``numDisparities`` at the matching resolution (a multiple of 16).
 
@@ -106,7 +113,7 @@ class StereoDepth:
         depth[(depth < c.min_depth_m) | (depth > c.max_depth_m)] = np.nan
         mask = None
         if frame.mask is not None:
-            mask = _down(frame.mask.astype(np.uint8), f, cv2.INTER_NEAREST).astype(bool)
+            mask = _down_mask(frame.mask, f)
             depth[~mask] = np.nan
         if c.noise_mode == "fixed":
             sigma = np.full_like(depth, np.sqrt(c.sigma_d2_m2))

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -127,3 +129,28 @@ def test_downsampled_image_matches_the_scaled_camera(width: int) -> None:
     ray = np.linalg.solve(cam.K, [u0 + 1.5, v0 + 1.5, 1.0])
     u_expected = (sc.K @ ray)[0]
     assert u_small == pytest.approx(u_expected, abs=0.02)
+
+
+@pytest.mark.parametrize("edge_px", [5, 7])
+def test_the_mask_is_downsampled_about_the_block_centre(seq, edge_px: int) -> None:  # type: ignore[no-untyped-def]
+    """A depth pixel averages a 4x4 block, so the object mask must be judged on that block, not
+    on its top-left pixel: a mask that starts at column 5 covers 3/4 of block 1 (on the object),
+    one that starts at column 7 covers 1/4 (off). The mask and its mirror image downsample to
+    mirror images (the top-left pixel, INTER_NEAREST, gave block 1 off for 5 and for 7)."""
+    f = 4
+    frame = seq.frames[0]
+    h, w = frame.left.shape[:2]
+    mask = np.zeros((h, w), bool)
+    mask[:, edge_px:] = True
+    est = StereoDepth(StereoConfig(downsample=f))
+
+    def down(m: np.ndarray) -> np.ndarray:
+        out = est.estimate(dataclasses.replace(frame, mask=m)).mask
+        assert out is not None
+        return out
+
+    small = down(mask)
+    assert not small[:, 0].any()
+    assert small[:, 1].all() == (edge_px == 5)
+    assert small[:, 2:].all()
+    np.testing.assert_array_equal(down(mask[:, ::-1]), small[:, ::-1])
