@@ -11,6 +11,10 @@ from pugsd.errors import ConfigError
 
 #: devices polled one at a time on RS-485 (the 7 axes, pugsd.arm.protocol.ALL_AXES)
 _N_AXES = 7
+#: the most of a serial line's capacity (baudrate / 10 bytes/s) that may be planned for: the rest
+#: is for idle time between frames, the devices' reply latency and one-off traffic (requests of
+#: POSITION_LIMITS, HEARTBEAT_SET re-sends, repeated stops)
+_LINE_SHARE = 0.9
 
 
 def _check(cond: bool, msg: str) -> None:
@@ -331,17 +335,40 @@ class ArmConfig:
         if self.transport == "serial":
             self._check_serial_load()
 
+    def _poll_rate_hz(self) -> float:
+        """The highest rate of telemetry polls. While a motion streams setpoints on a full-duplex
+        line, a poll goes out with a setpoint once 0.9 / rate_hz has passed (ArmLink.due_poll),
+        i.e. every k-th setpoint period: up to 11 % above ``telemetry.rate_hz``."""
+        t, mo = self.telemetry, self.motion
+        if t.mode != "poll" or self.serial.rs485:
+            return t.rate_hz
+        k = max(1, math.ceil(0.9 * mo.setpoint_rate_hz / t.rate_hz - 1e-9))
+        return max(t.rate_hz, mo.setpoint_rate_hz / k)
+
     def _check_serial_load(self) -> None:
-        """Serial: what pugsd writes per second must stay within half the line's capacity, so
-        that a stop never waits behind a standing backlog of setpoints and polls."""
+        """Serial budget, from the encoded frames. Outbound (setpoints and REQUEST polls) must
+        stay within half the line, so that a stop never waits behind a standing backlog. The
+        replies and heartbeats come back on the line too: on RS-485 (half duplex, one wire)
+        outbound + inbound, else inbound alone, must stay within ``_LINE_SHARE`` of it."""
         from pugsd.arm.protocol import (  # here: the config must not pull in the codec at import
             ALL_AXES,
+            FEEDBACK_IDS,
             JAW_DEVICE,
             JOINT_DEVICES,
+            PACKET_SPECS,
             PacketID,
             encode_frame,
+            heartbeat_frequency_hz,
             make_packet,
         )
+
+        def replies(ids: list[int]) -> int:
+            """Wire bytes of one reply packet per id from every axis."""
+            return sum(
+                len(encode_frame(make_packet(d, i, [0] * PACKET_SPECS[i].max_count)))
+                for d in ALL_AXES
+                for i in ids
+            )
 
         mo, t, ser = self.motion, self.telemetry, self.serial
         if self.kinematics.has_km_end_pos:
@@ -351,12 +378,16 @@ class ArmConfig:
         setpoint.append(make_packet(JAW_DEVICE, PacketID.POSITION, [0.0]))
         sp_bytes = sum(len(encode_frame(p)) for p in setpoint)
         n_req = len(ALL_AXES) if ser.rs485 else 1
+        poll_hz = self._poll_rate_hz()
+        flags: list[int] = [PacketID.HARDWARE_STATUS_FLAGS]
         if t.mode == "poll":  # every period [POSITION, VELOCITY, MODE] (+ status flags)
-            ids = [PacketID.POSITION, PacketID.VELOCITY, PacketID.MODE, PacketID.HARDWARE_STATUS_FLAGS]
-            req_rate = t.rate_hz
+            ids: list[int] = [*FEEDBACK_IDS, *flags]
+            req_rate = poll_hz
+            feedback_hz = poll_hz  # the polls' replies
         else:  # heartbeats: only the status flags are polled
-            ids = [PacketID.HARDWARE_STATUS_FLAGS]
+            ids = flags
             req_rate = t.rate_hz / t.status_every
+            feedback_hz = float(heartbeat_frequency_hz(t.rate_hz))  # as ArmLink sets them
         req_bytes = n_req * len(encode_frame(make_packet(0xFF, PacketID.REQUEST, ids)))
         need = mo.setpoint_rate_hz * sp_bytes + req_rate * req_bytes
         line = ser.baudrate / 10.0  # 8N1: 10 bits per byte
@@ -368,3 +399,43 @@ class ArmConfig:
             f"{need:.0f} bytes/s, more than half of what arm.serial.baudrate = {ser.baudrate} carries "
             f"({line:.0f} bytes/s; limit {0.5 * line:.0f}): lower the rates or raise the baud rate",
         )
+        # inbound: one reply per requested id per axis (the status flags every status_every
+        # polls), or the heartbeats; plus the flags every axis pushes at 1 Hz while one is set
+        fb_bytes, flag_bytes = replies([*FEEDBACK_IDS]), replies(flags)
+        status_hz = (poll_hz if t.mode == "poll" else t.rate_hz) / t.status_every
+        inbound = feedback_hz * fb_bytes + (status_hz + 1.0) * flag_bytes
+        limit = _LINE_SHARE * line
+        faster = ""
+        if feedback_hz != t.rate_hz:
+            faster = f", polled at up to {feedback_hz:.3g} Hz with the setpoints"
+        what = (
+            f"arm.telemetry.rate_hz = {t.rate_hz:g} Hz of {t.mode} telemetry ({len(ALL_AXES)} axes x "
+            f"{fb_bytes // len(ALL_AXES)} bytes of POSITION, VELOCITY, MODE{faster}; "
+            f"HARDWARE_STATUS_FLAGS every arm.telemetry.status_every = {t.status_every} polls)"
+        )
+        if ser.rs485:
+            total = need + inbound
+            _check(
+                total <= limit,
+                f"RS-485 link overloaded: it is half duplex, so {need:.0f} bytes/s outbound "
+                f"(arm.motion.setpoint_rate_hz = {mo.setpoint_rate_hz:g} Hz x {sp_bytes} bytes, "
+                f"REQUESTs) and {inbound:.0f} bytes/s of replies to {what} share one wire: "
+                f"{total:.0f} bytes/s is more than {_LINE_SHARE:.0%} of what arm.serial.baudrate = "
+                f"{ser.baudrate} carries ({line:.0f} bytes/s; limit {limit:.0f}): lower "
+                "arm.motion.setpoint_rate_hz or arm.telemetry.rate_hz, or raise the baud rate",
+            )
+        else:
+            per_hz = fb_bytes + flag_bytes / t.status_every  # bytes/s per Hz of telemetry
+            max_hz = (limit - flag_bytes) / per_hz
+            lower = (
+                "arm.telemetry.rate_hz"
+                if feedback_hz == t.rate_hz
+                else "arm.telemetry.rate_hz or arm.motion.setpoint_rate_hz"
+            )
+            _check(
+                inbound <= limit,
+                f"serial link overloaded inbound: {what} comes back at {inbound:.0f} bytes/s, more "
+                f"than {_LINE_SHARE:.0%} of what arm.serial.baudrate = {ser.baudrate} carries "
+                f"({line:.0f} bytes/s; limit {limit:.0f}; at most {max_hz:.3g} Hz of telemetry "
+                f"fits): lower {lower} or raise the baud rate",
+            )

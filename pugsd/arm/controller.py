@@ -34,6 +34,7 @@ from pugsd.arm.config import ArmConfig
 from pugsd.arm.kinematics import Bravo7Model, pose_error, pose_from_xyz_rpy, pose_to_km_end_pos
 from pugsd.arm.protocol import (
     ALL_AXES,
+    FEEDBACK_IDS,
     FORBIDDEN_TX,
     JAW_DEVICE,
     JOINT_DEVICES,
@@ -43,6 +44,7 @@ from pugsd.arm.protocol import (
     Packet,
     PacketID,
     has_nonfinite,
+    heartbeat_frequency_hz,
     make_packet,
 )
 from pugsd.arm.transport import Transport, make_transport
@@ -227,8 +229,8 @@ class ArmLink:
             self._hb_sent[d] = now
 
     def _heartbeat_packets(self, devices: Sequence[int]) -> list[Packet]:
-        hz = max(1, min(255, round(self.rate_hz)))
-        ids = [PacketID.POSITION, PacketID.VELOCITY, PacketID.MODE] + [0] * 7
+        hz = heartbeat_frequency_hz(self.rate_hz)
+        ids = [*FEEDBACK_IDS] + [0] * (10 - len(FEEDBACK_IDS))
         pk: list[Packet] = []
         for d in devices:  # per device: heartbeats are not saved and must be set after power-up
             pk.append(make_packet(d, PacketID.HEARTBEAT_SET, ids))
@@ -261,7 +263,7 @@ class ArmLink:
         """The REQUESTs of the next telemetry poll (none when nothing is due)."""
         ids: list[int] = []
         if self.telemetry_mode == "poll":
-            ids = [PacketID.POSITION, PacketID.VELOCITY, PacketID.MODE]
+            ids = [*FEEDBACK_IDS]
         if self._n_polls % self.status_every == 0:
             ids.append(PacketID.HARDWARE_STATUS_FLAGS)
         self._n_polls += 1
@@ -889,33 +891,91 @@ class ArmController:
         # this setpoint (see ArmLink.due_poll and _external_stop)
         await self.link.send([*self.link.due_poll(), *pk])
 
-    async def _activate(self, within_s: float = 1.0) -> None:
-        """Leave DISABLE/PASSIVE (where control packets are ignored) or POSITION_HOLD: zero
-        velocity, then POSITION mode (STANDBY with the built-in kinematics), and wait for every
-        axis to report a mode other than those (so that _follow's check for a stop from
-        elsewhere starts from confirmed modes)."""
-        self.state = "activate"
-        mode = Mode.STANDBY if self.cfg.kinematics.has_km_end_pos else Mode.POSITION
-        self._check_abort()
-        await self.link.send(
-            [
-                make_packet(0xFF, PacketID.VELOCITY, [0.0]),
-                make_packet(0xFF, PacketID.MODE, [int(mode)]),
+    async def _fresh_feedback(self) -> None:
+        """Wait until every axis has reported a valid position and its mode after this call began
+        (the activation holds it at that position, and leaves DISABLE/PASSIVE by that mode).
+        SafetyError when one has not within ``watchdog_s``."""
+        t0 = time.monotonic()
+        bound = self.cfg.safety.watchdog_s
+        axes = self.link.axes
+        while True:
+            self._check_abort()
+            stale = [
+                d
+                for d, ax in axes.items()
+                if ax.position is None or ax.invalid or ax.t_position <= t0 or ax.t_mode <= t0
             ]
-        )
+            if not stale:
+                return
+            if time.monotonic() - t0 > bound:
+                devs = ", ".join(f"0x{d:02X}" for d in stale)
+                raise SafetyError(
+                    f"activate: no fresh position and mode from device(s) {devs} within "
+                    f"{bound * 1000:.0f} ms: not activating (the hold setpoints must be the "
+                    "measured positions)"
+                )
+            await asyncio.sleep(0.005)
+
+    def _hold_packets(self, devices: Sequence[int]) -> list[Packet]:
+        """Per device: MODE STANDBY if it is in DISABLE/PASSIVE (or not known), where control
+        packets are ignored; then a POSITION setpoint at its latest measured position, which
+        switches it to POSITION (reach-bpl.md, MODE) without engaging an older setpoint."""
+        pk: list[Packet] = []
+        for d in devices:
+            ax = self.link.axes[d]
+            if ax.position is None or ax.invalid:  # the watchdog trips on this too
+                raise SafetyError(f"activate: no valid position from device 0x{d:02X}")
+            if ax.mode is None or ax.mode in (Mode.DISABLE, Mode.PASSIVE):
+                pk.append(make_packet(d, PacketID.MODE, [int(Mode.STANDBY)]))
+            pk.append(make_packet(d, PacketID.POSITION, [ax.position]))
+        return pk
+
+    async def _activate(self, within_s: float | None = None) -> None:
+        """Make the arm hold still where it is, ready for setpoints. A device may still hold a
+        setpoint from before it was stopped, and MODE POSITION would drive it there; so, once
+        every axis has reported a fresh position (refused otherwise): zero velocity, then each
+        axis its measured position as a POSITION setpoint (after MODE STANDBY where it is in
+        DISABLE/PASSIVE), which puts it in POSITION mode. With the built-in kinematics: zero
+        velocity and MODE STANDBY (no joint setpoints; the KM_END_POS stream starts at the
+        measured pose). Then wait until every axis reports, after this was sent, POSITION (with
+        the kinematics: any mode but DISABLE/PASSIVE/POSITION_HOLD), re-sending to the others,
+        so that _follow's check for a stop from elsewhere starts from confirmed modes (for at
+        most ``within_s``; default 1 s, or 3 telemetry periods if longer)."""
+        self.state = "activate"
+        km = self.cfg.kinematics.has_km_end_pos
+        if within_s is None:
+            within_s = max(1.0, 3.0 / self.cfg.telemetry.rate_hz)
+        self._check_abort()
+        await self._fresh_feedback()
+        zero = make_packet(0xFF, PacketID.VELOCITY, [0.0])
+        standby = make_packet(0xFF, PacketID.MODE, [int(Mode.STANDBY)])
+        await self.link.send([zero, standby] if km else [zero, *self._hold_packets(ALL_AXES)])
         t0 = time.monotonic()
         t_sent = t0
         inactive = (Mode.DISABLE, Mode.PASSIVE, Mode.POSITION_HOLD)
+
+        def pending() -> list[int]:
+            axes = self.link.axes
+            return [
+                d
+                for d in ALL_AXES
+                if axes[d].mode is None
+                or axes[d].t_mode <= t0
+                or (axes[d].mode in inactive if km else axes[d].mode != Mode.POSITION)
+            ]
+
         while True:
             await asyncio.sleep(0.01)
             self._check_abort()
-            axes = self.link.axes
-            if all(axes[d].mode is not None and axes[d].mode not in inactive for d in ALL_AXES):
+            left = pending()
+            if not left:
                 return
             if time.monotonic() - t0 > within_s:
-                raise ArmError("the arm did not leave DISABLE/PASSIVE/POSITION_HOLD mode")
+                modes = ", ".join(f"0x{d:02X} {_mode_name(self.link.axes[d].mode)}" for d in left)
+                want = "left DISABLE/PASSIVE/POSITION_HOLD" if km else "taken the hold setpoint (POSITION)"
+                raise ArmError(f"activate: not every axis has {want} within {within_s} s ({modes})")
             if time.monotonic() - t_sent > 0.2:  # lost packet: send again
-                await self.link.send([make_packet(0xFF, PacketID.MODE, [int(mode)])])
+                await self.link.send([standby] if km else self._hold_packets(left))
                 t_sent = time.monotonic()
 
     def _measured_q(self) -> np.ndarray:

@@ -142,6 +142,14 @@ JOINT_DEVICES: tuple[int, ...] = (0x07, 0x06, 0x05, 0x04, 0x03, 0x02)
 JAW_DEVICE = 0x01
 ALL_AXES: tuple[int, ...] = (*JOINT_DEVICES, JAW_DEVICE)
 
+#: joint feedback every telemetry period: REQUESTed (poll) or pushed by the devices (HEARTBEAT_SET)
+FEEDBACK_IDS: tuple[int, ...] = (PacketID.POSITION, PacketID.VELOCITY, PacketID.MODE)
+
+
+def heartbeat_frequency_hz(rate_hz: float) -> int:
+    """The HEARTBEAT_FREQUENCY byte for a telemetry rate: whole Hz in 1..255."""
+    return max(1, min(255, round(rate_hz)))
+
 
 Kind = Literal["f32", "u8", "ascii"]
 

@@ -4,6 +4,8 @@
 Joints move towards POSITION setpoints (or integrate VELOCITY demands) within a velocity limit,
 setpoints outside the limits are ignored (as the PDF says), MODE/REQUEST/HEARTBEAT_* are
 honoured, HARDWARE_STATUS_FLAGS are pushed at 1 Hz while set, and the jaw is a linear axis in mm.
+MODE POSITION resumes the axis's last setpoint (``stale_setpoint``, the worst case; kept across
+DISABLE), so that a host which activates without a fresh setpoint sees the arm move.
 Fault injection for tests: ``tx_enabled`` / ``rx_enabled`` (cut a direction of the link),
 ``corrupt_every`` (flip a byte in every Nth packet sent), :meth:`inject_raw` (garbage bytes).
 """
@@ -99,11 +101,16 @@ class SimBravo7:
         jaw_range_mm: tuple[float, float] = (0.0, 35.0),
         tick_hz: float = 200.0,
         has_km: bool = False,
+        stale_setpoint: bool = True,
     ) -> None:
         self.transport = transport
         self.model = model
         self.tick_hz = tick_hz
         self.has_km = has_km
+        #: MODE POSITION resumes the setpoint an axis last took (kept across DISABLE and the other
+        #: modes) instead of its current position: the worst case, since the firmware's behaviour
+        #: is not documented. False: MODE POSITION holds the current position
+        self.stale_setpoint = stale_setpoint
         raw0 = model.to_device(np.asarray(q0, dtype=float))
         lo_raw = model.to_device(model.q_min)
         hi_raw = model.to_device(model.q_max)
@@ -281,7 +288,7 @@ class SimBravo7:
             self.events.append((now, p.device_id, "MODE", (mode,)))
             for ax in axes:
                 ax.mode = mode
-                if mode in (Mode.POSITION, Mode.POSITION_HOLD):
+                if mode == Mode.POSITION_HOLD or (mode == Mode.POSITION and not self.stale_setpoint):
                     ax.setpoint = ax.pos
                 ax.vdemand = 0.0
         elif pid == PacketID.POSITION:

@@ -491,6 +491,77 @@ def test_heartbeat_set_resent_after_power_cycle() -> None:
     run(main(), 20)
 
 
+def _rs485_config() -> ArmConfig:
+    cfg = fast_config(
+        telemetry=ArmTelemetryConfig(rate_hz=10.0), safety=ArmSafetyConfig(watchdog_s=0.6)
+    )
+    motion = dataclasses.replace(cfg.motion, setpoint_rate_hz=10.0, max_joint_speed_rad_s=1.0)
+    return dataclasses.replace(cfg, motion=motion)
+
+
+@pytest.mark.parametrize("kind", ["pty", "udp", "rs485"])
+def test_activation_holds_still_despite_a_stale_device_setpoint(kind: str) -> None:
+    """A device may keep the setpoint it had before it was stopped (the simulator's
+    ``stale_setpoint``): a motion aborted mid-way, or an arm moved while disabled. MODE POSITION
+    alone would drive it back there; activation sends the measured positions as setpoints, and
+    the arm holds still."""
+    cfg = _rs485_config() if kind == "rs485" else fast_config()
+
+    async def main() -> None:
+        async with sim_and_controller("pty" if kind == "rs485" else kind, cfg, rs485=kind == "rs485") as (
+            sim,
+            ctl,
+        ):
+            assert sim.stale_setpoint
+            await ctl.stop(reason="test", latch=False)
+            await wait_until(lambda: all(ax.mode == Mode.DISABLE for ax in sim.axes.values()))
+            for ax in sim.axes.values():  # 0.3 rad (3 mm) from where each axis stands
+                ax.setpoint = ax.pos + (-3.0 if ax.linear else 0.3)
+            raw0 = {d: ax.pos for d, ax in sim.axes.items()}
+            ctl._abort = None  # as execute_grasp does before it activates
+            await ctl._activate()
+            assert {ax.mode for ax in sim.axes.values()} == {Mode.POSITION}
+            await asyncio.sleep(0.3)  # the stale setpoints are reached within 0.1 s at 4 rad/s
+            moved = max(abs(ax.pos - raw0[d]) for d, ax in sim.axes.items())
+            assert moved < 1e-3, f"the arm moved {moved:.3f} (rad, jaw mm) on activation"
+            assert all(abs(ax.setpoint - ax.reported_position()) < 1e-3 for ax in sim.axes.values())
+            # and a grasp from there goes as usual
+            rep = await ctl.execute_grasp(
+                T_B_G=reachable_grasp(ctl, ctl._measured_q(), [0.1, 0.1, -0.1, 0.1, 0.1, 0.1]),
+                width_m=0.02,
+            )
+            assert rep.ok, rep.reason
+
+    run(main(), 40)
+
+
+def test_activation_refused_without_fresh_feedback() -> None:
+    """Activation needs a position from every axis reported after it began: without one (here
+    the arm went silent; the watchdog's own abort is cleared to reach the check) it is refused
+    naming the devices, and neither a mode change nor a setpoint reaches the arm."""
+
+    async def main() -> None:
+        async with sim_and_controller("udp") as (sim, ctl):
+            await ctl.stop(reason="test", latch=False)
+            await wait_until(lambda: all(ax.mode == Mode.DISABLE for ax in sim.axes.values()))
+            sim.tx_enabled = False
+            await wait_until(lambda: ctl.trip_reason is not None, 2.0, "the watchdog trips")
+            t0 = time.monotonic()
+            ctl._abort = None
+            stale = r"no fresh position and mode from device\(s\) 0x07, .*0x01 within 250 ms"
+            with pytest.raises(SafetyError, match=stale):
+                await ctl._activate()
+            await asyncio.sleep(0.1)
+            sent = [
+                e
+                for e in sim.events
+                if e[0] >= t0 and (e[2] == "POSITION" or (e[2] == "MODE" and e[3][0] != Mode.DISABLE))
+            ]
+            assert sent == []  # only the watchdog's repeated stops
+
+    run(main(), 20)
+
+
 def test_config_refuses_rs485_heartbeat_and_overloaded_polling() -> None:
     from pugsd.arm.config import ArmMotionConfig, ArmSerialConfig
     from pugsd.config import load_config_dict
@@ -524,3 +595,47 @@ def test_config_refuses_an_overloaded_serial_line() -> None:
     assert ArmConfig(motion=ArmMotionConfig(setpoint_rate_hz=75.0)).motion.setpoint_rate_hz == 75.0
     # the rule concerns the serial link only
     assert ArmConfig(transport="udp", serial=ArmSerialConfig(baudrate=9600)).transport == "udp"
+
+
+def test_config_counts_the_replies_on_the_serial_line() -> None:
+    """The polls' replies come back on the line too: per poll 7 axes x (POSITION 10 + VELOCITY 10
+    + MODE 7 bytes), the status flags (7 x 10 bytes) every status_every polls and pushed at 1 Hz
+    while set. Full duplex: inbound alone within 90 % of the line (115200 baud: 10368 of 11520
+    bytes/s); RS-485 (one wire): outbound + inbound within it. Outbound alone stays within half."""
+    from pugsd.arm.config import ArmMotionConfig, ArmSerialConfig
+
+    # defaults: 50 x 189 + (2 + 1) x 70 = 9660 bytes/s inbound (84 %), 4000 outbound
+    assert ArmConfig().telemetry.rate_hz == 50.0
+    assert ArmConfig(telemetry=ArmTelemetryConfig(rate_hz=53.0)).telemetry.rate_hz == 53.0
+    # 60 Hz: outbound 50 x 70 + 60 x 10 = 4100 fits half the line, the replies (11578) do not
+    with pytest.raises(
+        ConfigError,
+        match=r"overloaded inbound: arm\.telemetry\.rate_hz = 60 Hz of poll.*11578 bytes/s.*"
+        r"limit 10368; at most 53\.7 Hz.*lower arm\.telemetry\.rate_hz or raise the baud rate",
+    ):
+        ArmConfig(telemetry=ArmTelemetryConfig(rate_hz=60.0))
+    # heartbeats at 60 Hz: the same packets, pushed (plus the polled status flags)
+    with pytest.raises(ConfigError, match=r"60 Hz of heartbeat telemetry.*11578 bytes/s"):
+        ArmConfig(telemetry=ArmTelemetryConfig(mode="heartbeat", rate_hz=60.0))
+    # the polls ride along with the setpoints (ArmLink.due_poll): 55 Hz of setpoints, 55 Hz of polls
+    with pytest.raises(
+        ConfigError, match=r"polled at up to 55 Hz.*10619 bytes/s.*arm\.motion\.setpoint_rate_hz"
+    ):
+        ArmConfig(motion=ArmMotionConfig(setpoint_rate_hz=55.0))
+    assert ArmConfig(motion=ArmMotionConfig(setpoint_rate_hz=60.0)).motion.setpoint_rate_hz == 60.0
+    # RS-485, 2 ms request gap: 30 Hz of setpoints and polls fit (4200 + 5824 = 10024 bytes/s) ...
+    rs485 = ArmSerialConfig(rs485=True, rs485_request_gap_s=0.002)
+    sp30 = ArmMotionConfig(setpoint_rate_hz=30.0)
+    assert ArmConfig(serial=rs485, motion=sp30, telemetry=ArmTelemetryConfig(rate_hz=30.0)).serial.rs485
+    # ... 35 Hz of polls do not: outbound 4550 is within half the line, but not with the replies
+    with pytest.raises(
+        ConfigError,
+        match=r"RS-485 link overloaded: it is half duplex, so 4550 bytes/s outbound.*6783 bytes/s of "
+        r"replies.*11333 bytes/s.*limit 10368.*lower arm\.motion\.setpoint_rate_hz or "
+        r"arm\.telemetry\.rate_hz",
+    ):
+        ArmConfig(serial=rs485, motion=sp30, telemetry=ArmTelemetryConfig(rate_hz=35.0))
+    # the same rates on a full-duplex line: each direction has its own wire
+    assert ArmConfig(motion=sp30, telemetry=ArmTelemetryConfig(rate_hz=35.0)).telemetry.rate_hz == 35.0
+    # the rule concerns the serial link only
+    assert ArmConfig(transport="udp", telemetry=ArmTelemetryConfig(rate_hz=60.0)).transport == "udp"
