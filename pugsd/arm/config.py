@@ -414,6 +414,24 @@ class ArmConfig:
             f"HARDWARE_STATUS_FLAGS every arm.telemetry.status_every = {t.status_every} polls)"
         )
         if ser.rs485:
+            # each device answers its own REQUEST within the quiet time that follows it, else the
+            # next REQUEST (to the next device) collides with the reply on the one wire
+            reply_bytes = max(
+                sum(
+                    len(encode_frame(make_packet(d, i, [0] * PACKET_SPECS[i].max_count)))
+                    for i in ids
+                )
+                for d in ALL_AXES
+            )
+            reply_s = reply_bytes / line
+            _check(
+                ser.rs485_request_gap_s >= reply_s,
+                f"RS-485: arm.serial.rs485_request_gap_s = {ser.rs485_request_gap_s:g} s is shorter "
+                f"than one device's reply to a poll ({reply_bytes} bytes, {reply_s * 1000:.2f} ms at "
+                f"arm.serial.baudrate = {ser.baudrate}): the next REQUEST would collide with it on "
+                f"the half-duplex bus; raise the gap to at least {reply_s * 1000:.2f} ms plus the "
+                "devices' reply latency",
+            )
             total = need + inbound
             _check(
                 total <= limit,

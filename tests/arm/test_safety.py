@@ -623,8 +623,8 @@ def test_config_counts_the_replies_on_the_serial_line() -> None:
     ):
         ArmConfig(motion=ArmMotionConfig(setpoint_rate_hz=55.0))
     assert ArmConfig(motion=ArmMotionConfig(setpoint_rate_hz=60.0)).motion.setpoint_rate_hz == 60.0
-    # RS-485, 2 ms request gap: 30 Hz of setpoints and polls fit (4200 + 5824 = 10024 bytes/s) ...
-    rs485 = ArmSerialConfig(rs485=True, rs485_request_gap_s=0.002)
+    # RS-485, 4 ms request gap: 30 Hz of setpoints and polls fit (4200 + 5824 = 10024 bytes/s) ...
+    rs485 = ArmSerialConfig(rs485=True, rs485_request_gap_s=0.004)
     sp30 = ArmMotionConfig(setpoint_rate_hz=30.0)
     assert ArmConfig(serial=rs485, motion=sp30, telemetry=ArmTelemetryConfig(rate_hz=30.0)).serial.rs485
     # ... 35 Hz of polls do not: outbound 4550 is within half the line, but not with the replies
@@ -639,3 +639,22 @@ def test_config_counts_the_replies_on_the_serial_line() -> None:
     assert ArmConfig(motion=sp30, telemetry=ArmTelemetryConfig(rate_hz=35.0)).telemetry.rate_hz == 35.0
     # the rule concerns the serial link only
     assert ArmConfig(transport="udp", telemetry=ArmTelemetryConfig(rate_hz=60.0)).transport == "udp"
+
+
+def test_config_refuses_an_rs485_request_gap_shorter_than_the_reply() -> None:
+    """On RS-485 a device's reply to its poll (POSITION 10 + VELOCITY 10 + MODE 7 + status flags
+    10 bytes = 37 bytes, 3.21 ms at 115200 baud) must fit in the quiet time after the REQUEST, or
+    the next device's REQUEST collides with it on the one wire."""
+    from pugsd.arm.config import ArmSerialConfig
+
+    slow = ArmTelemetryConfig(rate_hz=10.0)
+    with pytest.raises(
+        ConfigError, match=r"rs485_request_gap_s = 0\.003 s is shorter than one device's reply to a "
+        r"poll \(37 bytes, 3\.21 ms at arm\.serial\.baudrate = 115200\)"
+    ):
+        ArmConfig(serial=ArmSerialConfig(rs485=True, rs485_request_gap_s=0.003), telemetry=slow)
+    ok = ArmConfig(serial=ArmSerialConfig(rs485=True, rs485_request_gap_s=0.0033), telemetry=slow)
+    assert ok.serial.rs485_request_gap_s == 0.0033
+    # a faster line carries the same reply sooner
+    fast = ArmSerialConfig(rs485=True, rs485_request_gap_s=0.002, baudrate=230400)
+    assert ArmConfig(serial=fast, telemetry=slow).serial.baudrate == 230400
