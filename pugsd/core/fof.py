@@ -410,9 +410,10 @@ class FofStore:
         self._nb_r[ring2] = dist[:, -1]
         in1 = np.searchsorted(ring2, ring1)  # rows of ring 1 within ring 2 (both sorted)
         k = min(self.cfg.k_neighbours, n)
-        # Eq. 5-6 at mu_j for ring 1 (without j itself unless include_self)
+        # Eq. 5-6 at mu_j for ring 1 (without j itself unless include_self; a lone voxel has
+        # only itself)
         nb1 = nbq[in1, :k]
-        if not self.cfg.include_self and k > 1:
+        if not self.cfg.include_self and kq > 1:
             nb1 = nbq[in1, 1:]
         fused, _ = fused_at(self._mu[ring1], self._mu[nb1], self._prec[nb1], self._logdet[nb1])
         self._fused[ring1] = fused
