@@ -921,13 +921,24 @@ class ArmController:
         packets are ignored; then a POSITION setpoint at its latest measured position, which
         switches it to POSITION (reach-bpl.md, MODE) without engaging an older setpoint."""
         pk: list[Packet] = []
+        # joints in the frame the streamed setpoints use (_send_setpoint), not the wrapped report
+        raw = dict(zip(JOINT_DEVICES, self.model.to_device(self._measured_q()).tolist()))
         for d in devices:
             ax = self.link.axes[d]
             if ax.position is None or ax.invalid:  # the watchdog trips on this too
                 raise SafetyError(f"activate: no valid position from device 0x{d:02X}")
+            value = raw.get(d, ax.position)
+            lim = ax.limits
+            if lim is not None and not lim[0] <= value <= lim[1]:  # the device would ignore it
+                unit = "mm" if d == JAW_DEVICE else "rad"
+                raise SafetyError(
+                    f"activate: device 0x{d:02X} stands at {value:.4f} {unit}, outside the limits "
+                    f"[{lim[0]:.4f}, {lim[1]:.4f}] it reports, so it would ignore a hold setpoint "
+                    "there: move it back inside its limits (e.g. with the hand controller) first"
+                )
             if ax.mode is None or ax.mode in (Mode.DISABLE, Mode.PASSIVE):
                 pk.append(make_packet(d, PacketID.MODE, [int(Mode.STANDBY)]))
-            pk.append(make_packet(d, PacketID.POSITION, [ax.position]))
+            pk.append(make_packet(d, PacketID.POSITION, [value]))
         return pk
 
     async def _activate(self, within_s: float | None = None) -> None:
@@ -975,7 +986,11 @@ class ArmController:
                 want = "left DISABLE/PASSIVE/POSITION_HOLD" if km else "taken the hold setpoint (POSITION)"
                 raise ArmError(f"activate: not every axis has {want} within {within_s} s ({modes})")
             if time.monotonic() - t_sent > 0.2:  # lost packet: send again
-                await self.link.send([standby] if km else self._hold_packets(left))
+                # only to axes that have answered since, in the wrong mode: one not heard from
+                # yet may already hold (a MODE STANDBY from its old report would interrupt that)
+                wrong = [d for d in left if self.link.axes[d].t_mode > t_sent]
+                if wrong:
+                    await self.link.send([standby] if km else self._hold_packets(wrong))
                 t_sent = time.monotonic()
 
     def _measured_q(self) -> np.ndarray:
@@ -1018,7 +1033,8 @@ class ArmController:
         ``jaw_check="hold"`` accepts a stalled jaw that is no more open than ``jaw_grip_mm``
         (+ tolerance): the object is still held.
         """
-        self.link.polls_with_setpoints = True
+        # only where due_poll really sends the polls (not RS-485, not heartbeats)
+        self.link.polls_with_setpoints = not self.link.rs485 and self.link.telemetry_mode == "poll"
         try:
             return await self._follow_path(name, path, jaw_from, jaw_to, jaw_check, jaw_grip_mm)
         finally:

@@ -20,7 +20,7 @@ from pugsd.arm.config import (
 )
 from pugsd.arm.controller import ArmController, T_B_W_from_config
 from pugsd.arm.kinematics import pose_from_xyz_rpy
-from pugsd.arm.protocol import JOINT_DEVICES, Mode, PacketID, make_packet
+from pugsd.arm.protocol import JAW_DEVICE, JOINT_DEVICES, Mode, PacketID, make_packet
 from pugsd.errors import ArmError, ConfigError, SafetyError
 from tests.arm.helpers import (
     assert_pose_within_convergence,
@@ -533,6 +533,101 @@ def test_activation_holds_still_despite_a_stale_device_setpoint(kind: str) -> No
             assert rep.ok, rep.reason
 
     run(main(), 40)
+
+
+@pytest.mark.parametrize(
+    ("signs", "offsets"),
+    [((1.0, -1.0, 1.0, 1.0, 1.0, 1.0), (0.0,) * 6), ((1.0,) * 6, (0.0, 0.0, 0.0, 0.0, 0.0, 3.3))],
+    ids=["sign_F", "offset_B"],
+)
+def test_activation_holds_with_a_calibrated_joint_mapping(
+    signs: tuple[float, ...], offsets: tuple[float, ...]
+) -> None:
+    """With joint_signs / joint_offsets_rad the device's raw position is not in [0, 2 pi), but it
+    reports it wrapped there: the hold setpoint must be in the frame the streamed setpoints use
+    (to_device of the measured joint angles), not the wrapped report, which lies outside the
+    joint's limits (the device ignored it and every activation failed)."""
+    base = fast_config()
+    cfg = dataclasses.replace(
+        base, kinematics=dataclasses.replace(base.kinematics, joint_signs=signs, joint_offsets_rad=offsets)
+    )
+
+    async def main() -> None:
+        async with sim_and_controller("udp", cfg) as (sim, ctl):
+            raw0 = {d: ax.pos for d, ax in sim.axes.items()}
+            assert any(not 0.0 <= p < 2.0 * np.pi for d, p in raw0.items() if d != JAW_DEVICE)
+            rep = await ctl.execute_grasp(
+                T_B_G=reachable_grasp(ctl, ctl._measured_q(), [0.1, 0.1, -0.1, 0.1, 0.1, 0.1]),
+                width_m=0.02,
+            )
+            assert rep.ok, rep.reason
+
+    run(main(), 40)
+
+
+def test_activation_refused_for_an_axis_outside_its_limits() -> None:
+    """An axis pushed past its limit while limp would ignore a hold setpoint where it stands:
+    activation is refused naming the device, its position and its limits (it used to time out
+    with 'not every axis has taken the hold setpoint'), and nothing but the stop is sent."""
+
+    async def main() -> None:
+        async with sim_and_controller("udp") as (sim, ctl):
+            await ctl.stop(reason="test", latch=False)
+            axes = ctl.link.axes
+            await wait_until(
+                lambda: ctl.trip_reason is None and all(a.mode == Mode.DISABLE for a in axes.values())
+            )
+            sim.axes[0x04].pos = sim.axes[0x04].hi + 0.005
+            await asyncio.sleep(0.2)
+            n_events = len(sim.events)
+            ctl._abort = None  # as execute_grasp does before it activates
+            with pytest.raises(SafetyError, match=r"device 0x04 stands at .* rad, outside the limits"):
+                await ctl._activate()
+            assert not [e for e in sim.events[n_events:] if e[2] in ("MODE", "POSITION")]
+
+    run(main(), 30)
+
+
+def test_activation_sends_each_axis_one_standby_at_a_slow_telemetry_rate() -> None:
+    """At 3 Hz telemetry an axis's report after the hold setpoint comes up to 0.33 s later than
+    the 0.2 s re-send: the re-send goes only to axes that answered in the wrong mode, so an axis
+    already holding is not sent MODE STANDBY again from its old DISABLE report (it was switched
+    POSITION -> STANDBY -> POSITION)."""
+    cfg = fast_config(telemetry=ArmTelemetryConfig(rate_hz=3.0), safety=ArmSafetyConfig(watchdog_s=0.5))
+
+    async def main() -> None:
+        async with sim_and_controller("udp", cfg) as (sim, ctl):
+            await ctl.stop(reason="test", latch=False)
+            axes = ctl.link.axes
+            await wait_until(
+                lambda: ctl.trip_reason is None and all(a.mode == Mode.DISABLE for a in axes.values())
+            )
+            n_events = len(sim.events)
+            ctl._abort = None  # as execute_grasp does before it activates
+            await ctl._activate()
+            standby = [e[1] for e in sim.events[n_events:] if e[2] == "MODE" and e[3] == (int(Mode.STANDBY),)]
+            assert sorted(standby) == sorted(sim.axes), standby
+            assert {ax.mode for ax in sim.axes.values()} == {Mode.POSITION}
+
+    run(main(), 30)
+
+
+def test_rs485_grasp_at_7_hz_keeps_feedback_within_the_watchdog() -> None:
+    """On RS-485 the polls never ride along with the setpoints (due_poll sends none there), so a
+    motion must not make the poller wait for them: at 7 Hz with the default 0.25 s watchdog each
+    device reported only every ~2 periods during a motion and the watchdog tripped at pregrasp."""
+    cfg = dataclasses.replace(_rs485_config(), telemetry=ArmTelemetryConfig(rate_hz=7.0),
+                              safety=ArmSafetyConfig(watchdog_s=0.25))  # fmt: skip
+
+    async def main() -> None:
+        async with sim_and_controller("pty", cfg, rs485=True) as (_sim, ctl):
+            rep = await ctl.execute_grasp(
+                T_B_G=reachable_grasp(ctl, ctl._measured_q(), [0.1, 0.1, -0.1, 0.1, 0.1, 0.1]),
+                width_m=0.02,
+            )
+            assert rep.ok, rep.reason
+
+    run(main(), 60)
 
 
 def test_activation_refused_without_fresh_feedback() -> None:
