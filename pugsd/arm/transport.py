@@ -406,6 +406,7 @@ class SerialTransport(FdStreamTransport):
         self._requests: collections.deque[Packet] = collections.deque()
         self._wake = asyncio.Event()
         self._writer: asyncio.Task[None] | None = None
+        self._wire_free = 0.0  # RS-485: when the bytes written so far have left the wire (monotonic)
         self._echo: collections.deque[tuple[Packet, float]] = collections.deque()
         self.echo_missing = 0  # frames whose echo never came back (rs485_echo only)
         self._unexpected_echo = False
@@ -478,7 +479,9 @@ class SerialTransport(FdStreamTransport):
 
     async def _paced_writer(self) -> None:
         """Commands first (back to back in one write), then one REQUEST at a time, each followed
-        by quiet time; a gap starts when the bytes have left the transmit buffer."""
+        by quiet time. The quiet time starts when the last byte has left the wire: the kernel
+        takes the bytes at once, the line sends ``baudrate / 10`` bytes/s after what it still
+        holds, so a gap timed from the write left a REQUEST's reply less room than configured."""
         while True:
             while not self._commands and not self._requests:
                 self._wake.clear()
@@ -489,10 +492,14 @@ class SerialTransport(FdStreamTransport):
             else:
                 batch = [self._requests.popleft()]
                 gap = self.request_gap_s
-            self._enqueue([(encode_frame(p), 1, p) for p in batch])
+            frames = [encode_frame(p) for p in batch]
+            self._enqueue([(f, 1, p) for f, p in zip(frames, batch, strict=True)])
             while self.tx_pending() and not self._closed:  # noqa: ASYNC110
                 await asyncio.sleep(0.001)
-            await asyncio.sleep(gap)
+            now = time.monotonic()
+            wire_s = sum(map(len, frames)) * 10.0 / self.baudrate  # 8N1
+            self._wire_free = max(now, self._wire_free) + wire_s
+            await asyncio.sleep(self._wire_free - now + gap)
 
     # ---------------------------------------------------------------- RS-485 echo
 

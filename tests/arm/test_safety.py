@@ -630,6 +630,73 @@ def test_rs485_grasp_at_7_hz_keeps_feedback_within_the_watchdog() -> None:
     run(main(), 60)
 
 
+def test_rs485_quiet_time_after_a_request_is_on_the_wire(monkeypatch: pytest.MonkeyPatch) -> None:
+    """RS-485: the host's writes replayed through a 115200-baud line (bytes leave in order at
+    11.52 bytes/ms once the kernel has them): after every REQUEST the wire stays quiet for at least
+    the device's reply (27 bytes, 37 with the status flags) before the host's next frame. The gap
+    used to be timed from the write, so at a 5 ms gap (accepted) about a quarter of the replies
+    collided with the next setpoints or REQUEST during a grasp."""
+    import types
+
+    import pugsd.arm.transport as tr
+    from pugsd.arm.config import ArmSerialConfig
+    from pugsd.arm.protocol import decode_frame
+
+    bps = 115200 / 10.0
+    gap = 0.005
+    cfg = fast_config(
+        telemetry=ArmTelemetryConfig(rate_hz=10.0), safety=ArmSafetyConfig(watchdog_s=0.6),
+        serial=ArmSerialConfig(rs485=True, rs485_request_gap_s=gap),
+    )  # fmt: skip
+    cfg = dataclasses.replace(
+        cfg, motion=dataclasses.replace(cfg.motion, setpoint_rate_hz=50.0, max_joint_speed_rad_s=0.5)
+    )
+    writes: list[tuple[float, bytes]] = []
+    host_fd: list[int | None] = [None]
+    real_os = tr.os
+
+    def write(fd: int, buf: bytes) -> int:
+        n = real_os.write(fd, buf)
+        if fd == host_fd[0] and n > 0:
+            writes.append((time.monotonic(), bytes(buf[:n])))
+        return n
+
+    fake = types.SimpleNamespace(**{k: getattr(real_os, k) for k in dir(real_os) if not k.startswith("__")})
+    fake.write = write
+    monkeypatch.setattr(tr, "os", fake)
+
+    async def main() -> None:
+        async with sim_and_controller("pty", cfg, rs485=True) as (_sim, ctl):
+            host_fd[0] = ctl.link.transport._fd
+            rep = await ctl.execute_grasp(
+                T_B_G=reachable_grasp(ctl, ctl._measured_q(), [0.1, 0.1, -0.1, 0.1, 0.1, 0.1]),
+                width_m=0.02,
+            )
+            assert rep.ok, rep.reason
+
+    run(main(), 60)
+    frames: list[tuple[float, float, bool, int]] = []  # start, end, is REQUEST, reply bytes
+    free = 0.0
+    for t, b in writes:
+        start = max(t, free)
+        pos = 0
+        for chunk in b.split(b"\x00")[:-1]:
+            n = len(chunk) + 1
+            try:
+                p = decode_frame(chunk)
+                req = p.packet_id == PacketID.REQUEST
+                reply = 27 + (10 if req and PacketID.HARDWARE_STATUS_FLAGS in p.data else 0)
+            except Exception:  # a leading 0x00 or a cut frame: not a REQUEST
+                req, reply = False, 0
+            frames.append((start + pos / bps, start + (pos + n) / bps, req, reply))
+            pos += n
+        free = start + len(b) / bps
+    quiet = [(frames[i + 1][0] - fe, reply) for i, (_, fe, req, reply) in enumerate(frames[:-1]) if req]
+    assert len(quiet) > 50
+    short = [(round(q * 1e3, 2), r) for q, r in quiet if q < r / bps]
+    assert not short, f"{len(short)} of {len(quiet)} replies had no room: {short[:5]}"
+
+
 def test_activation_refused_without_fresh_feedback() -> None:
     """Activation needs a position from every axis reported after it began: without one (here
     the arm went silent; the watchdog's own abort is cleared to reach the check) it is refused
