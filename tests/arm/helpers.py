@@ -68,6 +68,13 @@ def reachable_grasp(ctl: ArmController, q_now: np.ndarray, dq: Any = None) -> np
     return ctl.model.fk(q_now + dq) @ ctl.T_tool_grasp
 
 
+async def small_grasp(ctl: ArmController) -> ExecutionReport:
+    """Execute a grasp 0.1 rad per joint from where the arm stands, 2 cm wide."""
+    return await ctl.execute_grasp(
+        T_B_G=reachable_grasp(ctl, ctl._measured_q(), [0.1, 0.1, -0.1, 0.1, 0.1, 0.1]), width_m=0.02
+    )
+
+
 @contextlib.asynccontextmanager
 async def sim_and_controller(
     kind: str, cfg: ArmConfig | None = None, *, rs485: bool = False

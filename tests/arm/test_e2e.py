@@ -22,6 +22,7 @@ from tests.arm.helpers import (
     reachable_grasp,
     run,
     sim_and_controller,
+    small_grasp,
     wait_state,
     wait_until,
 )
@@ -188,10 +189,7 @@ def test_rs485_never_broadcasts_requests() -> None:
 
     async def main() -> None:
         async with sim_and_controller("pty", cfg, rs485=True) as (sim, ctl):
-            rep = await ctl.execute_grasp(
-                T_B_G=reachable_grasp(ctl, ctl._measured_q(), [0.1, 0.1, -0.1, 0.1, 0.1, 0.1]),
-                width_m=0.02,
-            )
+            rep = await small_grasp(ctl)
             assert rep.ok, rep.reason
             assert sim.requests_received > 0 and sim.broadcast_requests == 0
 
@@ -220,10 +218,7 @@ def test_km_end_pos_mode() -> None:
 
     async def main() -> None:
         async with sim_and_controller("udp", cfg) as (sim, ctl):
-            rep = await ctl.execute_grasp(
-                T_B_G=reachable_grasp(ctl, ctl._measured_q(), [0.1, 0.1, -0.1, 0.1, 0.1, 0.1]),
-                width_m=0.02,
-            )
+            rep = await small_grasp(ctl)
             assert rep.ok, rep.reason
             names = {e[2] for e in sim.events}
             assert "KM_END_POS" in names

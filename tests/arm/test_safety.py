@@ -28,6 +28,7 @@ from tests.arm.helpers import (
     reachable_grasp,
     run,
     sim_and_controller,
+    small_grasp,
     wait_state,
     wait_until,
 )
@@ -526,10 +527,7 @@ def test_activation_holds_still_despite_a_stale_device_setpoint(kind: str) -> No
             assert moved < 1e-3, f"the arm moved {moved:.3f} (rad, jaw mm) on activation"
             assert all(abs(ax.setpoint - ax.reported_position()) < 1e-3 for ax in sim.axes.values())
             # and a grasp from there goes as usual
-            rep = await ctl.execute_grasp(
-                T_B_G=reachable_grasp(ctl, ctl._measured_q(), [0.1, 0.1, -0.1, 0.1, 0.1, 0.1]),
-                width_m=0.02,
-            )
+            rep = await small_grasp(ctl)
             assert rep.ok, rep.reason
 
     run(main(), 40)
@@ -556,10 +554,7 @@ def test_activation_holds_with_a_calibrated_joint_mapping(
         async with sim_and_controller("udp", cfg) as (sim, ctl):
             raw0 = {d: ax.pos for d, ax in sim.axes.items()}
             assert any(not 0.0 <= p < 2.0 * np.pi for d, p in raw0.items() if d != JAW_DEVICE)
-            rep = await ctl.execute_grasp(
-                T_B_G=reachable_grasp(ctl, ctl._measured_q(), [0.1, 0.1, -0.1, 0.1, 0.1, 0.1]),
-                width_m=0.02,
-            )
+            rep = await small_grasp(ctl)
             assert rep.ok, rep.reason
 
     run(main(), 40)
@@ -621,10 +616,7 @@ def test_rs485_grasp_at_7_hz_keeps_feedback_within_the_watchdog() -> None:
 
     async def main() -> None:
         async with sim_and_controller("pty", cfg, rs485=True) as (_sim, ctl):
-            rep = await ctl.execute_grasp(
-                T_B_G=reachable_grasp(ctl, ctl._measured_q(), [0.1, 0.1, -0.1, 0.1, 0.1, 0.1]),
-                width_m=0.02,
-            )
+            rep = await small_grasp(ctl)
             assert rep.ok, rep.reason
 
     run(main(), 60)
@@ -668,10 +660,7 @@ def test_rs485_quiet_time_after_a_request_is_on_the_wire(monkeypatch: pytest.Mon
     async def main() -> None:
         async with sim_and_controller("pty", cfg, rs485=True) as (_sim, ctl):
             host_fd[0] = ctl.link.transport._fd
-            rep = await ctl.execute_grasp(
-                T_B_G=reachable_grasp(ctl, ctl._measured_q(), [0.1, 0.1, -0.1, 0.1, 0.1, 0.1]),
-                width_m=0.02,
-            )
+            rep = await small_grasp(ctl)
             assert rep.ok, rep.reason
 
     run(main(), 60)

@@ -22,7 +22,15 @@ from pugsd.arm.protocol import ALL_AXES, Packet, PacketID, StreamDecoder, encode
 from pugsd.arm.sim import close_pty, make_pty_pair
 from pugsd.arm.transport import CanReassembler, CanTransport, SerialTransport, UdpTransport
 from pugsd.errors import ArmError
-from tests.arm.helpers import fast_config, reachable_grasp, run, sim_and_controller, wait_state, wait_until
+from tests.arm.helpers import (
+    fast_config,
+    reachable_grasp,
+    run,
+    sim_and_controller,
+    small_grasp,
+    wait_state,
+    wait_until,
+)
 
 P = PacketID
 
@@ -185,10 +193,7 @@ def test_rs485_echo_is_discarded_and_a_silent_arm_trips() -> None:
     async def main() -> None:
         async with sim_and_controller("pty", _rs485_cfg(True), rs485=True) as (sim, ctl):
             _echo_line(sim)
-            rep = await ctl.execute_grasp(
-                T_B_G=reachable_grasp(ctl, ctl._measured_q(), [0.1, 0.1, -0.1, 0.1, 0.1, 0.1]),
-                width_m=0.02,
-            )
+            rep = await small_grasp(ctl)
             assert rep.ok, rep.reason
             assert ctl.link.transport.stats.rx_echo > 100
             T = reachable_grasp(ctl, ctl._measured_q(), [0.3, 0.2, -0.2, 0.2, 0.2, 0.3])
