@@ -362,13 +362,13 @@ class ArmConfig:
             make_packet,
         )
 
+        def reply(d: int, ids: list[int]) -> int:
+            """Wire bytes of one reply packet per id from device ``d``."""
+            return sum(len(encode_frame(make_packet(d, i, [0] * PACKET_SPECS[i].max_count))) for i in ids)
+
         def replies(ids: list[int]) -> int:
             """Wire bytes of one reply packet per id from every axis."""
-            return sum(
-                len(encode_frame(make_packet(d, i, [0] * PACKET_SPECS[i].max_count)))
-                for d in ALL_AXES
-                for i in ids
-            )
+            return sum(reply(d, ids) for d in ALL_AXES)
 
         mo, t, ser = self.motion, self.telemetry, self.serial
         if self.kinematics.has_km_end_pos:
@@ -416,13 +416,7 @@ class ArmConfig:
         if ser.rs485:
             # each device answers its own REQUEST within the quiet time that follows it, else the
             # next REQUEST (to the next device) collides with the reply on the one wire
-            reply_bytes = max(
-                sum(
-                    len(encode_frame(make_packet(d, i, [0] * PACKET_SPECS[i].max_count)))
-                    for i in ids
-                )
-                for d in ALL_AXES
-            )
+            reply_bytes = max(reply(d, ids) for d in ALL_AXES)
             reply_s = reply_bytes / line
             _check(
                 ser.rs485_request_gap_s >= reply_s,
