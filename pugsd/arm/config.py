@@ -302,9 +302,15 @@ class ArmConfig:
     sim: ArmSimConfig = field(default_factory=ArmSimConfig, metadata={"doc": "simulator"})
 
     def __post_init__(self) -> None:
+        from pugsd.arm.protocol import heartbeat_frequency_hz
+
+        t = self.telemetry
+        # heartbeats come at whole Hz (the HEARTBEAT_FREQUENCY byte): 1.4 Hz asks for 1 Hz
+        feedback_hz = float(heartbeat_frequency_hz(t.rate_hz)) if t.mode == "heartbeat" else t.rate_hz
         _check(
-            self.safety.watchdog_s > 1.0 / self.telemetry.rate_hz,
-            "safety.watchdog_s must exceed the telemetry period",
+            self.safety.watchdog_s > 1.0 / feedback_hz,
+            f"safety.watchdog_s ({self.safety.watchdog_s:g} s) must exceed the telemetry period "
+            f"(1 / {feedback_hz:g} Hz of {t.mode} telemetry)",
         )
         mo = self.motion
         _check(math.isfinite(mo.jaw_open_mm), "motion.jaw_open_mm must be finite")

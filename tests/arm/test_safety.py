@@ -225,6 +225,18 @@ def test_config_validation() -> None:
     assert ArmConfig().enabled is False
 
 
+def test_watchdog_must_outlast_the_feedback_period_actually_sent() -> None:
+    """Heartbeats come at whole Hz: rate_hz = 1.4 asks the devices for 1 Hz, so a 0.8 s watchdog
+    (> 1 / 1.4 s) would trip between two heartbeats. Polls go out at rate_hz itself."""
+    dog = ArmSafetyConfig(watchdog_s=0.8)
+    ArmConfig(telemetry=ArmTelemetryConfig(mode="poll", rate_hz=1.4), safety=dog)
+    with pytest.raises(ConfigError, match=r"1 / 1 Hz of heartbeat"):
+        ArmConfig(telemetry=ArmTelemetryConfig(mode="heartbeat", rate_hz=1.4), safety=dog)
+    ArmConfig(telemetry=ArmTelemetryConfig(mode="heartbeat", rate_hz=1.6), safety=dog)  # 2 Hz
+    with pytest.raises(ConfigError, match="must exceed the telemetry period"):
+        ArmConfig(telemetry=ArmTelemetryConfig(mode="poll", rate_hz=1.0), safety=dog)
+
+
 def test_parse_execute_request_and_execute_grasp_id() -> None:
     from pugsd.arm.controller import parse_execute_request
     from pugsd.core.types import ScoredGrasps
