@@ -37,7 +37,12 @@ class ModelNotReadyError(PugsdError):
 
 
 class DecodeError(PugsdError):
-    """A wire message (CDR, packet, file) could not be decoded."""
+    """A wire message (CDR, packet, file) could not be decoded. ``reason``, when set, is the
+    countable class of the failure, fixed by the code (the message may quote text from the wire)."""
+
+    def __init__(self, message: str, reason: str | None = None) -> None:
+        super().__init__(message)
+        self.reason = reason
 
 
 class ArmError(PugsdError):

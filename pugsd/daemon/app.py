@@ -134,6 +134,8 @@ def reason_class(exc: BaseException) -> str:
     """A short, countable class for a rejection (the full reason goes to the log)."""
     if isinstance(exc, InputRejected):
         return exc.reason
+    if isinstance(exc, DecodeError) and exc.reason:  # a message that quotes the wire
+        return exc.reason
     text = str(exc).lower()
     for key, words in (
         ("out_of_map_range", ("voxel hash",)),
@@ -802,6 +804,7 @@ class Daemon:
         if role in ("left_image", "right_image"):
             self._expect_type(item, IMAGE)
             img = codec.decode_image(data, STEREO_ENCODINGS)
+            self._check_size(role, img)
             dups = self.pairer.duplicates
             pair = (
                 self.pairer.add_left(img.stamp_ns, img)
@@ -855,7 +858,29 @@ class Daemon:
         elif role == "depth":
             self._expect_type(item, IMAGE)
             img = codec.decode_image(data, DEPTH_ENCODINGS)
+            self._check_size(role, img)
             self._admit(img.stamp_ns, ("depth", img, item.recv_s), item.recv_s)
+
+    def _check_size(self, role: str, img: codec.ImageMsg) -> None:
+        """Reject an image of another size than its camera on arrival, so that it neither takes
+        (or replaces) a good waiting stereo half of its stamp nor pushes good frames out of the
+        pose gate. Without a usable camera (no or inconsistent CameraInfo) the frame is judged
+        when it is emitted, as before."""
+        if role == "depth":
+            info = self._infos.get("depth_info")
+            if info is None:
+                return
+            cam = info.camera
+        else:
+            try:
+                cam = self._stereo_rig().left
+            except PugsdError:
+                return
+        shape = (cam.height, cam.width)
+        if img.array.shape[:2] != shape:
+            what = "depth image" if role == "depth" else f"{role}: image"
+            msg = f"{what} is {img.array.shape[:2]}, camera expects {shape}"
+            raise InputRejected("wrong_size", msg, role)
 
     def _expect_type(self, item: Inbound, typename: str) -> None:
         got = self._msg_type(item, typename)

@@ -44,7 +44,8 @@ def encode_attachment(sequence_number: int, source_timestamp_ns: int, gid: bytes
 
 
 def decode_attachment(data: bytes | bytearray | memoryview | None) -> Attachment:
-    """Parse the 33-byte attachment; DecodeError on any other size or a wrong GID length byte."""
+    """Parse the 33-byte attachment; DecodeError on any other size, a wrong GID length byte or a
+    sequence number below 1 (rmw_zenoh numbers from 1)."""
     if data is None:
         raise DecodeError("no attachment")
     b = bytes(data)
@@ -53,6 +54,8 @@ def decode_attachment(data: bytes | bytearray | memoryview | None) -> Attachment
     seq, ts, n, gid = _FMT.unpack(b)
     if n != 16:
         raise DecodeError(f"attachment GID length byte is {n}, expected 16")
+    if seq < 1:
+        raise DecodeError(f"attachment sequence number {seq} is below 1")
     return Attachment(seq, ts, gid)
 
 

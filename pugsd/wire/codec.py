@@ -257,7 +257,9 @@ def decode_image(data: bytes, encodings: Sequence[str] | None = None) -> ImageMs
     enc = str(m.encoding)
     allowed = IMAGE_ENCODINGS if encodings is None else encodings
     if enc not in IMAGE_ENCODINGS or enc not in allowed:
-        raise DecodeError(f"{IMAGE}: unsupported encoding {enc!r} (accepted: {list(allowed)})")
+        shown = repr(enc[:40]) + ("..." if len(enc) > 40 else "")  # wire text: bounded
+        msg = f"{IMAGE}: unsupported encoding {shown} (accepted: {list(allowed)})"
+        raise DecodeError(msg, reason="wrong_encoding")
     dtype, ch = IMAGE_ENCODINGS[enc]
     h, w, step = int(m.height), int(m.width), int(m.step)
     if h <= 0 or w <= 0:

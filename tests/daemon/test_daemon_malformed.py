@@ -89,7 +89,9 @@ def test_each_kind_of_bad_input_is_rejected_and_counted(
         }
         for (role, _), data in bad.items():
             src.put(role, data)
-        # a stereo pair whose images do not match the CameraInfo size (valid CDR each)
+        # a stereo pair whose images do not match the CameraInfo size (valid CDR each); with the
+        # CameraInfo in, each half is refused on arrival, before it pairs
+        wait_for(lambda: {"left_info", "right_info"} <= set(dt.daemon._infos), 10.0, "CameraInfo")
         src.put("pose", codec.encode_pose_with_covariance(3 * 10**9, np.eye(4), np.eye(6) * 1e-6))
         small = np.zeros((24, 32), np.uint8)
         src.put("left_image", codec.encode_image(small, 3 * 10**9, "left"))
@@ -104,7 +106,7 @@ def test_each_kind_of_bad_input_is_rejected_and_counted(
             "depth: wrong_encoding": 1,
             "right_image: wrong_encoding": 1,
             "left_image: wrong_size": 2,
-            "right_image: wrong_size": 1,
+            "right_image: wrong_size": 2,  # each half of the small pair, before it pairs
             "pose: bad_pose": 2,
             "pose: non_psd_covariance": 1,
         }
