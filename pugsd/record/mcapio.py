@@ -129,7 +129,8 @@ def _iter_file(
 ) -> Iterator[tuple[int, int, int, RecordedMessage]]:
     with _open_read(path) as f:
         try:
-            reader = make_reader(f)
+            # the chunk CRCs: a corrupt chunk is an error, not altered payloads (zstd has no checksum)
+            reader = make_reader(f, validate_crcs=True)
             it = reader.iter_messages(
                 topics=topics, starting_at=start_ns, ending_before=end_ns, log_time_order=True
             )
@@ -321,10 +322,13 @@ def _stream(path: Path, on_record: Any, *, fh: IO[bytes] | None = None) -> Strea
     from mcap.records import DataEnd, Footer, Header
 
     res = StreamResult()
+    data_end = False  # every message is read; the summary, footer and magic must follow
     with contextlib.nullcontext(fh) if fh is not None else _open_read(path) as f:
         reader = StreamReader(f, validate_crcs=True, record_size_limit=1 << 31)
         try:
             for rec in reader.records:
+                if data_end:  # the summary repeats what the data section gave
+                    continue
                 if isinstance(rec, Header):
                     res.profile, res.library = rec.profile, rec.library
                 elif isinstance(rec, Schema):
@@ -342,13 +346,18 @@ def _stream(path: Path, on_record: Any, *, fh: IO[bytes] | None = None) -> Strea
                     res.metadata.append(rec)
                 elif isinstance(rec, (DataEnd, Footer)):
                     on_record(rec, res)
-                    return res
+                    data_end = True
+                    continue
                 on_record(rec, res)
+            if data_end:  # the records ended with the footer and the closing magic
+                return res
             res.error = "end of file before the footer"
         except _Abort:
             raise
         except Exception as exc:
             res.error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+    if data_end:
+        res.error = f"summary or footer unreadable ({res.error}); every message was read"
     return res
 
 

@@ -637,6 +637,7 @@ class Recorder:
             self._drop_pending()
         with contextlib.suppress(OSError, ValueError):
             self._finished_bytes += fh.tell()
+        self.stats.bytes_written = self._finished_bytes  # the summary and footer included
         try:
             if ok:
                 fh.flush()
