@@ -269,6 +269,10 @@ class Daemon:
         self._retry_train_at = 0.0
         self._generation = 0  # bumped by reset: frames from before it are not integrated
         self._busy: dict[str, bool] = {}
+        # a map reset allocates a new TSDF grid in one call that holds Python's GIL for ~0.25 s
+        # (40000 blocks), as long as the arm watchdog's default bound: it waits for an arm motion
+        # to end, and a motion for the reset (an arm stop waits for neither)
+        self._motion_lock = asyncio.Lock()
         # model state as seen by the loop
         self.latest_grasps: bytes | None = None
         self.latest_result: Any = None  # the last PipelineResult (for the demo's figure)
@@ -502,7 +506,8 @@ class Daemon:
             grasps, grasp_id, width_m = await self.arm_box.take()
             self._busy["arm"] = True
             try:
-                rep = await self.arm.execute_grasp_id(grasps, grasp_id, width_m)
+                async with self._motion_lock:
+                    rep = await self.arm.execute_grasp_id(grasps, grasp_id, width_m)
                 report = _jsonable(rep.to_dict())
             except PugsdError as exc:
                 log.warning("arm: grasp %d refused or failed: %s", grasp_id, exc)
@@ -1343,27 +1348,34 @@ class Daemon:
         while not self._stopping:
             cmd = await self.commands.take()
             if cmd.name == "reset":
-                self._generation += 1
-                self.stereo_box.clear()  # counted by the mailboxes
-                self.depth_box.clear()
-                waiting, unpaired = self.gate.clear(), self.pairer.clear()
-                if waiting:
-                    self._drop("reset", "frames waiting for a pose", waiting)
-                if unpaired:
-                    self._drop("reset", "unpaired stereo halves", unpaired)
-                await self._guard("reset", self._offload("reset", self._locked, self.pipeline.reset))
-                self.latest_grasps = None
-                self.latest_result = None
-                self.ready = False
-                self.was_ready = False
-                self._changed = False
-                self._frame_unpublished = False
-                self._last_frame_s = None
-                self._newest_recv_s = None
-                self._newest_stamp_ns = 0
-                self.elbo = None
-                self.health.count("resets")
-                log.info("reset: map cleared")
+                if self._motion_lock.locked():
+                    log.info("reset: waiting for the arm motion in progress to end")
+                async with self._motion_lock:
+                    await self._reset()
+
+    async def _reset(self) -> None:
+        """The reset command: clear the queues, the pipeline and every published state."""
+        self._generation += 1
+        self.stereo_box.clear()  # counted by the mailboxes
+        self.depth_box.clear()
+        waiting, unpaired = self.gate.clear(), self.pairer.clear()
+        if waiting:
+            self._drop("reset", "frames waiting for a pose", waiting)
+        if unpaired:
+            self._drop("reset", "unpaired stereo halves", unpaired)
+        await self._guard("reset", self._offload("reset", self._locked, self.pipeline.reset))
+        self.latest_grasps = None
+        self.latest_result = None
+        self.ready = False
+        self.was_ready = False
+        self._changed = False
+        self._frame_unpublished = False
+        self._last_frame_s = None
+        self._newest_recv_s = None
+        self._newest_stamp_ns = 0
+        self.elbo = None
+        self.health.count("resets")
+        log.info("reset: map cleared")
 
     def _output_stamp_ns(self, stamp_ns: int) -> int:
         """The stamp for outputs after integrating a frame stamped ``stamp_ns``: the newest frame

@@ -187,3 +187,32 @@ def test_arm_stop_and_release(port: int, client: zenoh.Session, sim_process: int
     finally:
         sub.undeclare()
         dt.stop(15.0)
+
+
+def test_a_reset_waits_for_the_arm_motion(port: int, client: zenoh.Session, sim_process: int) -> None:  # noqa: F811
+    """A map reset allocates the TSDF grid in one call that holds Python's GIL for ~0.25 s, the
+    arm watchdog's bound (measured: resets beside a motion over UDP made the link report feedback
+    264 ms old). So a reset asked for during a motion is accepted at once but runs when the
+    motion has ended; the next motion waits for it."""
+    slow = "arm.motion.max_joint_speed_rad_s=0.6"  # a motion of a few seconds
+    dt, reports, got, sub = _start_arm_daemon(port, client, sim_process, slow)
+    try:
+        wait_for(lambda: _try(client, "pugs/reset", "", 0.5) is not None, 10.0, "queryable")
+        resets = lambda: dt.daemon.health.counts.get("resets", 0)  # noqa: E731 (counted when done)
+        wait_for(lambda: resets() == 1, 5.0, "the readiness probe's reset")
+        arm = dt.daemon.arm
+        dt.daemon.latest_result = Result(_grasps(), np.zeros((1, 3)), np.zeros(1), np.zeros(1), 1)
+        ok, text = _ask(client, "pugs/arm/execute", "7")
+        assert ok, text
+        wait_for(lambda: arm.state == "pregrasp", 10.0, "motion")
+        ok, text = _ask(client, "pugs/reset", "")
+        assert ok and text == "accepted", text
+        time.sleep(0.5)
+        assert resets() == 1 and dt.daemon.pipeline.resets == 1
+        assert arm.state != "idle" and not got.is_set()
+        assert got.wait(30.0), "no arm report"
+        assert reports[-1]["ok"] is True, reports[-1]
+        wait_for(lambda: resets() == 2, 5.0, "the reset after the motion")
+    finally:
+        sub.undeclare()
+        dt.stop(15.0)
