@@ -9,6 +9,7 @@ Success rates carry 95 % Wilson score intervals.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -157,16 +158,16 @@ def _core_config(opts: EvalOptions, seq_overrides: dict[str, Any]) -> Any:
     return core_of(load_config(opts.config_path, over + list(opts.overrides)))
 
 
-# one MuJoCo model per object and pose in each process; a user mesh is keyed by its path and
-# mass too, so two meshes with the same file name never share a model
-_TRIALS: dict[tuple[str, str | None, float | None, str], Any] = {}
+# one MuJoCo model per object, pose and gripper in each process; a user mesh is keyed by its path
+# and mass too, so two meshes with the same file name never share a model
+_TRIALS: dict[tuple[str, str | None, float | None, str, Any], Any] = {}
 
 
 def _run_job(opts: EvalOptions, job: Job) -> dict[str, Any]:
     """Render, run the pipeline, and trial each method's top grasp (one worker's unit of work)."""
     from pugsd.core.pipeline import PugsPipeline
     from pugsd.core.stereo import reach_m as stereo_reach_m
-    from pugsd.sim.physics import GraspTrial
+    from pugsd.sim.physics import GraspTrial, TrialConfig
     from pugsd.sim.sequence import make_sequence
 
     t0 = time.perf_counter()
@@ -200,9 +201,11 @@ def _run_job(opts: EvalOptions, job: Job) -> dict[str, Any]:
         out["error"] = f"{type(exc).__name__}: {exc}"
         res = None
     t2 = time.perf_counter()
-    key = (job.object_name, opts.object_mesh, opts.mass_kg, opts.pose)
+    # the physics simulates the jaws the proposer placed its grasps for
+    gripper = cfg.grasp.gripper
+    key = (job.object_name, opts.object_mesh, opts.mass_kg, opts.pose, gripper)
     if key not in _TRIALS:
-        _TRIALS[key] = GraspTrial(obj, seq.T_W_O)
+        _TRIALS[key] = GraspTrial(obj, seq.T_W_O, TrialConfig(gripper=gripper))
     trial = _TRIALS[key]
     methods: dict[str, Any] = {}
     for method in opts.methods:
@@ -318,6 +321,7 @@ def run_evaluation(
             "mass_kg": opts.mass_kg,
             "underwater": opts.underwater,
             "overrides": list(opts.overrides),
+            "gripper": dataclasses.asdict(_core_config(opts, {}).grasp.gripper),
         },
         "wall_time_s": time.perf_counter() - t0,
         "cells": cells,
@@ -359,9 +363,11 @@ def aggregate_cells(
 
 def rescore(results: dict[str, Any], cfg: Any = None) -> dict[str, Any]:
     """Re-run only the physics on the grasps stored in ``results`` (e.g. after changing a
-    decision threshold); built-in objects only. Returns a new results dictionary."""
+    decision threshold); built-in objects only, with the gripper recorded in the settings (the
+    defaults for older files). Returns a new results dictionary."""
     import copy
 
+    from pugsd.config import GripperConfig
     from pugsd.sim.physics import GraspTrial, TrialConfig
     from pugsd.sim.sequence import object_pose
 
@@ -370,11 +376,12 @@ def rescore(results: dict[str, Any], cfg: Any = None) -> dict[str, Any]:
     if st.get("object_mesh"):
         raise ValueError("rescoring a user mesh needs the mesh: rerun the evaluation")
     trials_by_obj: dict[str, GraspTrial] = {}
+    trial_cfg = cfg or TrialConfig(gripper=GripperConfig(**st.get("gripper", {})))
     for t in out["trials"]:
         name = t["object"]
         if name not in trials_by_obj:
             obj = get_object(name)
-            trials_by_obj[name] = GraspTrial(obj, object_pose(obj, st["pose"]), cfg or TrialConfig())
+            trials_by_obj[name] = GraspTrial(obj, object_pose(obj, st["pose"]), trial_cfg)
         for m in t["methods"].values():
             if m["grasp"] is None:
                 continue
