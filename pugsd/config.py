@@ -398,7 +398,7 @@ def parse_override(text: str) -> tuple[str, Any]:
         raise ConfigError(f"override {text!r}: expected section.key=VALUE")
     try:
         value = tomllib.loads(f"v = {raw}")["v"]
-    except tomllib.TOMLDecodeError:
+    except ValueError:  # TOMLDecodeError, or an integer of more than 4300 digits
         value = raw
     return key, value
 
@@ -419,10 +419,14 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -
     if path is not None:
         p = Path(path)
         try:
-            data = tomllib.loads(p.read_text())
+            data = tomllib.loads(p.read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise ConfigError(f"{p}: no such file") from None
-        except tomllib.TOMLDecodeError as exc:
+        except OSError as exc:  # a directory, no permission
+            raise ConfigError(f"{p}: cannot read: {exc.strerror or exc}") from None
+        except UnicodeDecodeError as exc:
+            raise ConfigError(f"{p}: not valid TOML: not UTF-8 (byte {exc.start})") from None
+        except ValueError as exc:  # TOMLDecodeError, or an integer of more than 4300 digits
             raise ConfigError(f"{p}: not valid TOML: {exc}") from None
     return load_config_dict(data, overrides)
 

@@ -67,9 +67,13 @@ def _coerce(value: Any, tp: Any, path: str) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{path}: expected a number, got {type(value).__name__}")
-        if not math.isfinite(value):  # TOML's nan and inf: no setting means either
+        try:
+            number = float(value)
+        except OverflowError:  # a TOML integer beyond the float range (tomllib's are unbounded)
+            raise ConfigError(f"{path}: expected a finite number, got an integer beyond 1.8e308") from None
+        if not math.isfinite(number):  # TOML's nan and inf: no setting means either
             raise ConfigError(f"{path}: expected a finite number, got {value}")
-        return float(value)
+        return number
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"{path}: expected an integer, got {type(value).__name__}")

@@ -255,3 +255,36 @@ def test_config_sections_declare_only_types_the_loader_checks() -> None:
     walk(PugsdConfig)
     with pytest.raises(TypeError, match="default_factory"):
         opt([1.0], "a list")
+
+
+@pytest.mark.parametrize("override", ["daemon.grasp_rate_hz=1" + "0" * 400, "grasp.gamma=-1" + "0" * 400])
+def test_an_integer_too_large_for_a_float_key_is_a_config_error(
+    override: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """TOML integers are unbounded in tomllib: one too large for a float was an OverflowError
+    traceback from check-config, dump-config and run, not a one-line error."""
+    key = override.split("=")[0]
+    with pytest.raises(ConfigError, match=f"{key}: expected a finite number"):
+        load_config_dict({}, [override])
+    assert main(["dump-config", "--set", override]) == 1
+    assert f"pugsd dump-config: error: {key}: expected a finite number" in capsys.readouterr().err
+    # beyond Python's 4300-digit limit tomllib refuses the number: a bare word, then a type error
+    with pytest.raises(ConfigError, match=r"daemon\.markers_top_k: expected an integer, got str"):
+        load_config_dict({}, ["daemon.markers_top_k=" + "1" * 5000])
+
+
+def test_an_unreadable_config_file_is_a_config_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A directory or a file that is not UTF-8 (a typo in the unit's path, a binary file) was an
+    IsADirectoryError or UnicodeDecodeError traceback, not a one-line error."""
+    binary = tmp_path / "pugsd.toml"
+    binary.write_bytes(b"\xff\xfe[daemon]\n")
+    huge = tmp_path / "huge.toml"
+    huge.write_text("[daemon]\nmarkers_top_k = " + "1" * 5000 + "\n")
+    for path, message in ((tmp_path, "cannot read"), (binary, "not valid TOML"), (huge, "not valid TOML")):
+        with pytest.raises(ConfigError, match=message):
+            load_config(path)
+        assert main(["check-config", str(path)]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith(f"pugsd check-config: error: {path}: ") and err.count("\n") == 1, err

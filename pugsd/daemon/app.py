@@ -43,7 +43,7 @@ import zenoh
 from pugsd.config import config_warnings
 from pugsd.core.camera import StereoRig
 from pugsd.core.stereo import reach_m as stereo_reach_m
-from pugsd.core.types import DepthFrame, StereoFrame
+from pugsd.core.types import DepthFrame, ScoredGrasps, StereoFrame
 from pugsd.daemon.health import Health
 from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier, watchdog_interval_s
@@ -291,6 +291,7 @@ class Daemon:
         self._last_recv_s: dict[str, float] = {}  # monotonic receive time per input stream
         self._stale_reported: set[str] = set()  # streams logged as stale and not yet resumed
         self._short_search_rig: tuple[float, float, int] | None = None  # rig warned of, see _stereo_rig
+        # the outputs' stamp: written and read under _model_lock (with the map it labels)
         self._newest_stamp_ns = 0
         self.grasps_published = 0
 
@@ -1139,7 +1140,7 @@ class Daemon:
                 depth, recv_s = item
                 n = await self._guard(
                     "integrate",
-                    self._offload("integrate", self._locked, self.pipeline.integrate, depth),
+                    self._offload("integrate", self._integrate_locked, depth),
                 )
                 if n is None:
                     continue
@@ -1150,7 +1151,6 @@ class Daemon:
                 self.health.observe("frame_age_at_integrate", time.monotonic() - recv_s)
                 self._last_frame_s = time.monotonic()
                 self._newest_recv_s = recv_s
-                self._newest_stamp_ns = self._output_stamp_ns(depth.stamp_ns)
                 self._changed = True
                 self._frame_unpublished = True
                 self._steps_since_frame = 0
@@ -1167,6 +1167,20 @@ class Daemon:
                 # a failing model is retried with exponential backoff (0.1 s .. 5 s)
                 self._retry_train_at = time.monotonic() + (min(0.1 * 2 ** (k - 1), 5.0) if k else 0.0)
 
+    def _integrate_locked(self, depth: DepthFrame) -> int:
+        """On the model thread: integrate ``depth`` and advance the outputs' stamp under the same
+        hold of the model lock, so that a grasp computation's snapshot and its stamp agree."""
+        with self._model_lock:
+            n = self.pipeline.integrate(depth)
+            self._newest_stamp_ns = self._output_stamp_ns(depth.stamp_ns)
+            return n
+
+    def _reset_locked(self) -> None:
+        """On the model thread: reset the pipeline and the outputs' stamp under the model lock."""
+        with self._model_lock:
+            self._newest_stamp_ns = 0
+            self.pipeline.reset()
+
     def _note_train(self, stats: Any, steps: int) -> None:
         self.health.count("train_steps", steps)
         elbo = float(stats.elbo)
@@ -1180,7 +1194,6 @@ class Daemon:
     def _compute_and_encode(
         self,
         frame_id: str,
-        stamp_ns: int,
         generation: int,
         on_grasps: Callable[[Any, dict[str, bytes]], None],
         with_cloud: bool,
@@ -1193,10 +1206,12 @@ class Daemon:
         which Algorithm 1 for the PointCloud2 runs without the lock, in chunks: it gives way (the
         cloud is not published) as soon as grasps for a newer frame are due, unless clouds are
         overdue (``_cloud_gives_way``).
+        The outputs are stamped with the newest frame in the snapshot (read with it).
         Returns "discarded" if a reset while this ran discarded the result ("cloud discarded" if
         it came after the grasps), "preempted" if the cloud gave way, else "published"."""
         with self._model_lock:
             inp = self.pipeline.grasp_input()
+            stamp_ns = self._newest_stamp_ns
         proposal = self.pipeline.propose(inp)
         with self._model_lock:
             if generation != self._generation:
@@ -1225,8 +1240,16 @@ class Daemon:
             on_grasps(None, {"cloud": cloud})
         return "published"
 
-    def _publish_outputs(self, result: Any, payloads: dict[str, bytes], newest_recv: float | None) -> None:
-        """On the loop: publish what ``_compute_and_encode`` handed over (grasps, then the cloud)."""
+    def _publish_outputs(
+        self, result: Any, payloads: dict[str, bytes], newest_recv: float | None, generation: int
+    ) -> None:
+        """On the loop: publish what ``_compute_and_encode`` handed over (grasps, then the cloud),
+        unless a reset began since it was computed: the grasp thread checks the generation
+        before scoring, but a reset can bump it (here, on the loop) while the scoring runs."""
+        if generation != self._generation:
+            self.health.count("grasps_discarded" if result is not None else "clouds_discarded")
+            log.info("grasp results discarded: the map was reset while they were computed")
+            return
         for role, data in payloads.items():
             self._publishers[role].put(data)
         if "cloud" in payloads:
@@ -1315,10 +1338,15 @@ class Daemon:
             if with_cloud:
                 last_cloud = now
 
+            generation = self._generation
+
             def hand_over(
-                result: Any, payloads: dict[str, bytes], newest: float | None = newest_recv
+                result: Any,
+                payloads: dict[str, bytes],
+                newest: float | None = newest_recv,
+                gen: int = generation,
             ) -> None:
-                loop.call_soon_threadsafe(self._publish_outputs, result, payloads, newest)
+                loop.call_soon_threadsafe(self._publish_outputs, result, payloads, newest, gen)
 
             try:
                 outcome = await self._guard(
@@ -1327,8 +1355,7 @@ class Daemon:
                         "grasps",
                         self._compute_and_encode,
                         self._frame_id,
-                        self._newest_stamp_ns,
-                        self._generation,
+                        generation,
                         hand_over,
                         with_cloud,
                     ),
@@ -1356,6 +1383,7 @@ class Daemon:
     async def _reset(self) -> None:
         """The reset command: clear the queues, the pipeline and every published state."""
         self._generation += 1
+        cleared_stamp_ns = self._newest_stamp_ns  # the old map's time line (and its transforms)
         self.stereo_box.clear()  # counted by the mailboxes
         self.depth_box.clear()
         waiting, unpaired = self.gate.clear(), self.pairer.clear()
@@ -1363,7 +1391,7 @@ class Daemon:
             self._drop("reset", "frames waiting for a pose", waiting)
         if unpaired:
             self._drop("reset", "unpaired stereo halves", unpaired)
-        await self._guard("reset", self._offload("reset", self._locked, self.pipeline.reset))
+        await self._guard("reset", self._offload("reset", self._reset_locked))
         self.latest_grasps = None
         self.latest_result = None
         self.ready = False
@@ -1372,10 +1400,30 @@ class Daemon:
         self._frame_unpublished = False
         self._last_frame_s = None
         self._newest_recv_s = None
-        self._newest_stamp_ns = 0
         self.elbo = None
         self.health.count("resets")
+        self._publish_cleared(cleared_stamp_ns)
         log.info("reset: map cleared")
+
+    def _publish_cleared(self, stamp_ns: int) -> None:
+        """After a reset: an empty GraspArray, a MarkerArray holding only its DELETEALL and an
+        empty PointCloud2, so that viewers and subscribers drop the old object's grasps (markers
+        live until deleted) instead of showing them until the new model is ready."""
+        z = np.zeros(0)
+        empty = ScoredGrasps(np.zeros((0, 4, 4)), np.zeros((0, 3)), z, z, z, z, np.zeros(0, np.int64))
+        payloads = {
+            "grasps": codec.encode_grasp_array(empty, self._frame_id, stamp_ns),
+            "markers": codec.encode_grasp_markers(empty, self._frame_id, stamp_ns, top_k=0),
+        }
+        if self.cfg.daemon.publish_cloud:
+            payloads["cloud"] = codec.encode_cloud(np.zeros((0, 3)), stamp_ns, self._frame_id)
+        for role, data in payloads.items():
+            pub = self._publishers.get(role)
+            try:
+                if pub is not None:
+                    pub.put(data)
+            except Exception as exc:  # a failed put must not fail the reset
+                log.warning("reset: publishing the cleared %s failed: %s", role, exc)
 
     def _output_stamp_ns(self, stamp_ns: int) -> int:
         """The stamp for outputs after integrating a frame stamped ``stamp_ns``: the newest frame

@@ -1,0 +1,79 @@
+# SPDX-License-Identifier: Apache-2.0
+"""A reset while a grasp computation is being scored: the old map's grasps are not published
+after it (deploy.md: "A reset while a computation runs discards its result"). No zenoh: the
+daemon's grasp worker and reset run on an event loop with recording publishers."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from dataclasses import dataclass, field
+
+from pugsd.config import load_config_dict
+from pugsd.daemon.app import Daemon
+from pugsd.daemon.notify import Notifier
+from pugsd.wire import codec
+from pugsd.wire.types import MARKER_ARRAY
+from tests.daemon.conftest import FakePipeline, Result
+
+
+class RecordingPublisher:
+    def __init__(self) -> None:
+        self.puts: list[bytes] = []
+
+    def put(self, payload: bytes) -> int:
+        self.puts.append(bytes(payload))
+        return len(self.puts)
+
+
+@dataclass
+class SlowScorePipeline(FakePipeline):
+    """``score`` (run under the model lock) waits until the test lets it finish."""
+
+    scoring: threading.Event = field(default_factory=threading.Event)
+    finish: threading.Event = field(default_factory=threading.Event)
+
+    def score(self, proposal: int) -> Result:
+        self.scoring.set()
+        assert self.finish.wait(10.0)
+        return super().score(proposal)
+
+
+def test_grasps_scored_across_a_reset_are_not_published() -> None:
+    cfg = load_config_dict({"daemon": {"grasp_rate_hz": 5.0, "publish_cloud": False}})
+    pipe = SlowScorePipeline()
+    d = Daemon(cfg, pipe, notifier=Notifier(""))
+    pubs = {role: RecordingPublisher() for role in ("grasps", "markers", "cloud", "status")}
+    d._publishers = pubs  # type: ignore[assignment]
+
+    async def main() -> tuple[int, int]:
+        d._loop = asyncio.get_running_loop()
+        d.ready = d.was_ready = d._changed = True
+        worker = asyncio.create_task(d._grasp_worker())
+        try:
+            # the computation is inside score (model lock held)
+            assert await asyncio.to_thread(pipe.scoring.wait, 10.0)
+            reset = asyncio.create_task(d._reset())  # bumps the generation, waits for the lock
+            await asyncio.sleep(0.1)
+            before = len(pubs["grasps"].puts)
+            pipe.finish.set()
+            await asyncio.wait_for(reset, 10.0)
+            await asyncio.sleep(0.1)
+            return before, len(pubs["grasps"].puts)
+        finally:
+            d._stopping = True
+            worker.cancel()
+            await asyncio.gather(worker, return_exceptions=True)
+            for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+                ex.shutdown(wait=True)
+
+    before, after = asyncio.run(main())
+    assert pipe.resets == 1
+    assert before == 0 and after == len(pubs["grasps"].puts)
+    # the grasps were scored on the map the reset cleared: none may go out after the reset began
+    published = [len(codec.decode_grasp_array(p)) for p in pubs["grasps"].puts]
+    assert not any(published), f"the old map's grasps were published after the reset: {published}"
+    drawn = [m for p in pubs["markers"].puts for m in codec.deserialize(p, MARKER_ARRAY).markers]
+    assert all(m.action == 3 for m in drawn)  # at most a DELETEALL, no gripper
+    assert d.latest_grasps is None and d.grasps_published == 0
+    assert d.health.counts.get("grasps_discarded") == 1
