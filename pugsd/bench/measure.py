@@ -380,6 +380,7 @@ def daemon_feed(
     rss: _RssTrace | None = None,
     grasps_timeout_s: float = 0.0,
     cloud_timeout_s: float = 0.0,
+    steady_s: float = 0.0,
 ) -> dict[str, Any]:
     """Run the real daemon in-process (loopback zenoh), offer ``n_offer`` stereo frames (cycling
     ``frames`` with fresh stamps) every ``interval_s`` (0: as fast as possible), wait for the
@@ -389,7 +390,12 @@ def daemon_feed(
     time from publishing that frame to receiving them (None if they did not come). With
     ``cloud_timeout_s`` as well it then waits that long for the PointCloud2 stamped with that
     frame (sigma2_occ over the daemon's query cloud, from the model that scored those grasps):
-    ``last_frame_cloud`` (a decoded ``CloudMsg`` or None) and ``last_frame_to_cloud_s``."""
+    ``last_frame_cloud`` (a decoded ``CloudMsg`` or None) and ``last_frame_to_cloud_s``.
+    With ``steady_s`` the offer goes on past ``n_offer`` frames until the daemon's first
+    GraspArray came ``steady_s`` before (within ``wall_cap_s``): the daemon in operation, its
+    grasp rounds and clouds competing with the ingest, not only the warm-up before it is ready.
+    ``first_grasps_after_s`` (from the first frame offered; None: none came) and
+    ``fed_after_first_grasps_s`` say how much of the offer that covered."""
     import asyncio
     import threading
 
@@ -427,12 +433,17 @@ def daemon_feed(
         last_sent: list[tuple[float, int]] = []  # (monotonic time, stamp) of the last frame
         # (receipt time, the GraspArray, the model's training steps so far at receipt)
         grasps_rx: list[tuple[float, ScoredGrasps, int]] = []
+        first_grasps_t: list[float] = []
         sub = None
-        if grasps_timeout_s > 0:
+        if grasps_timeout_s > 0 or steady_s > 0:
 
             def on_grasps(sample: Any) -> None:
                 g = codec.decode_grasp_array(sample.payload.to_bytes())
-                grasps_rx.append((time.monotonic(), g, pipe.svgp.total_steps))  # a plain int read
+                now = time.monotonic()
+                if not first_grasps_t:
+                    first_grasps_t.append(now)
+                if grasps_timeout_s > 0:
+                    grasps_rx.append((now, g, pipe.svgp.total_steps))  # a plain int read
 
             sub = peer.declare_subscriber(key_for(cfg.topics, "grasps"), on_grasps)
         clouds_rx: list[tuple[float, Any, int]] = []
@@ -451,7 +462,10 @@ def daemon_feed(
             t0 = time.monotonic()
             t_feed[0] = t0
             next_t = t0
-            for i in range(n_offer):
+            i = 0
+            while i < n_offer or (
+                steady_s > 0 and not (first_grasps_t and time.monotonic() - first_grasps_t[0] >= steady_s)
+            ):
                 stamp = time.time_ns()
                 t_pub = time.monotonic()
                 camera.publish(frames[i % len(frames)], stamp)
@@ -464,6 +478,7 @@ def daemon_feed(
                 if interval_s > 0:
                     next_t += interval_s
                     time.sleep(max(0.0, next_t - time.monotonic()))
+                i += 1
             t_feed[1] = time.monotonic()
 
         feeder_error: list[BaseException] = []
@@ -514,6 +529,8 @@ def daemon_feed(
         out["status"] = st
         out["sent"] = sent[0]
         out["feed_wall_s"] = t_feed[1] - t_feed[0]
+        out["first_grasps_after_s"] = first_grasps_t[0] - t_feed[0] if first_grasps_t else None
+        out["fed_after_first_grasps_s"] = max(0.0, t_feed[1] - first_grasps_t[0]) if first_grasps_t else 0.0
         out["drain_s"] = time.monotonic() - t_d
         out["pipeline_stats"] = daemon.pipeline.stats()
         stop.set()
@@ -728,17 +745,27 @@ def daemon_last_frame(
 def throughput_daemon(
     base: PugsdConfig, frames: list[StereoFrame], opts: BenchOptions, write: Writer
 ) -> dict[str, Any]:
-    """Highest offered input rate the daemon integrates without dropping a frame."""
+    """Highest offered input rate the daemon integrates without dropping a frame, in operation:
+    each trial offers at least ``max(throughput_min_frames, rate * throughput_trial_s)`` frames and
+    goes on until the daemon has published grasps for ``throughput_trial_s`` (the model becomes
+    ready only after several seconds of input; before, no grasp round or cloud competes with the
+    ingest), within ``ready_timeout_s`` more. A trial whose offer did not cover that is not held."""
     trials = []
     sustained: float | None = None
     for rate in sorted(opts.throughput_rates_hz, reverse=True):
         n = max(opts.throughput_min_frames, round(rate * opts.throughput_trial_s))
         t0 = time.monotonic()
-        r = daemon_feed(base, frames, n, 1.0 / rate, opts.drain_timeout_s)
+        r = daemon_feed(
+            base, frames, n, 1.0 / rate, opts.drain_timeout_s,
+            wall_cap_s=n / rate + opts.throughput_trial_s + opts.ready_timeout_s,
+            steady_s=opts.throughput_trial_s,
+        )  # fmt: skip
         st = r["status"]
         drops = _drop_counts(st)
         integrated = int(st["counts"].get("integrated", 0))
-        held = integrated == r["sent"] and not any(drops.values())
+        steady = r["fed_after_first_grasps_s"]
+        in_operation = steady >= opts.throughput_trial_s
+        held = integrated == r["sent"] and not any(drops.values()) and in_operation
         lat = st.get("latency", {})
         trial = {
             "rate_hz": rate,
@@ -747,6 +774,11 @@ def throughput_daemon(
             "drops": drops,
             "held": held,
             "feed_wall_s": round(r["feed_wall_s"], 3),
+            # the offer after the daemon's first grasps (held needs throughput_trial_s of it)
+            "first_grasps_after_s": None
+            if r["first_grasps_after_s"] is None
+            else round(r["first_grasps_after_s"], 3),
+            "fed_after_first_grasps_s": round(steady, 3),
             "drain_s": round(r["drain_s"], 3),
             "wall_s": round(time.monotonic() - t0, 3),
             "grasps_published": int(st.get("grasps_published", 0)),
@@ -757,7 +789,8 @@ def throughput_daemon(
         trials.append(trial)
         write(
             f"  throughput {rate:g} Hz: offered {r['sent']}, integrated {integrated}, "
-            f"dropped {sum(drops.values())} -> {'held' if held else 'not held'}"
+            f"dropped {sum(drops.values())}, {steady:.1f} s of it after the first grasps -> "
+            f"{'held' if held else 'not held'}"
         )
         if held:
             sustained = rate

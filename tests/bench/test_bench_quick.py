@@ -148,7 +148,9 @@ def test_quick_throughput_replay_memory(quick_json: dict[str, Any]) -> None:
     assert tp["source"] == "daemon" and len(tp["trials"]) >= 1
     for t in tp["trials"]:
         assert 0 <= t["integrated"] <= t["offered"]
-        assert t["held"] == (t["integrated"] == t["offered"] and not any(t["drops"].values()))
+        in_operation = t["fed_after_first_grasps_s"] >= _tiny().throughput_trial_s
+        assert t["held"] == (t["integrated"] == t["offered"] and not any(t["drops"].values())
+                             and in_operation)  # fmt: skip
     rp = quick_json["replay"]
     assert rp["frames_offered"] > 0 and rp["simulated_min"] > 0
     assert rp["rss_growth_frac"] is None or math.isfinite(rp["rss_growth_frac"])
