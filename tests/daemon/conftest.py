@@ -68,6 +68,17 @@ class Result:
     model_version: int
 
 
+class RecordingPublisher:
+    """Stands in for a daemon output publisher (``Daemon._publishers``): keeps what was put."""
+
+    def __init__(self) -> None:
+        self.puts: list[bytes] = []
+
+    def put(self, payload: bytes) -> int:
+        self.puts.append(bytes(payload))
+        return len(self.puts)
+
+
 @dataclass
 class FakePipeline:
     """The PugsPipeline interface with trivial maths, for plumbing tests."""

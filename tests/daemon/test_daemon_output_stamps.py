@@ -17,16 +17,7 @@ from pugsd.core.types import DepthFrame
 from pugsd.daemon.app import Daemon
 from pugsd.daemon.notify import Notifier
 from pugsd.wire import codec
-from tests.daemon.conftest import RIG, FakePipeline, Result
-
-
-class RecordingPublisher:
-    def __init__(self) -> None:
-        self.puts: list[bytes] = []
-
-    def put(self, payload: bytes) -> int:
-        self.puts.append(bytes(payload))
-        return len(self.puts)
+from tests.daemon.conftest import RIG, FakePipeline, RecordingPublisher, Result
 
 
 @dataclass

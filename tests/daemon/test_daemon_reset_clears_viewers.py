@@ -13,16 +13,7 @@ from pugsd.daemon.app import Daemon
 from pugsd.daemon.notify import Notifier
 from pugsd.wire import codec
 from pugsd.wire.types import MARKER_ARRAY
-from tests.daemon.conftest import FakePipeline
-
-
-class RecordingPublisher:
-    def __init__(self) -> None:
-        self.puts: list[bytes] = []
-
-    def put(self, payload: bytes) -> int:
-        self.puts.append(bytes(payload))
-        return len(self.puts)
+from tests.daemon.conftest import FakePipeline, RecordingPublisher
 
 
 def test_a_reset_deletes_the_published_markers_grasps_and_cloud() -> None:

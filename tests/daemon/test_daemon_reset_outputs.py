@@ -14,16 +14,7 @@ from pugsd.daemon.app import Daemon
 from pugsd.daemon.notify import Notifier
 from pugsd.wire import codec
 from pugsd.wire.types import MARKER_ARRAY
-from tests.daemon.conftest import FakePipeline, Result
-
-
-class RecordingPublisher:
-    def __init__(self) -> None:
-        self.puts: list[bytes] = []
-
-    def put(self, payload: bytes) -> int:
-        self.puts.append(bytes(payload))
-        return len(self.puts)
+from tests.daemon.conftest import FakePipeline, RecordingPublisher, Result
 
 
 @dataclass
