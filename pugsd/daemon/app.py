@@ -119,6 +119,13 @@ def apply_malloc_arena_max(n: int) -> bool:
     return bool(mallopt(_M_ARENA_MAX, n))
 
 
+def require_size(img: codec.ImageMsg, shape: tuple[int, int], what: str, role: str | None = None) -> None:
+    """InputRejected ``wrong_size`` unless ``img`` is ``shape`` (height, width) pixels."""
+    if img.array.shape[:2] != shape:
+        msg = f"{what} is {img.array.shape[:2]}, camera expects {shape}"
+        raise InputRejected("wrong_size", msg, role)
+
+
 class InputRejected(PugsdError):
     """A rejection whose countable class is fixed by the code, not read from the message (which
     may quote text from the wire); ``role``, when set, is the input it is charged to (a frame
@@ -882,11 +889,8 @@ class Daemon:
                 cam = self._stereo_rig().left
             except PugsdError:
                 return
-        shape = (cam.height, cam.width)
-        if img.array.shape[:2] != shape:
-            what = "depth image" if role == "depth" else f"{role}: image"
-            msg = f"{what} is {img.array.shape[:2]}, camera expects {shape}"
-            raise InputRejected("wrong_size", msg, role)
+        what = "depth image" if role == "depth" else f"{role}: image"
+        require_size(img, (cam.height, cam.width), what, role)
 
     def _expect_type(self, item: Inbound, typename: str) -> None:
         got = self._msg_type(item, typename)
@@ -994,9 +998,7 @@ class Daemon:
             raise InputRejected(reason_class(exc), str(exc), "camera_info") from None
         shape = (rig.left.height, rig.left.width)
         for role, img in (("left_image", left), ("right_image", right)):
-            if img.array.shape[:2] != shape:
-                msg = f"{role}: image is {img.array.shape[:2]}, camera expects {shape}"
-                raise InputRejected("wrong_size", msg, role)
+            require_size(img, shape, f"{role}: image", role)
         if left.encoding != right.encoding:
             msg = f"stereo pair encoding mismatch: {left.encoding} vs {right.encoding}"
             raise InputRejected("wrong_encoding", msg, "right_image")
@@ -1024,8 +1026,7 @@ class Daemon:
         if info is None:
             raise DecodeError("depth: no CameraInfo for the depth image yet")
         shape = (info.camera.height, info.camera.width)
-        if img.array.shape[:2] != shape:
-            raise InputRejected("wrong_size", f"depth image is {img.array.shape[:2]}, camera expects {shape}")
+        require_size(img, shape, "depth image")
         sigma = self._side_image("depth_std", std_in, shape)
         mask = self._side_image("mask", mask_in, shape)
         try:
