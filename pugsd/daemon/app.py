@@ -275,6 +275,9 @@ class Daemon:
         self._stopping = False
         self._retry_train_at = 0.0
         self._generation = 0  # bumped by reset: frames from before it are not integrated
+        # from that bump until the map is cleared (the reset may wait for the model thread), no
+        # grasp computation starts: it would snapshot the old map under the new generation
+        self._resetting = False
         self._busy: dict[str, bool] = {}
         # a map reset allocates a new TSDF grid in one call that holds Python's GIL for ~0.25 s
         # (40000 blocks), as long as the arm watchdog's default bound: it waits for an arm motion
@@ -1079,6 +1082,8 @@ class Daemon:
             out = await coro
         except PugsdError as exc:
             self._reject(stage, exc)
+            if reason_class(exc) in _MAP_AT_FAULT:  # every later frame fails alike: not input's fault
+                self.health.failed(stage)
         except Exception as exc:
             self.health.failed(stage)
             key = f"errors.{stage}"
@@ -1287,7 +1292,10 @@ class Daemon:
         paused: fresh grasps now matter more than that computation's cloud, as long as a cloud
         was published within ``cloud_interval_s``. (Without that bound a camera slower than
         1 / pause_publish_s, whose every gap looks like a pause, would never let a cloud finish.)
-        Called from the grasp thread; reads values that only the loop writes."""
+        Called from the grasp thread; reads values that only the loop writes. At shutdown it
+        gives way at once: the cloud would not outlive the session, and would hold the exit."""
+        if self._stopping:
+            return True
         now = time.monotonic()
         return (
             self._frame_unpublished
@@ -1318,7 +1326,7 @@ class Daemon:
         while not self._stopping:
             await asyncio.sleep(0.02)
             publishable = self.ready or (self.cfg.daemon.ready_latch and self.was_ready)
-            if not (publishable and self._changed) or self._stopping:
+            if not (publishable and self._changed) or self._stopping or self._resetting:
                 continue
             now = time.monotonic()
             if not self._grasps_due(now, last_start):
@@ -1384,6 +1392,14 @@ class Daemon:
     async def _reset(self) -> None:
         """The reset command: clear the queues, the pipeline and every published state."""
         self._generation += 1
+        self._resetting = True
+        try:
+            await self._clear_all()
+        finally:
+            self._resetting = False
+
+    async def _clear_all(self) -> None:
+        """``_reset`` proper: the queues, the pipeline (on the model thread) and the published state."""
         cleared_stamp_ns = self._newest_stamp_ns  # the old map's time line (and its transforms)
         self.stereo_box.clear()  # counted by the mailboxes
         self.depth_box.clear()
@@ -1544,6 +1560,12 @@ class Daemon:
                     self._internal_error("errors.gate", "polling the pose gate", exc)
 
 
+# rejections whose cause is the map, not the frame: the point store's voxel hash is anchored at
+# the map's first observation, so once frames come from beyond its range (that observation had a
+# localiser's initial zero pose, and the vehicle is in UTM coordinates), every frame is refused
+# until a reset. They count as failures too, so that a run of them makes the daemon unhealthy
+# (the watchdog restarts it) rather than healthy and never integrating again.
+_MAP_AT_FAULT = frozenset({"out_of_map_range"})
 _SIDE_ACTIVE_S = 2.0  # a mask/std topic counts as active this long after its last message
 _STREAM_ROLES = ("left_image", "right_image", "depth", "pose")  # inputs that flow continuously
 _UNHEALTHY_RELOG_S = 300.0  # an unchanged unhealthy state is logged again this often

@@ -17,17 +17,26 @@ class Notifier:
         addr = address if address is not None else os.environ.get("NOTIFY_SOCKET", "")
         self.address = "\0" + addr[1:] if addr.startswith("@") else addr  # '@': abstract namespace
         self.failures = 0  # consecutive failed sends (the log names the first, then every 100th)
+        self.wait_s = 1.0  # the longest READY=1 or STOPPING=1 waits for room at the receiver
 
     @property
     def enabled(self) -> bool:
         return bool(self.address)
 
     def send(self, *fields: str) -> bool:
-        """Send ``KEY=VALUE`` fields in one datagram; False (logged) when it could not be sent."""
+        """Send ``KEY=VALUE`` fields in one datagram; False (logged) when it could not be sent.
+
+        Called on the event loop, so it never blocks for long: a datagram socket blocks while the
+        receiver's queue is full (``net.unix.max_dgram_qlen`` datagrams: a busy systemd, or a
+        supervisor that stopped reading), and that would freeze the whole daemon. ``READY=1`` and
+        ``STOPPING=1`` wait up to ``wait_s``; the periodic ``WATCHDOG=1`` and ``STATUS=`` are
+        dropped at once (a failure) when they cannot go, the next one follows within a second."""
         if not self.address:
             return False
+        urgent = any(f.startswith(("READY=", "STOPPING=")) for f in fields)
         try:
             with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC) as s:
+                s.settimeout(self.wait_s if urgent else 0.0)
                 s.connect(self.address)
                 s.sendall("\n".join(fields).encode())
         except OSError as exc:
