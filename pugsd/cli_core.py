@@ -63,7 +63,6 @@ def _offline(args: argparse.Namespace) -> int:
     from pugsd.models import make_pipeline
     from pugsd.sim import make_sequence
 
-    overrides = list(args.set or ())
     seq = make_sequence(
         args.object,
         args.trajectory,
@@ -72,10 +71,11 @@ def _offline(args: argparse.Namespace) -> int:
         height=args.height,
         seed=args.seed,
     )
-    overrides += [
+    # the sequence's own overrides (noisy_partial: sigma_d^2 = 0.01), then --set, which wins
+    overrides = [
         f"{k}={v!r}" if isinstance(v, str) else f"{k}={v}" for k, v in seq.core_overrides.items()
     ]
-    cfg = load_config(args.config, overrides)
+    cfg = load_config(args.config, overrides + list(args.set or ()))
     pipe = make_pipeline(core_of(cfg), seed=args.seed)
     t0 = time.perf_counter()
     for frame in seq.frames:

@@ -211,6 +211,26 @@ def test_the_global_log_level_overrides_the_daemons_for_run() -> None:
         build_parser().parse_args(["--log-level", "verbose", "run"])
 
 
+def test_the_global_log_level_applies_to_demo(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``pugsd --log-level info demo`` shows the daemon's info lines (it was reset to warning)."""
+    import logging
+
+    import pugsd.daemon.demo
+    from pugsd.cli import main
+
+    levels: list[int] = []
+    monkeypatch.setattr(pugsd.daemon.demo, "run_demo", lambda **kw: levels.append(logging.getLogger().level))
+    root = logging.getLogger()
+    saved = (root.level, list(root.handlers))
+    try:
+        assert main(["--log-level", "info", "demo"]) == 0
+        assert main(["demo"]) == 0
+    finally:
+        root.handlers[:] = saved[1]
+        root.setLevel(saved[0])
+    assert levels == [logging.INFO, logging.WARNING]
+
+
 def test_check_config_warns_when_the_approach_check_is_shorter_than_the_arms_stand_off(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -288,3 +308,30 @@ def test_an_unreadable_config_file_is_a_config_error(
         assert main(["check-config", str(path)]) == 1
         err = capsys.readouterr().err
         assert err.startswith(f"pugsd check-config: error: {path}: ") and err.count("\n") == 1, err
+
+
+def test_offline_set_wins_over_the_sequences_own_overrides(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``pugsd offline --trajectory noisy_partial --set stereo.sigma_d2_m2=0.001``: the user's
+    ``--set`` wins over the sequence's ``core_overrides``, as in ``pugsd evaluate``."""
+    import types
+
+    import pugsd.models
+    import pugsd.sim
+    from pugsd.cli import main
+
+    seen: list[float] = []
+
+    class Stop(Exception):
+        pass
+
+    def fake_pipeline(core: PugsdConfig, seed: int = 0) -> None:
+        seen.append(core.stereo.sigma_d2_m2)
+        raise Stop
+
+    seq = types.SimpleNamespace(core_overrides={"stereo.sigma_d2_m2": 0.01})
+    monkeypatch.setattr(pugsd.sim, "make_sequence", lambda *a, **kw: seq)
+    monkeypatch.setattr(pugsd.models, "make_pipeline", fake_pipeline)
+    for argv in (["offline"], ["offline", "--set", "stereo.sigma_d2_m2=0.002"]):
+        with pytest.raises(Stop):
+            main(argv)
+    assert seen == [0.01, 0.002]

@@ -194,15 +194,17 @@ async def _status_main(cfg: Any, wait: float) -> dict[str, Any]:
 
 
 def _format_status(st: dict[str, Any]) -> str:
-    lines = [
-        f"arm: {'enabled' if st['enabled'] else 'DISABLED'} over {st['transport']}, state {st['state']}",
-    ]
+    # arm.enabled gates pugsd's motion commands; "DISABLED" alone read like the arm's DISABLE mode
+    gate = "motion enabled" if st["enabled"] else "motion disabled in pugsd (arm.enabled = false)"
+    lines = [f"arm: {gate}, over {st['transport']}, state {st['state']}"]
     lk = st["link"]
     age = lk["feedback_age_s"]
+    # before any reply the age counts from the connection: say that nothing came back instead
+    fb = f"oldest feedback {age * 1000:.0f} ms" if lk["rx_packets"] else "NO REPLY from the arm"
     lines.append(
         f"link: rx {lk['rx_packets']} packets, {lk['rx_crc_errors']} CRC errors, "
         f"{lk['rx_framing_errors']} framing errors, tx {lk['tx_packets']}, "
-        f"oldest feedback {age * 1000:.0f} ms" + (f", error: {lk['error']}" if lk["error"] else "")
+        f"{fb}" + (f", error: {lk['error']}" if lk["error"] else "")
     )
     for j in st["joints"]:
         pos = "   --   " if j["position"] is None else f"{j['position']:8.4f} {j['unit']}"
@@ -233,9 +235,10 @@ async def _stop_main(cfg: Any) -> None:
     ctl = ArmController(cfg)
     await ctl.link.start()
     try:
-        await ctl.stop(reason="pugsd arm stop")
+        # no latch: it would die with this process (the daemon's arm/stop latches its own)
+        await ctl.stop(reason="pugsd arm stop", latch=False)
         await asyncio.sleep(0.05)
-        await ctl.stop(reason="pugsd arm stop (repeat)")
+        await ctl.stop(reason="pugsd arm stop (repeat)", latch=False)
         with contextlib.suppress(Exception):
             flush = getattr(ctl.link.transport, "flush", None)
             if flush is not None:
@@ -384,7 +387,12 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
         help="grasp pose (Contact-GraspNet convention: z approach, x baseline)",
     )
-    p.add_argument("--width", type=float, default=None, help="grasp width in m (default 0.05)")
+    p.add_argument(
+        "--width",
+        type=float,
+        default=None,
+        help="grasp width in m (default: the grasp's own width with --grasp-id, 0.05 with --pose)",
+    )
     p.add_argument(
         "--frame",
         choices=("world", "base"),

@@ -60,7 +60,13 @@ class ArmCanConfig:
 
     interface: str = opt("socketcan", "python-can interface (tests use virtual)")
     channel: str = opt("can0", "python-can channel")
-    bitrate: int = opt(500000, "bus bitrate", unit="bit/s", choices=(125000, 250000, 500000, 1000000))
+    bitrate: int = opt(
+        500000,
+        "bus bitrate, passed to python-can; socketcan ignores it: set it on the interface "
+        "(ip link set can0 up type can bitrate 500000)",
+        unit="bit/s",
+        choices=(125000, 250000, 500000, 1000000),
+    )
     tx_base: int = opt(0x300, "host -> arm arbitration id base (id = base | device id)", ge=0)
     rx_base: int = opt(0x400, "arm -> host arbitration id base (id = base | device id)", ge=0)
     fixed_ids: bool = opt(False, "one id per direction (tx_id, rx_id) for CAN<->serial gateways")

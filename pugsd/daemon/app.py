@@ -48,7 +48,7 @@ from pugsd.daemon.health import Health
 from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier, watchdog_interval_s
 from pugsd.daemon.timesync import ExactPairer, PoseBuffer, PoseGate, PoseSample, carried_cov, default_pose_cov
-from pugsd.errors import DecodeError, PugsdError
+from pugsd.errors import DecodeError, EmptyCloudError, PugsdError
 from pugsd.wire import codec
 from pugsd.wire.attachment import SequenceTracker
 from pugsd.wire.keys import parse_key
@@ -1076,6 +1076,15 @@ class Daemon:
         with self._model_lock:
             return fn(*args)
 
+    def _train_step_locked(self) -> Any:
+        """One SVGP step under the model lock; None when the map is empty: a reset between two
+        steps of a round emptied it, which ends the round and is not a rejected input."""
+        with self._model_lock:
+            try:
+                return self.pipeline.train_steps(1)
+            except EmptyCloudError:
+                return None
+
     async def _guard(self, stage: str, coro: Awaitable[R]) -> R | None:
         """Await ``coro``; a PugsdError is a counted rejection, anything else a logged error."""
         try:
@@ -1124,9 +1133,7 @@ class Daemon:
             if idle and self._grasps_urgent:
                 break
             self._last_train_s = time.monotonic()
-            stats = await self._guard(
-                "train", self._offload("train", self._locked, self.pipeline.train_steps, 1)
-            )
+            stats = await self._guard("train", self._offload("train", self._train_step_locked))
             if stats is None:
                 break
             self._note_train(stats, 1)

@@ -62,8 +62,7 @@ def _run(args: argparse.Namespace) -> int:
 def _demo(args: argparse.Namespace) -> int:
     from pugsd.daemon.demo import run_demo
 
-    cfg_level = "warning"
-    setup_logging(cfg_level, False)
+    setup_logging(getattr(args, "log_level", None) or "warning", False)  # pugsd --log-level X demo
 
     def write(line: str) -> None:
         sys.stdout.write(line + "\n")

@@ -26,7 +26,7 @@ from pugsd.core.types import ScoredGrasps, StereoFrame
 from pugsd.daemon.config import DaemonConfig, TopicsConfig
 from pugsd.daemon.timesync import PoseBuffer, PoseLookup, PoseSample, carried_cov, default_pose_cov
 from pugsd.errors import ConfigError, DecodeError, InputError
-from pugsd.record.mcapio import ChannelTable, iter_recording, new_writer, versions
+from pugsd.record.mcapio import ChannelTable, file_error, iter_recording, new_writer, versions
 from pugsd.wire import codec
 from pugsd.wire.keys import strip_topic
 from pugsd.wire.topics import ROLE_TYPES, key_for
@@ -260,6 +260,12 @@ def replay(
     """Run ``PugsPipeline`` on the frames of a recording; write ``grasps.json`` and
     ``grasps.mcap`` (GraspArray, MarkerArray, PointCloud2 on the ``[topics]`` outputs)."""
     paths = [Path(p) for p in paths]
+    od = None if out_dir is None else Path(out_dir)
+    if od is not None:  # before the pipeline runs: an unusable --out is a one-line error at once
+        try:
+            od.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise file_error(od, exc, "cannot write") from None
     ast = AssembleStats()
     from pugsd.config import core_of
     from pugsd.models import make_pipeline  # torch and open3d: only when replaying
@@ -279,25 +285,26 @@ def replay(
     grasps: ScoredGrasps = result.grasps
     stats = {"frames": n, "assemble": ast.__dict__, "pipeline": pipe.stats()}
     jp = mp = None
-    if out_dir is not None:
-        od = Path(out_dir)
-        od.mkdir(parents=True, exist_ok=True)
+    if od is not None:
         jp = od / "grasps.json"
-        jp.write_text(
-            json.dumps(
-                {
-                    "source": [str(p) for p in paths],
-                    "mode": mode,
-                    "seed": seed,
-                    "stats": stats,
-                    "grasps": grasps_to_json(grasps),
-                },
-                indent=1,
-                default=str,
-            )
-        )
         mp = od / "grasps.mcap"
-        _write_outputs(mp, cfg.topics, result, grasps)
+        try:
+            jp.write_text(
+                json.dumps(
+                    {
+                        "source": [str(p) for p in paths],
+                        "mode": mode,
+                        "seed": seed,
+                        "stats": stats,
+                        "grasps": grasps_to_json(grasps),
+                    },
+                    indent=1,
+                    default=str,
+                )
+            )
+            _write_outputs(mp, cfg.topics, result, grasps)
+        except OSError as exc:
+            raise file_error(od, exc, "cannot write") from None
     return ReplayResult(grasps, n, stats, jp, mp)
 
 
@@ -330,7 +337,7 @@ def iter_top(g: ScoredGrasps, k: int = 5) -> Iterator[str]:
     for i in range(min(k, len(g))):
         p = g.pose_W[i][:3, 3]
         yield (
-            f"#{i} id={int(g.grasp_id[i])} pugs={g.pugs_confidence[i]:.3f} "
+            f"#{i} id={int(g.grasp_id[i])} pugs={g.pugs_confidence[i]:.3g} "
             f"base={g.baseline_confidence[i]:.3f} s2={g.sigma2_occ[i]:.2e} "
             f"at ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) w={g.width_m[i] * 1000:.1f} mm"
         )

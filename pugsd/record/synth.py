@@ -21,7 +21,7 @@ import numpy as np
 
 from pugsd.core.types import StereoFrame
 from pugsd.daemon.config import TopicsConfig
-from pugsd.record.mcapio import ChannelTable, new_writer, versions
+from pugsd.record.mcapio import ChannelTable, file_error, new_writer, versions
 from pugsd.wire import codec
 from pugsd.wire.topics import ROLE_TYPES, key_for
 
@@ -82,7 +82,11 @@ def write_recording(
     p = Path(path)
     n = 0
     tmp = p.with_name(p.name + ".part")
-    with open(tmp, "wb") as f:
+    try:
+        f = open(tmp, "wb")  # noqa: SIM115 (closed by the with below)
+    except OSError as exc:
+        raise file_error(p, exc, "cannot write") from None
+    with f:
         w = new_writer(f, chunk_size)
         table = ChannelTable(w)
         w.add_metadata("pugsd.versions", versions())

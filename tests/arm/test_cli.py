@@ -75,6 +75,42 @@ def test_bpl_decode(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bpl", "encode", "0x01", "POSITION", "1", "2"]) == 1  # wrong count
 
 
+def test_arm_stop_cli_does_not_claim_a_latch(
+    capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
+) -> None:
+    """``pugsd arm stop`` sends the stop and exits: no latch outlives it, so it must not log
+    "execute is refused until release_stop()" (there is no CLI release; execute works at once)."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as arm:
+        arm.bind(("127.0.0.1", 0))
+        arm.settimeout(5.0)
+        port = arm.getsockname()[1]
+        link = ["--set", "arm.transport=udp", "--set", "arm.udp.host=127.0.0.1"]
+        link += ["--set", f"arm.udp.port={port}", "--set", "arm.udp.local_host=127.0.0.1"]
+        with caplog.at_level("WARNING"):
+            rc, out = _cli(capsys, "arm", "stop", *link)
+        assert rc == 0 and "sent zero velocity" in out
+        assert arm.recv(2048)  # the stop reached the arm's address
+    assert not [r for r in caplog.records if "latched" in r.getMessage()], caplog.text
+
+
+def test_arm_status_says_when_nothing_answers(capsys: pytest.CaptureFixture[str]) -> None:
+    """No arm at the address: the status says no reply came (not an "oldest feedback" age counted
+    from the connection), and that arm.enabled gates pugsd's commands (not the arm's DISABLE)."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as silent:
+        silent.bind(("127.0.0.1", 0))
+        port = silent.getsockname()[1]
+        link = ["--set", "arm.transport=udp", "--set", "arm.udp.host=127.0.0.1"]
+        link += ["--set", f"arm.udp.port={port}", "--set", "arm.udp.local_host=127.0.0.1"]
+        rc, out = _cli(capsys, "arm", "status", "--wait", "0.2", *link)
+    assert rc == 1
+    assert "NO REPLY from the arm" in out and "oldest feedback" not in out, out
+    assert "arm.enabled = false" in out and "DISABLED" not in out, out
+
+
 def test_execute_refused_when_disabled(capsys: pytest.CaptureFixture[str]) -> None:
     rc = main(["arm", "execute", "--pose", "0.5", "0", "0", "0", "0", "0", "1"])
     assert rc == 1

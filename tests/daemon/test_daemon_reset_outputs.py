@@ -7,14 +7,16 @@ from __future__ import annotations
 
 import asyncio
 import threading
+import time
 from dataclasses import dataclass, field
 
 from pugsd.config import load_config_dict
 from pugsd.daemon.app import Daemon
 from pugsd.daemon.notify import Notifier
+from pugsd.errors import EmptyCloudError
 from pugsd.wire import codec
 from pugsd.wire.types import MARKER_ARRAY
-from tests.daemon.conftest import FakePipeline, RecordingPublisher, Result
+from tests.daemon.conftest import FakePipeline, RecordingPublisher, Result, TrainStats
 
 
 @dataclass
@@ -68,3 +70,51 @@ def test_grasps_scored_across_a_reset_are_not_published() -> None:
     assert all(m.action == 3 for m in drawn)  # at most a DELETEALL, no gripper
     assert d.latest_grasps is None and d.grasps_published == 0
     assert d.health.counts.get("grasps_discarded") == 1
+
+
+@dataclass
+class GatedTrainPipeline(FakePipeline):
+    """``train_steps`` (run under the model lock) waits until the test lets it finish; like
+    ``PugsPipeline``, a step on an empty map raises ``EmptyCloudError``."""
+
+    training: threading.Event = field(default_factory=threading.Event)
+    finish: threading.Event = field(default_factory=threading.Event)
+
+    def train_steps(self, n: int) -> TrainStats:
+        if not self.integrated:
+            raise EmptyCloudError("no training points")
+        self.training.set()
+        assert self.finish.wait(10.0)
+        return super().train_steps(n)
+
+
+def test_a_reset_during_idle_training_rejects_nothing() -> None:
+    """A reset between two steps of an idle training round empties the map: the round ends
+    there, it is not a rejected input (it was logged as ``rejected train input
+    (EmptyCloudError)`` and counted under ``rejected["train: EmptyCloudError"]``)."""
+    cfg = load_config_dict({"daemon": {"idle_train_steps": 4, "publish_cloud": False}})
+    pipe = GatedTrainPipeline(integrated=[1])
+    d = Daemon(cfg, pipe, notifier=Notifier(""))
+    d._publishers = {role: RecordingPublisher() for role in ("grasps", "markers", "cloud", "status")}  # type: ignore[assignment]
+
+    async def main() -> None:
+        d._loop = asyncio.get_running_loop()
+        d._last_frame_s = time.monotonic()  # a frame was integrated: idle training rounds run
+        worker = asyncio.create_task(d._model_worker())
+        try:
+            assert await asyncio.to_thread(pipe.training.wait, 10.0)  # a step holds the model lock
+            reset = asyncio.create_task(d._reset())  # bumps the generation, waits for the lock
+            await asyncio.sleep(0.1)
+            pipe.finish.set()
+            await asyncio.wait_for(reset, 10.0)
+            await asyncio.sleep(0.3)
+        finally:
+            d._stopping = True
+            worker.cancel()
+            await asyncio.gather(worker, return_exceptions=True)
+            for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+                ex.shutdown(wait=True)
+
+    asyncio.run(main())
+    assert pipe.resets == 1
+    assert not dict(d.health.rejected), d.health.rejected

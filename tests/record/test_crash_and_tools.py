@@ -245,7 +245,15 @@ def test_cli_file_errors_are_one_line(synth_recording: Any, tmp_path: Path,
         (["mcap", "recover", str(missing), str(out)], str(missing)),
         (["mcap", "recover", str(src), str(tmp_path / "nodir" / "x.mcap")], "nodir/x.mcap"),
         (["replay", str(missing)], str(missing)),
+        # an output that cannot be written: before the pipeline runs (a file where --out's
+        # directory would be), and the synthetic recording's file
+        (
+            ["replay", str(src), "--out", str(tmp_path / "afile" / "sub"), "--set", "stereo.downsample=1"],
+            "afile/sub",
+        ),
+        (["mcap", "synth", str(tmp_path / "nodir" / "s.mcap"), "--frames", "1"], "nodir/s.mcap"),
     ]
+    (tmp_path / "afile").write_text("not a directory")
     for argv, name in cases:
         assert main(argv) == 1, argv
         err = capsys.readouterr().err

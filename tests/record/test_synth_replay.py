@@ -306,3 +306,21 @@ def test_replay_uses_the_daemon_pose_max_gap(tmp_path: Path, monkeypatch: pytest
     res = replay([p], wide)
     assert res.frames == 1
     np.testing.assert_allclose(_Capture.last[0].T_W_C[:3, 3], (0.4, 0.0, 0.0), atol=1e-12)
+
+
+def test_replay_prints_pugs_confidences_that_can_be_read() -> None:
+    """PUGS confidences are small numbers (1e-7 in density units): `pugsd replay` printed them
+    with three decimals, so every grasp read ``pugs=0.000``."""
+    from pugsd.record.replay import iter_top
+
+    g = ScoredGrasps(
+        pose_W=np.tile(np.eye(4), (2, 1, 1)),
+        contact_W=np.zeros((2, 3)),
+        width_m=np.full(2, 0.05),
+        baseline_confidence=np.array([0.9, 0.8]),
+        sigma2_occ=np.array([2e5, 4e5]),
+        pugs_confidence=np.array([9.9e-7, 5.0e-7]),
+        grasp_id=np.arange(2, dtype=np.int64),
+    )
+    lines = list(iter_top(g))
+    assert "pugs=9.9e-07" in lines[0] and "pugs=5e-07" in lines[1], lines
