@@ -49,5 +49,9 @@ class ArmError(PugsdError):
     """The arm refused or failed a command."""
 
 
+class PortInUseError(ArmError):
+    """The arm's serial port is held by another process (a running daemon)."""
+
+
 class SafetyError(ArmError):
     """A motion was refused by a safety check (workspace, limits, reachability, distance)."""

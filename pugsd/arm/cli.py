@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from pugsd.errors import ArmError
+from pugsd.errors import ArmError, PortInUseError
 
 log = logging.getLogger(__name__)
 
@@ -247,19 +247,44 @@ async def _stop_main(cfg: Any) -> None:
         await ctl.link.close()
 
 
+def _stop_via_daemon(full_cfg: Any, timeout: float) -> str:
+    """The daemon's ``<prefix>/arm/stop``: it aborts its motion, stops the arm and latches."""
+    key = f"{full_cfg.daemon.prefix}/arm/stop"
+    data, errors = query_daemon(full_cfg, "arm/stop", timeout)
+    if data is None:
+        detail = (
+            f": {'; '.join(errors)}"
+            if errors
+            else " (is the daemon running, with [arm] enabled = true, on these zenoh endpoints?)"
+        )
+        raise ArmError(f"no reply from {key}{detail}")
+    return data.decode("utf-8", "replace")
+
+
 def _arm_stop(args: argparse.Namespace) -> int:
-    cfg = _load(args).arm
-    _run(_stop_main(cfg))  # stopping is always allowed, even with arm.enabled = false
-    _out(f"sent zero velocity and {cfg.safety.safe_mode} to all devices")
+    full = _load(args)
+    cfg = full.arm
+    if args.via != "daemon":
+        try:
+            _run(_stop_main(cfg))  # stopping is always allowed, even with arm.enabled = false
+        except PortInUseError as exc:
+            if args.via == "link":
+                raise
+            # the daemon holds the serial port: it is the one that can stop the arm
+            sys.stderr.write(f"pugsd arm stop: {exc}\npugsd arm stop: stopping through the daemon\n")
+        else:
+            _out(f"sent zero velocity and {cfg.safety.safe_mode} to all devices")
+            return 0
+    _out(f"daemon: {_stop_via_daemon(full, args.timeout)}")
     return 0
 
 
-def fetch_latest_grasps(full_cfg: Any, timeout: float = 2.0) -> Any:
-    """The daemon's latest grasps from its zenoh queryable ``<prefix>/grasps/latest``."""
-    from pugsd.wire.codec import decode_grasp_array as decode
+def query_daemon(full_cfg: Any, suffix: str, timeout: float = 2.0) -> tuple[bytes | None, list[str]]:
+    """One query on the daemon's ``<prefix>/<suffix>``: the first ok reply's payload (None if
+    none came within ``timeout``) and the text of the error replies."""
     from pugsd.wire.session import close_session, open_session, tool_config
 
-    key = f"{full_cfg.daemon.prefix}/grasps/latest"
+    key = f"{full_cfg.daemon.prefix}/{suffix}"
     # a peer that connects to the daemon's listen endpoints (multicast scouting and gossip off),
     # under the same loopback policy as the daemon itself
     session = open_session(
@@ -275,15 +300,25 @@ def fetch_latest_grasps(full_cfg: Any, timeout: float = 2.0) -> Any:
         errors: list[str] = []
         for reply in session.get(key, timeout=max(0.1, t_end - time.monotonic())):
             if reply.ok is not None:
-                return decode(reply.ok.payload.to_bytes())
+                return reply.ok.payload.to_bytes(), errors
             err = reply.err
             if err is not None:
                 with contextlib.suppress(Exception):
                     errors.append(err.payload.to_string())
-        detail = f": {'; '.join(errors)}" if errors else " (is the daemon running?)"
-        raise ArmError(f"no grasps from {key}{detail}")
+        return None, errors
     finally:
         close_session(session)
+
+
+def fetch_latest_grasps(full_cfg: Any, timeout: float = 2.0) -> Any:
+    """The daemon's latest grasps from its zenoh queryable ``<prefix>/grasps/latest``."""
+    from pugsd.wire.codec import decode_grasp_array as decode
+
+    data, errors = query_daemon(full_cfg, "grasps/latest", timeout)
+    if data is None:
+        detail = f": {'; '.join(errors)}" if errors else " (is the daemon running?)"
+        raise ArmError(f"no grasps from {full_cfg.daemon.prefix}/grasps/latest{detail}")
+    return decode(data)
 
 
 def _pose_matrix(vals: list[float]) -> np.ndarray:
@@ -403,8 +438,23 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=_arm_execute)
 
-    p = arm_sub.add_parser("stop", help="zero velocity and the safe mode to all devices")
+    p = arm_sub.add_parser(
+        "stop",
+        help="zero velocity and the safe mode to all devices",
+        description="Stop the arm: zero velocity and the safe mode to every device, sent over the "
+        "configured link. When the serial port is held by a running daemon, the stop goes "
+        "through the daemon's <prefix>/arm/stop instead (it aborts its motion and latches the "
+        "stop until <prefix>/arm/release).",
+    )
     _add_config_args(p)
+    p.add_argument(
+        "--via",
+        choices=("auto", "link", "daemon"),
+        default="auto",
+        help="auto: the link, or the daemon when it holds the serial port; link: the link only; "
+        "daemon: the daemon's <prefix>/arm/stop only",
+    )
+    p.add_argument("--timeout", type=float, default=2.0, help="daemon query timeout (s)")
     p.set_defaults(func=_arm_stop)
 
     bpl = sub.add_parser("bpl", help="Reach BPL packet tools: encode, decode")
@@ -423,4 +473,4 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.set_defaults(func=_bpl_decode)
 
 
-__all__ = ["fetch_latest_grasps", "register"]
+__all__ = ["fetch_latest_grasps", "query_daemon", "register"]

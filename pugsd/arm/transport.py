@@ -34,7 +34,7 @@ from pugsd.arm.protocol import (
     decode_frame,
     encode_frame,
 )
-from pugsd.errors import ArmError, DecodeError
+from pugsd.errors import ArmError, DecodeError, PortInUseError
 
 log = logging.getLogger(__name__)
 
@@ -430,9 +430,10 @@ class SerialTransport(FdStreamTransport):
             )
         except (serial.SerialException, OSError) as exc:
             if "exclusively lock" in str(exc):
-                raise ArmError(
+                raise PortInUseError(
                     f"serial {self.port}: the port is in use by another process (a running pugsd "
-                    "daemon? stop the arm through it: query <prefix>/arm/stop, e.g. pugs/arm/stop)"
+                    "daemon? stop the arm through it: pugsd arm stop --via daemon, or query "
+                    "<prefix>/arm/stop, e.g. pugs/arm/stop)"
                 ) from None
             raise ArmError(f"serial {self.port}: {exc}") from None
         self._fd = self._serial.fileno()

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -11,6 +12,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -320,9 +322,9 @@ def test_bpl_decode_accepts_0x_prefixed_bytes(capsys: pytest.CaptureFixture[str]
     assert rc == 0 and json.loads(out)["packets"][0]["packet"] == "POSITION"
 
 
-def test_stop_while_the_port_is_in_use_says_how(capsys: pytest.CaptureFixture[str]) -> None:
-    """``pugsd arm stop`` on a serial port a daemon holds: a clear error (exit 1) naming the
-    daemon's stop key, instead of a second writer on the line."""
+@contextlib.contextmanager
+def _port_held() -> Iterator[str]:
+    """A pty whose serial side another transport (a daemon's) holds open exclusively."""
     import asyncio
 
     from pugsd.arm.sim import close_pty, make_pty_pair
@@ -338,11 +340,60 @@ def test_stop_while_the_port_is_in_use_says_how(capsys: pytest.CaptureFixture[st
     loop = asyncio.new_event_loop()
     try:
         daemon_side = loop.run_until_complete(hold())
-        rc = main(["arm", "stop", "--set", f"arm.serial.port={path!r}"])
-        err = capsys.readouterr().err
-        assert rc == 1
-        assert "in use by another process" in err and "arm/stop" in err, err
-        loop.run_until_complete(daemon_side.close())
+        try:
+            yield path
+        finally:
+            loop.run_until_complete(daemon_side.close())
     finally:
         loop.close()
         close_pty(master)
+
+
+def test_stop_while_the_port_is_in_use_says_how(capsys: pytest.CaptureFixture[str]) -> None:
+    """``pugsd arm stop --via link`` on a serial port a daemon holds: a clear error (exit 1)
+    naming the way through the daemon, instead of a second writer on the line."""
+    with _port_held() as path:
+        rc = main(["arm", "stop", "--via", "link", "--set", f"arm.serial.port={path!r}"])
+        err = capsys.readouterr().err
+    assert rc == 1
+    assert "in use by another process" in err and "--via daemon" in err and "arm/stop" in err, err
+
+
+def test_stop_goes_through_the_daemon_that_holds_the_port(capsys: pytest.CaptureFixture[str]) -> None:
+    """``pugsd arm stop`` (``--via auto``) while a daemon holds the serial port: the stop is sent
+    as the daemon's ``<prefix>/arm/stop`` query (a stand-in daemon session on loopback zenoh),
+    and its reply printed; with no daemon answering, a one-line error and exit 1."""
+    from pugsd.wire.session import (
+        check_loopback_safe,
+        close_session,
+        free_tcp_port,
+        loopback_config,
+        open_session,
+    )
+
+    port = free_tcp_port()
+    daemon_cfg = loopback_config(listen_port=port)
+    check_loopback_safe(daemon_cfg)
+    daemon = open_session(daemon_cfg, require_loopback=True)
+    asked: list[str] = []
+
+    def on_stop(q: Any) -> None:
+        asked.append(str(q.key_expr))
+        q.reply("pugs/arm/stop", "stopped: zero velocity and STANDBY sent")
+
+    qable = daemon.declare_queryable("pugs/arm/stop", on_stop)
+    argv = ["--set", f'zenoh.listen.endpoints=["tcp/127.0.0.1:{port}"]', "--timeout", "5"]
+    try:
+        with _port_held() as path:
+            rc = main(["arm", "stop", "--set", f"arm.serial.port={path!r}", *argv])
+            cap = capsys.readouterr()
+            assert rc == 0, cap.err
+            assert asked == ["pugs/arm/stop"]
+            assert "daemon: stopped: zero velocity" in cap.out and "through the daemon" in cap.err
+    finally:
+        close_session(daemon, [qable])
+    # nobody answers any more: --via daemon fails clearly
+    rc = main(["arm", "stop", "--via", "daemon", *argv[:-1], "0.5"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "no reply from pugs/arm/stop" in err and err.count("\n") == 1, err
+    assert asked == ["pugs/arm/stop"]
