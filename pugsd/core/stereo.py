@@ -19,6 +19,7 @@ import numpy as np
 from pugsd.config import StereoConfig
 from pugsd.core.camera import StereoRig
 from pugsd.core.types import DepthFrame, StereoFrame
+from pugsd.errors import ImageSizeError
 
 _MODES = {
     "sgbm": cv2.STEREO_SGBM_MODE_SGBM,
@@ -106,6 +107,16 @@ class StereoDepth:
         cam = frame.rig.left.scaled(f)
         left = _down(_gray(frame.left), f)
         right = _down(_gray(frame.right), f)
+        # SGBM's own precondition (stereosgbm.cpp), checked here: OpenCV raises a bare cv2.error
+        min_d, levels = c.min_disparity // f, disparity_levels(c, frame.rig)
+        if left.shape[1] - (min_d + levels) <= c.block_size // 2:
+            raise ImageSizeError(
+                f"image too small for the disparity search: {left.shape[1]} x {left.shape[0]} px "
+                f"(the {frame.left.shape[1]} x {frame.left.shape[0]} pair at stereo.downsample = {f}) "
+                f"must be wider than min_disparity + {levels} levels + block_size / 2 = "
+                f"{min_d + levels + c.block_size // 2} px: lower stereo.downsample or "
+                "stereo.num_disparities"
+            )
         disp = self._matcher(1, frame.rig).compute(left, right).astype(np.float32) / 16.0
         fb = cam.fx * frame.rig.baseline_m
         with np.errstate(divide="ignore", invalid="ignore"):

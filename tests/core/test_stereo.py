@@ -154,3 +154,47 @@ def test_the_mask_is_downsampled_about_the_block_centre(seq, edge_px: int) -> No
     assert small[:, 1].all() == (edge_px == 5)
     assert small[:, 2:].all()
     np.testing.assert_array_equal(down(mask[:, ::-1]), small[:, ::-1])
+
+
+@pytest.mark.parametrize(("min_disparity", "num_disparities"), [(0, 16), (0, 32), (4, 16)])
+@pytest.mark.parametrize("mode", ["sgbm", "sgbm_3way", "hh"])
+def test_an_image_too_small_for_the_search_is_a_clear_rejection(
+    min_disparity: int, num_disparities: int, mode: str
+) -> None:
+    """SGBM refuses an image not wider than its search with a bare ``cv2.error`` (the daemon
+    counted it as an internal error on every frame), and in 3-way mode (the default) OpenCV 5.0
+    crashes the process at some widths (15 px with 16 levels: a segmentation fault). Such a pair
+    is an ``ImageSizeError`` naming the sizes and the settings, before OpenCV sees it: every
+    width from 8 to 48 px either is refused so or matches. In SGBM mode the rule is OpenCV's own
+    check: each width refused is one that OpenCV refuses too."""
+    import cv2
+
+    from pugsd.core.camera import PinholeCamera, StereoRig
+    from pugsd.core.stereo import _MODES
+
+    cfg = StereoConfig(
+        downsample=1, mode=mode, min_disparity=min_disparity, num_disparities=num_disparities
+    )
+    rng = np.random.default_rng(0)
+    refused = []
+    for width in range(8, 49):
+        left = rng.integers(0, 255, (12, width), dtype=np.uint8)
+        right = np.roll(left, -2, axis=1)
+        cam = PinholeCamera(fx=50.0, fy=50.0, cx=width / 2, cy=6.0, width=width, height=12)
+        frame = StereoFrame(1, left, right, StereoRig(cam, 0.1), np.eye(4), np.eye(6) * 1e-6)
+        try:
+            StereoDepth(cfg).estimate(frame)  # a cv2.error or a crash here fails the test
+        except ImageSizeError as exc:
+            assert f"{width} x 12 px" in str(exc) and "stereo.downsample" in str(exc), str(exc)
+            refused.append(width)
+            if mode == "sgbm":  # not in 3-way mode: OpenCV may crash instead of refusing
+                sgbm = cv2.StereoSGBM.create(
+                    minDisparity=min_disparity,
+                    numDisparities=num_disparities,
+                    blockSize=cfg.block_size,
+                    mode=_MODES[mode],
+                )
+                with pytest.raises(cv2.error):
+                    sgbm.compute(left, right)
+    limit = min_disparity + num_disparities + cfg.block_size // 2
+    assert refused == list(range(8, limit + 1)), refused
