@@ -543,7 +543,8 @@ class Daemon:
         keys = default_record_keys(self.cfg)
         self.recorder = Recorder.from_config(self.cfg).start()
         self.recorder.subscribe(self.session, keys)
-        log.info("recording %d key expressions to %s", len(keys), self.cfg.record.directory)
+        if not self.recorder.stats.error:  # else the recorder logged why it is not recording
+            log.info("recording %d key expressions to %s", len(keys), self.cfg.record.directory)
 
     def _close(self) -> None:
         if self.recorder is not None:

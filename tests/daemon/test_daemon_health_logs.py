@@ -3,9 +3,13 @@ import io
 import json
 import logging
 import time
+from pathlib import Path
+from typing import Any
 
 import pytest
 
+from pugsd.config import load_config_dict
+from pugsd.daemon.app import Daemon
 from pugsd.daemon.health import Health, LatencyWindow
 from pugsd.daemon.logs import JsonFormatter, setup_logging
 
@@ -76,3 +80,40 @@ def test_repeated_failures_make_the_daemon_unhealthy() -> None:
     assert h.problems() == ["train failed 3 times in a row"]
     h.succeeded("train")
     assert h.problems() == []
+
+
+def test_a_recorder_that_cannot_write_is_not_announced(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """``[record] enabled`` with a directory that cannot be created: the recorder logs why and
+    the status carries it (``recorder.error``); the daemon runs on without it and no longer logs
+    "recording N key expressions to DIR" right after that error."""
+    import types
+
+    from pugsd.daemon.notify import Notifier
+    from tests.daemon.conftest import FakePipeline
+
+    (tmp_path / "afile").write_text("not a directory")
+    rec_dir = tmp_path / "afile" / "rec"
+    cfg = load_config_dict({"record": {"enabled": True, "directory": str(rec_dir)}})
+    d = Daemon(cfg, FakePipeline(), notifier=Notifier(""))
+    subs: list[str] = []
+
+    class Session:
+        def declare_subscriber(self, key: str, cb: Any) -> Any:
+            subs.append(key)
+            return types.SimpleNamespace(undeclare=lambda: None)
+
+    d._session = Session()  # type: ignore[assignment]
+    caplog.set_level(logging.INFO)
+    d._start_recorder()
+    try:
+        assert d.recorder is not None and "cannot create" in (d.recorder.stats.error or "")
+        msgs = [r.getMessage() for r in caplog.records]
+        assert any("recorder stopped writing" in m for m in msgs), msgs
+        assert not any(m.startswith("recording ") for m in msgs), msgs
+        assert subs  # still subscribed: its drops are counted in the status
+    finally:
+        d.recorder.stop(timeout=2.0)
+        for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+            ex.shutdown(wait=True)
