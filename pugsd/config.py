@@ -22,6 +22,7 @@ from pugsd.daemon.config import DaemonConfig, QueuesConfig, TopicsConfig
 from pugsd.errors import ConfigError
 from pugsd.record.config import RecordConfig
 from pugsd.wire.config import default_zenoh_config
+from pugsd.wire.topics import graph_token_problems, graph_tokens_enabled
 
 
 def _check(cond: bool, msg: str) -> None:
@@ -357,6 +358,11 @@ class PugsdConfig:
         metadata={"doc": "passed through to zenoh's own configuration (JSON5 keys)"},
     )
 
+    def __post_init__(self) -> None:
+        # [topics] checks its own names for ros_graph_tokens = "on"; the node name is [daemon]'s
+        if self.topics.ros_graph_tokens == "on":
+            graph_tokens_enabled(self.topics, self.daemon.node_name)  # ConfigError if refused
+
 
 def core_of(cfg: PugsdConfig) -> CoreConfig:
     """The core sections of a full config."""
@@ -375,6 +381,14 @@ def config_warnings(cfg: PugsdConfig) -> list[str]:
             f"from its stand-off, and the first {pre_m - cfg.grasp.approach_check_m:.3g} m of that "
             "line (from the stand-off) are not checked against the cloud"
         )
+    t = cfg.topics
+    if t.ros_graph_tokens == "auto" and (t.key_style, t.hash_mode) == ("rmw_zenoh", "rihs01"):
+        problems = graph_token_problems(t, cfg.daemon.node_name)
+        if problems:
+            out.append(
+                "topics.ros_graph_tokens = 'auto' declares no ROS graph tokens, so ros2 node list "
+                "and ros2 topic list will not show pugsd: " + "; ".join(problems)
+            )
     return out
 
 

@@ -54,7 +54,15 @@ from pugsd.wire.attachment import SequenceTracker
 from pugsd.wire.keys import parse_key
 from pugsd.wire.publisher import Publisher
 from pugsd.wire.session import close_session, open_session
-from pugsd.wire.topics import INPUT_ROLES, POSE_TYPES, key_for, subscribe_key_for
+from pugsd.wire.topics import (
+    INPUT_ROLES,
+    OUTPUT_ROLES,
+    POSE_TYPES,
+    graph_tokens_enabled,
+    key_for,
+    ros_graph_tokens,
+    subscribe_key_for,
+)
 from pugsd.wire.types import CAMERA_INFO, IMAGE
 
 log = logging.getLogger(__name__)
@@ -272,6 +280,11 @@ class Daemon:
         self._subscribers: list[Any] = []
         self._entities: list[Any] = []  # queryables, token (undeclared after the subscribers)
         self._publishers: dict[str, Publisher] = {}
+        # rmw_zenoh ROS graph liveliness tokens ([topics] ros_graph_tokens): the node's and its
+        # publishers' (undeclared after the publishers), the subscriptions' (with the subscribers)
+        self._graph_tokens: list[Any] = []
+        self._sub_graph_tokens: list[Any] = []
+        self._sub_graph_keys: list[str] = []
         self.recorder: Any = None  # pugsd.record.recorder.Recorder when [record] enabled
         self._stopping = False
         self._retry_train_at = 0.0
@@ -381,9 +394,7 @@ class Daemon:
         t0 = time.monotonic()
         log.info("shutdown: stopping intake")
         self._stopping = True
-        for sub in self._subscribers:
-            self._undeclare(sub)
-        self._subscribers.clear()
+        self._undeclare_subscribers()
         for box in (self.stereo_box, self.depth_box, self.commands, self.arm_box):
             box.close()
         busy: list[asyncio.Task[None]] = []
@@ -399,6 +410,14 @@ class Daemon:
                 log.warning("shutdown: %s did not finish in time; abandoning it", t.get_name())
                 t.cancel()
         log.info("shutdown: workers stopped in %.2f s", time.monotonic() - t0)
+
+    def _undeclare_subscribers(self) -> None:
+        for tok in self._sub_graph_tokens:
+            self._undeclare(tok)
+        self._sub_graph_tokens.clear()
+        for sub in self._subscribers:
+            self._undeclare(sub)
+        self._subscribers.clear()
 
     def _undeclare(self, ent: Any) -> None:
         try:
@@ -551,15 +570,16 @@ class Daemon:
             files = self.recorder.stop(timeout=self.cfg.daemon.shutdown_timeout_s)
             log.info("recording finished: %s", ", ".join(str(f) for f in files) or "no file")
             self.recorder = None
-        for sub in self._subscribers:
-            self._undeclare(sub)
-        self._subscribers.clear()
+        self._undeclare_subscribers()
         for ent in self._entities:
             self._undeclare(ent)
         self._entities.clear()
         for pub in self._publishers.values():
             self._undeclare(pub)
         self._publishers.clear()
+        for tok in reversed(self._graph_tokens):  # the node's last, as rmw_zenoh destroys a node
+            self._undeclare(tok)
+        self._graph_tokens.clear()
         if self._own_session and self._session is not None:
             close_session(self._session)
             self._session = None
@@ -568,9 +588,23 @@ class Daemon:
 
     def _declare_outputs(self) -> None:
         t = self.cfg.topics
-        for role in ("grasps", "markers", "cloud", "status"):
+        for role in OUTPUT_ROLES:
             self._publishers[role] = Publisher(self.session, key_for(t, role))
         s = self.session
+        node_name = self.cfg.daemon.node_name
+        if graph_tokens_enabled(t, node_name):
+            graph = ros_graph_tokens(t, node_name, str(s.zid()), outputs=OUTPUT_ROLES, inputs=INPUT_ROLES)
+            for key in (graph.node, *graph.publishers.values()):
+                self._graph_tokens.append(s.liveliness().declare_token(key))
+            self._sub_graph_keys = list(graph.subscriptions.values())
+            log.info(
+                "ROS graph: node /%s with %d publishers and %d subscriptions (rmw_zenoh liveliness "
+                "tokens, domain %d)",
+                node_name,
+                len(graph.publishers),
+                len(graph.subscriptions),
+                t.domain_id,
+            )
         self._entities.append(s.declare_queryable(self.key("grasps/latest"), self._bridge_query("latest")))
         self._entities.append(s.declare_queryable(self.key("status"), self._bridge_query("status")))
         self._entities.append(s.declare_queryable(self.key("reset"), self._bridge_query("reset")))
@@ -583,6 +617,8 @@ class Daemon:
         for role in INPUT_ROLES:
             key = subscribe_key_for(t, role)
             self._subscribers.append(self.session.declare_subscriber(key, self._bridge_sample(role)))
+        for key in self._sub_graph_keys:  # announced once the subscribers listen
+            self._sub_graph_tokens.append(self.session.liveliness().declare_token(key))
 
     def _bridge_sample(self, role: str) -> Callable[[Any], None]:
         loop = self._loop

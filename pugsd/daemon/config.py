@@ -7,6 +7,7 @@ from dataclasses import dataclass, fields
 
 from pugsd.configbase import opt
 from pugsd.errors import ConfigError
+from pugsd.wire.topics import graph_token_problems
 
 
 def _check_key(name: str, value: str, *, strip: bool = False) -> None:
@@ -50,7 +51,11 @@ class DaemonConfig:
     shutdown_timeout_s: float = opt(5.0, "bound on finishing in-flight work at shutdown", unit="s", gt=0.0)
     log_json: bool = opt(False, "structured JSON log lines (for the journal)")
     log_level: str = opt("info", "log level", choices=("debug", "info", "warning", "error"))
-    node_name: str = opt("pugsd", "name in the liveliness token <prefix>/alive/<node_name> and in status")
+    node_name: str = opt(
+        "pugsd",
+        "name in the liveliness token <prefix>/alive/<node_name>, in status and, with [topics] "
+        "ros_graph_tokens, the ROS node /<node_name> (then letters, digits and '_' only)",
+    )
     allow_non_loopback: bool = opt(
         False,
         "permit [zenoh] endpoints other than tcp/127.0.0.1 and multicast/gossip scouting "
@@ -147,6 +152,9 @@ class DaemonConfig:
         _check_key("node_name", self.node_name)
 
 
+_NOT_TOPICS = ("key_style", "hash_mode", "pose_type", "ros_graph_tokens")
+
+
 @dataclass(frozen=True, slots=True)
 class TopicsConfig:
     """ROS 2 topic names, domain and key style of the wire format."""
@@ -155,6 +163,14 @@ class TopicsConfig:
     key_style: str = opt("rmw_zenoh", "key expression style", choices=("rmw_zenoh", "ros2dds"))
     hash_mode: str = opt(
         "rihs01", "type hash in keys: rihs01 (Jazzy+) or humble", choices=("rihs01", "humble")
+    )
+    ros_graph_tokens: str = opt(
+        "auto",
+        "declare rmw_zenoh's ROS graph liveliness tokens (@ros2_lv/...: a node [daemon] "
+        "node_name, its publishers and subscriptions) so that ros2 node list / ros2 topic list "
+        "show pugsd; data flows without them. auto: with key_style rmw_zenoh, hash_mode rihs01 "
+        "and ROS-valid names; on: the same, refusing a config that does not allow them",
+        choices=("auto", "on", "off"),
     )
     left_image: str = opt("/stereo/left/image_raw", "left rectified image (sensor_msgs/Image)")
     right_image: str = opt("/stereo/right/image_raw", "right rectified image (sensor_msgs/Image)")
@@ -178,8 +194,12 @@ class TopicsConfig:
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if isinstance(value, str) and f.name not in ("key_style", "hash_mode", "pose_type"):
+            if isinstance(value, str) and f.name not in _NOT_TOPICS:
                 _check_key(f.name, value, strip=True)
+        if self.ros_graph_tokens == "on":
+            problems = graph_token_problems(self)
+            if problems:
+                raise ConfigError("ros_graph_tokens = 'on', but " + "; ".join(problems))
 
 
 @dataclass(frozen=True, slots=True)

@@ -3,9 +3,23 @@
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
 from typing import Any
 
-from pugsd.wire.keys import subscription_key, topic_key
+from pugsd.errors import ConfigError
+from pugsd.wire.graph import (
+    PUBLISHER,
+    QOS_PROFILE_DEFAULT,
+    RELIABILITY_BEST_EFFORT,
+    SUBSCRIPTION,
+    QosProfile,
+    endpoint_token,
+    node_name_problem,
+    node_token,
+    topic_name_problem,
+)
+from pugsd.wire.keys import dds_type_name, strip_topic, subscription_key, topic_key
 from pugsd.wire.types import (
     CAMERA_INFO,
     GRASP_ARRAY,
@@ -15,6 +29,7 @@ from pugsd.wire.types import (
     POSE_COV_STAMPED,
     POSE_STAMPED,
     STRING,
+    type_hash,
 )
 
 #: TopicsConfig field -> default message type (``pose`` also accepts PoseStamped)
@@ -75,3 +90,95 @@ def role_type(topics: Any, role: str) -> str:
 def topic_types(topics: Any, roles: tuple[str, ...] = INPUT_ROLES + OUTPUT_ROLES) -> dict[str, str]:
     """ROS topic name -> message type for the given roles (:func:`role_type`)."""
     return {getattr(topics, r): role_type(topics, r) for r in roles}
+
+
+# --- ROS graph liveliness tokens (pugsd.wire.graph) ------------------------------------------------
+
+#: QoS in pugsd's publisher tokens: rmw_qos_profile_default (RELIABLE, VOLATILE, KEEP_LAST 10) as
+#: rmw_zenoh adapts it. pugsd's publishers behave as rmw_zenoh's do for it: zenoh reliability
+#: RELIABLE (zenoh's default), congestion control DROP, no cache (VOLATILE)
+PUBLISHER_QOS = QOS_PROFILE_DEFAULT.adapted()
+#: QoS in pugsd's subscription tokens: the same but BEST_EFFORT: pugsd's plain zenoh subscribers
+#: take whatever arrives, and a BEST_EFFORT reader is compatible with any writer
+SUBSCRIPTION_QOS = dataclasses.replace(QOS_PROFILE_DEFAULT, reliability=RELIABILITY_BEST_EFFORT).adapted()
+
+
+def full_topic_name(topic: str) -> str:
+    """The fully qualified ROS name of a configured topic (``pugs/grasps/`` -> ``/pugs/grasps``)."""
+    return "/" + strip_topic(topic)
+
+
+def graph_token_problems(topics: Any, node_name: str | None = None) -> list[str]:
+    """Why rmw_zenoh graph tokens cannot be declared for these topics (and node name): the key
+    style and hash mode they describe, and names ROS 2 would not accept. Empty: they can."""
+    out: list[str] = []
+    if topics.key_style != "rmw_zenoh":
+        out.append(f"key_style is {topics.key_style!r} (graph tokens are rmw_zenoh's)")
+    if topics.hash_mode != "rihs01":
+        out.append(
+            f"hash_mode is {topics.hash_mode!r} (the token format was taken from Jazzy and later; "
+            "Humble's was not checked)"
+        )
+    if node_name is not None and (p := node_name_problem(node_name)):
+        out.append(f"daemon.node_name: {p}")
+    for role in INPUT_ROLES + OUTPUT_ROLES:
+        if p := topic_name_problem(full_topic_name(getattr(topics, role))):
+            out.append(f"topics.{role}: {p}")
+    return out
+
+
+def graph_tokens_enabled(topics: Any, node_name: str) -> bool:
+    """Whether the daemon declares graph tokens (``[topics] ros_graph_tokens``): ``off`` never,
+    ``auto`` when :func:`graph_token_problems` finds none, ``on`` always (ConfigError if it
+    finds one)."""
+    mode = getattr(topics, "ros_graph_tokens", "auto")
+    if mode == "off":
+        return False
+    problems = graph_token_problems(topics, node_name)
+    if mode == "on" and problems:
+        raise ConfigError("topics.ros_graph_tokens = 'on', but " + "; ".join(problems))
+    return not problems
+
+
+@dataclass(frozen=True, slots=True)
+class RosGraphTokens:
+    """The daemon's graph tokens: its node, a publisher per output role, a subscription per input
+    role (numbered 0, 1, 2, ... in that order, as rmw_zenoh numbers a context's entities)."""
+
+    node: str
+    publishers: dict[str, str]
+    subscriptions: dict[str, str]
+
+    def all(self) -> list[str]:
+        return [self.node, *self.publishers.values(), *self.subscriptions.values()]
+
+
+def ros_graph_tokens(
+    topics: Any,
+    node_name: str,
+    zid: str,
+    *,
+    outputs: tuple[str, ...] = OUTPUT_ROLES,
+    inputs: tuple[str, ...] = INPUT_ROLES,
+) -> RosGraphTokens:
+    """The graph tokens of a node ``/<node_name>`` in session ``zid`` (``str(session.zid())``)
+    publishing ``outputs`` and subscribing ``inputs``. Namespace and enclave are ROS's default
+    ``/``; the pose input is announced with ``[topics] pose_type`` (pugsd takes either type). The
+    QoS fields are all written (:data:`PUBLISHER_QOS`: ``1:2:1,10:9223372036,854775807:...``)."""
+    problems = graph_token_problems(topics, node_name)
+    if problems:
+        raise ConfigError("no ROS graph tokens: " + "; ".join(problems))
+    d = topics.domain_id
+
+    def endpoint(kind: str, role: str, entity_id: int, qos: QosProfile) -> str:
+        typename = role_type(topics, role)
+        return endpoint_token(
+            kind, d, zid, 0, entity_id, node_name, full_topic_name(getattr(topics, role)),
+            dds_type_name(typename), type_hash(typename), qos,
+            qos_defaults=None,  # every QoS field written: see pugsd.wire.graph
+        )  # fmt: skip
+
+    pubs = {r: endpoint(PUBLISHER, r, 1 + i, PUBLISHER_QOS) for i, r in enumerate(outputs)}
+    first = 1 + len(outputs)
+    subs = {r: endpoint(SUBSCRIPTION, r, first + i, SUBSCRIPTION_QOS) for i, r in enumerate(inputs)}
+    return RosGraphTokens(node_token(d, zid, 0, node_name), pubs, subs)
