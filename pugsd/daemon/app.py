@@ -237,7 +237,8 @@ class Daemon:
         self.depth_box: Mailbox[tuple[DepthFrame, float]] = Mailbox("depth", q.depth, Overflow.DROP_OLDEST)
         self.commands: Mailbox[Command] = Mailbox("commands", q.commands, Overflow.REJECT)
         # one arm motion at a time; a second request is rejected, never queued behind the first
-        self.arm_box: Mailbox[tuple[Any, int, float | None]] = Mailbox("arm", 1, Overflow.REJECT)
+        # (grasps, grasp id, width, the map generation they belong to)
+        self.arm_box: Mailbox[tuple[Any, int, float | None, int]] = Mailbox("arm", 1, Overflow.REJECT)
         self.arm: Any = None  # pugsd.arm.controller.ArmController when [arm] enabled
         self.arm_report: dict[str, Any] | None = None
         self._arm_stop_tasks: set[asyncio.Task[None]] = set()  # arm/stop requests being sent
@@ -472,12 +473,15 @@ class Daemon:
         if self.arm.stop_latched is not None:
             msg = f"stopped ({self.arm.stop_latched}): query {self.key('arm/release')} first"
             raise InputRejected("stopped", msg[:300])
+        if self._resetting:  # latest_result is the map being cleared
+            raise InputRejected("resetting", "no grasps: the map is being reset")
         result = self.latest_result
         if result is None:
             raise InputRejected("not_ready", "no grasps yet: model not ready")
         if grasp_id not in {int(g) for g in result.grasps.grasp_id}:
             raise InputRejected("unknown_grasp", f"grasp id {grasp_id} is not among the latest grasps")
-        if self._busy.get("arm") or not self.arm_box.offer((result.grasps, grasp_id, width_m)):
+        item = (result.grasps, grasp_id, width_m, self._generation)
+        if self._busy.get("arm") or not self.arm_box.offer(item):
             raise InputRejected("busy", "busy: an arm motion is in progress")
         return f"accepted: grasp {grasp_id}"
 
@@ -534,10 +538,12 @@ class Daemon:
 
     async def _arm_worker(self) -> None:
         while not self._stopping:
-            grasps, grasp_id, width_m = await self.arm_box.take()
+            grasps, grasp_id, width_m, generation = await self.arm_box.take()
             self._busy["arm"] = True
             try:
                 async with self._motion_lock:
+                    if generation != self._generation:  # a reset ran while it waited for the lock
+                        raise InputRejected("reset", "the map was reset since the request")
                     rep = await self.arm.execute_grasp_id(grasps, grasp_id, width_m)
                 report = _jsonable(rep.to_dict())
             except PugsdError as exc:
@@ -732,7 +738,9 @@ class Daemon:
                     self._refuse_wildcard(kind, str(query.key_expr))
                     query.reply_err(f"rejected: {key} acts only on a query for exactly that key")
                 elif kind == "latest":
-                    if self.latest_grasps is None:
+                    if self._resetting:  # latest_grasps is the map being cleared
+                        query.reply_err("no grasps: the map is being reset")
+                    elif self.latest_grasps is None:
                         query.reply_err("no grasps yet: model not ready")
                     else:
                         query.reply(key, self.latest_grasps)
