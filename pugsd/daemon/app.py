@@ -1234,11 +1234,12 @@ class Daemon:
             self._newest_stamp_ns = self._output_stamp_ns(depth.stamp_ns)
             return n
 
-    def _reset_locked(self) -> None:
+    def _reset_locked(self) -> bool:
         """On the model thread: reset the pipeline and the outputs' stamp under the model lock."""
         with self._model_lock:
             self._newest_stamp_ns = 0
             self.pipeline.reset()
+        return True
 
     def _note_train(self, stats: Any, steps: int) -> None:
         self.health.count("train_steps", steps)
@@ -1461,7 +1462,9 @@ class Daemon:
             self._drop("reset", "frames waiting for a pose", waiting)
         if unpaired:
             self._drop("reset", "unpaired stereo halves", unpaired)
-        await self._guard("reset", self._offload("reset", self._reset_locked))
+        if await self._guard("reset", self._offload("reset", self._reset_locked)):
+            # a run of integrate failures belonged to the old map (out_of_map_range: its anchor)
+            self.health.succeeded("integrate")
         self.latest_grasps = None
         self.latest_result = None
         self.ready = False

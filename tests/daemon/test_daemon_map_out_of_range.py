@@ -53,8 +53,14 @@ def test_frames_always_out_of_the_maps_range_make_the_daemon_unhealthy(
             wait_for(lambda i=i: d.health.counts.get("rejected", 0) >= i, 10.0, f"frame {i} refused")
         st = query_json(client, "pugs/status")
         problems = d.health.problems()
+        # a reset (the operator's fix) gives a new map: healthy again without waiting for a frame
+        replies = list(client.get("pugs/reset", timeout=5.0))
+        assert replies and replies[0].ok is not None
+        wait_for(lambda: d.health.counts.get("resets", 0) == 1, 10.0, "the reset")
+        after_reset = d.health.problems()
     finally:
         src.close()
         dt.stop()
     assert st["rejected"].get("integrate: out_of_map_range") == 5
     assert any("integrate" in p for p in problems), problems
+    assert not any("integrate" in p for p in after_reset), after_reset
