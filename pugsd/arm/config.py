@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 from pugsd.configbase import opt
 from pugsd.errors import ConfigError
@@ -15,6 +16,14 @@ _N_AXES = 7
 #: is for idle time between frames, the devices' reply latency and one-off traffic (requests of
 #: POSITION_LIMITS, HEARTBEAT_SET re-sends, repeated stops)
 _LINE_SHARE = 0.9
+#: RS-485: each paced write is counted this much late: the event loop's timers wake on whole
+#: milliseconds (epoll), so every quiet time the writer sleeps runs up to 1 ms long
+_RS485_WRITE_LATE_S = 0.001
+#: RS-485: setpoint batches that may come closer together than 1 / motion.setpoint_rate_hz within
+#: one report interval: one where the stream's period falls, and the phase changes of a grasp (a
+#: phase's first setpoint follows the previous phase's last one at once; with a zero-length
+#: approach two such changes come back to back)
+_RS485_EXTRA_SETPOINTS = 3
 
 
 def _check(cond: bool, msg: str) -> None:
@@ -346,6 +355,118 @@ class ArmConfig:
             )
         if self.transport == "serial":
             self._check_serial_load()
+        if self.transport == "serial" and self.serial.rs485:
+            self._check_rs485_report_period()
+
+    def rs485_report_period(self) -> dict[str, float]:
+        """RS-485: the longest time between two position reports of one device (``bound_s``) and
+        its parts, from the encoded frames at ``serial.baudrate`` (8N1); every paced write counts
+        ``_RS485_WRITE_LATE_S`` late. The poller (ArmLink._rs485_poller) queues the next poll
+        (7 REQUESTs, one per device, each followed by ``rs485_request_gap_s``) as soon as the
+        previous poll's last REQUEST is on the wire, but no sooner than one period after it
+        queued that one. Between two REQUESTs to a device the line carries (commands first):
+
+        - the 7 REQUESTs of a poll, ``r`` each (wire + request gap): ``poll_s = 7 r``;
+        - a motion's setpoint batches, ``u`` each (wire + command gap): at most
+          ``setpoint_rate_hz x T + _RS485_EXTRA_SETPOINTS`` of them in a time ``T``;
+        - one-off traffic ``x``: two POSITION_LIMITS REQUESTs (start-up: one on the wire and one
+          queued when a poll is queued) or the activation's command batch, whichever is longer.
+          At most the device polled when a motion starts sees it together with setpoints (the
+          motion starts once every other device has reported after the activation).
+
+        A line busy throughout: ``busy_s = max(7r + x + 3u, (7r + 3u) / (1 - rate x u))``
+        (``rate`` = setpoint_rate_hz); when the poller waited for the period ``P`` the line may
+        have idled, and the next poll's REQUEST to the device comes up to ``busy_s - 7r`` later
+        than one period after the previous one. ``bound_s = busy_s + max(0, P - 7r)`` plus the
+        reply's own wire time. ``busy_s`` is infinite when the setpoints fill the line."""
+        from pugsd.arm.protocol import (  # here: the config must not pull in the codec at import
+            ALL_AXES,
+            FEEDBACK_IDS,
+            JAW_DEVICE,
+            JOINT_DEVICES,
+            PACKET_SPECS,
+            Mode,
+            PacketID,
+            encode_frame,
+            make_packet,
+        )
+
+        ser, mo = self.serial, self.motion
+        byte_s = 10.0 / ser.baudrate  # 8N1
+
+        def wire(packets: list[Any]) -> float:
+            return sum(len(encode_frame(p)) for p in packets) * byte_s
+
+        late = _RS485_WRITE_LATE_S
+        poll_ids = [*FEEDBACK_IDS, PacketID.HARDWARE_STATUS_FLAGS]
+        r = max(wire([make_packet(d, PacketID.REQUEST, poll_ids)]) for d in ALL_AXES)
+        r += ser.rs485_request_gap_s + late
+        r1 = wire([make_packet(JOINT_DEVICES[0], PacketID.REQUEST, [PacketID.POSITION_LIMITS])])
+        r1 += ser.rs485_request_gap_s + late
+        zero = make_packet(0xFF, PacketID.VELOCITY, [0.0])
+        if self.kinematics.has_km_end_pos:
+            setpoint = [make_packet(0x0E, PacketID.KM_END_POS, [0.0] * 6)]
+            hold = [zero, make_packet(0xFF, PacketID.MODE, [int(Mode.STANDBY)])]
+        else:
+            setpoint = [make_packet(d, PacketID.POSITION, [0.0]) for d in JOINT_DEVICES]
+            hold = [zero]
+            for d in ALL_AXES:  # MODE STANDBY (from DISABLE) and the hold setpoint
+                hold += [make_packet(d, PacketID.MODE, [0]), make_packet(d, PacketID.POSITION, [0.0])]
+        setpoint.append(make_packet(JAW_DEVICE, PacketID.POSITION, [0.0]))
+        u = wire(setpoint) + ser.rs485_command_gap_s + late
+        x = max(2.0 * r1, wire(hold) + ser.rs485_command_gap_s + late)
+        poll = len(ALL_AXES) * r
+        extra = _RS485_EXTRA_SETPOINTS * u
+        load = mo.setpoint_rate_hz * u  # share of the line the setpoint stream takes
+        moving = (poll + extra) / (1.0 - load) if load < 1.0 else math.inf
+        busy = max(poll + x + extra, moving)
+        reply = max(
+            sum(len(encode_frame(make_packet(d, i, [0] * PACKET_SPECS[i].max_count))) for i in poll_ids)
+            for d in ALL_AXES
+        )
+        period = 1.0 / self.telemetry.rate_hz
+        return {
+            "request_s": r,
+            "setpoint_s": u,
+            "one_off_s": x,
+            "poll_s": poll,
+            "setpoint_load": load,
+            "moving_s": moving,
+            "busy_s": busy,
+            "period_s": period,
+            "reply_s": reply * byte_s,
+            "bound_s": busy + max(0.0, period - poll) + reply * byte_s,
+        }
+
+    def _check_rs485_report_period(self) -> None:
+        """RS-485: safety.watchdog_s must exceed the longest time between two position reports of
+        one device (:meth:`rs485_report_period`), else the watchdog trips on a healthy line."""
+        rp = self.rs485_report_period()
+        ser, mo, t = self.serial, self.motion, self.telemetry
+        wd = self.safety.watchdog_s
+        ms = 1000.0
+        _check(
+            rp["setpoint_load"] < 1.0,
+            f"RS-485: arm.motion.setpoint_rate_hz = {mo.setpoint_rate_hz:g} Hz x {rp['setpoint_s'] * ms:.2f} "
+            f"ms per setpoint batch (wire + arm.serial.rs485_command_gap_s = {ser.rs485_command_gap_s:g} "
+            "s) fills the line: no telemetry poll would get through during a motion; lower "
+            "arm.motion.setpoint_rate_hz or arm.serial.rs485_command_gap_s",
+        )
+        bound = rp["bound_s"]
+        _check(
+            wd > bound,
+            f"RS-485: arm.safety.watchdog_s = {wd:g} s is shorter than the longest time between two "
+            f"reports of one device, {bound * ms:.1f} ms: the 7 devices are polled one at a time, "
+            f"7 x {rp['request_s'] * ms:.2f} ms (REQUEST + arm.serial.rs485_request_gap_s = "
+            f"{ser.rs485_request_gap_s:g} s) = {rp['poll_s'] * ms:.1f} ms per poll; during a motion "
+            f"the setpoint batches go first (arm.motion.setpoint_rate_hz = {mo.setpoint_rate_hz:g} Hz x "
+            f"{rp['setpoint_s'] * ms:.2f} ms with arm.serial.rs485_command_gap_s = "
+            f"{ser.rs485_command_gap_s:g} s), so a poll takes up to {rp['busy_s'] * ms:.1f} ms (one-off "
+            f"traffic included); plus {max(0.0, rp['period_s'] - rp['poll_s']) * ms:.1f} ms waiting for "
+            f"the period of arm.telemetry.rate_hz = {t.rate_hz:g} Hz and {rp['reply_s'] * ms:.2f} ms "
+            f"for the reply. Raise arm.safety.watchdog_s above {bound:.3f} s, or lower "
+            "arm.motion.setpoint_rate_hz or arm.serial.rs485_request_gap_s (or raise the baud rate)",
+        )
 
     def _poll_rate_hz(self) -> float:
         """The highest rate of telemetry polls. While a motion streams setpoints on a full-duplex

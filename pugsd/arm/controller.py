@@ -291,6 +291,9 @@ class ArmLink:
 
     async def _poller(self) -> None:
         period = 1.0 / self.rate_hz
+        if self.rs485 and self.telemetry_mode == "poll":
+            await self._rs485_poller(period)
+            return
         while True:
             if self.telemetry_mode == "heartbeat":
                 await self._refresh_heartbeats()
@@ -302,6 +305,24 @@ class ArmLink:
                     with contextlib.suppress(ArmError):
                         await self.send(pk)
             await asyncio.sleep(period)
+
+    async def _rs485_poller(self, period: float) -> None:
+        """RS-485: the 7 devices are polled one at a time, each REQUEST followed by its quiet
+        time, so one poll may take longer than the period (more so while a motion's setpoints,
+        which go first, interleave). The next poll is queued as soon as the previous one's last
+        REQUEST is on the wire, but never sooner than one period after it was queued: each device
+        then reports every max(period, cycle) (ArmConfig.rs485_report_period bounds it) instead
+        of skipping a tick, i.e. a whole period, whenever a poll was still queued at the tick."""
+        while True:
+            await self.transport.requests_written()
+            t = time.monotonic()
+            pk = self._poll_packets()
+            if not pk:  # commands pile up (the writer is stalled): look again shortly
+                await asyncio.sleep(min(period, 0.005))
+                continue
+            with contextlib.suppress(ArmError):
+                await self.send(pk)
+            await asyncio.sleep(t + period - time.monotonic())
 
     async def _reader(self) -> None:
         while True:

@@ -119,6 +119,9 @@ class Transport:
         """REQUEST packets waiting to be written (paced links only)."""
         return 0
 
+    async def requests_written(self) -> None:
+        """Return once no REQUEST waits to be written (at once on links that do not pace)."""
+
     def _fail(self, msg: str) -> None:
         if self.error is None:
             log.warning("%s link failed: %s", self.name, msg)
@@ -405,6 +408,9 @@ class SerialTransport(FdStreamTransport):
         self._commands: collections.deque[Packet] = collections.deque()
         self._requests: collections.deque[Packet] = collections.deque()
         self._wake = asyncio.Event()
+        #: set while no REQUEST waits (the last one queued has been handed to the writer)
+        self._requests_idle = asyncio.Event()
+        self._requests_idle.set()
         self._writer: asyncio.Task[None] | None = None
         self._wire_free = 0.0  # RS-485: when the bytes written so far have left the wire (monotonic)
         self._echo: collections.deque[tuple[Packet, float]] = collections.deque()
@@ -451,7 +457,11 @@ class SerialTransport(FdStreamTransport):
             if self.backlog() >= self.QUEUE_SIZE:
                 self.stats.tx_errors += 1
                 continue
-            (self._requests if p.packet_id == PacketID.REQUEST else self._commands).append(p)
+            if p.packet_id == PacketID.REQUEST:
+                self._requests.append(p)
+                self._requests_idle.clear()
+            else:
+                self._commands.append(p)
         self._wake.set()
 
     async def send_urgent(self, packets: Sequence[Packet]) -> None:
@@ -460,6 +470,7 @@ class SerialTransport(FdStreamTransport):
             return
         self._commands.clear()  # stale setpoints: the stop goes first
         self._requests.clear()
+        self._requests_idle.set()
         await self.send_many(packets)
 
     def backlog(self) -> int:
@@ -467,6 +478,14 @@ class SerialTransport(FdStreamTransport):
 
     def pending_requests(self) -> int:
         return len(self._requests)
+
+    async def requests_written(self) -> None:
+        """Return once no REQUEST waits: the last one queued is on the wire (or was dropped by a
+        stop). The RS-485 poller queues the next poll then, so that the line never idles
+        between two polls (a REQUEST's quiet time still follows it, commands still go first)."""
+        while self._requests:
+            self._requests_idle.clear()
+            await self._requests_idle.wait()
 
     async def flush(self, within_s: float = 1.0) -> bool:
         """Wait until queued commands (not telemetry REQUESTs) and the transmit buffer have been
@@ -493,6 +512,8 @@ class SerialTransport(FdStreamTransport):
             else:
                 batch = [self._requests.popleft()]
                 gap = self.request_gap_s
+                if not self._requests:
+                    self._requests_idle.set()
             frames = [encode_frame(p) for p in batch]
             self._enqueue([(f, 1, p) for f, p in zip(frames, batch, strict=True)])
             while self.tx_pending() and not self._closed:  # noqa: ASYNC110

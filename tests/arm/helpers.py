@@ -108,7 +108,7 @@ async def sim_and_controller(
         raise ValueError(kind)
     sim = sim_from_config(cfg, arm)
     await sim.start()
-    if rs485:
+    if rs485 and not (cfg.serial.rs485 and cfg.transport == "serial"):
         cfg = dataclasses.replace(cfg, serial=dataclasses.replace(cfg.serial, rs485=True), transport="serial")
     ctl = ArmController(cfg, host)
     try:
