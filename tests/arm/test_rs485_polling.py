@@ -9,7 +9,6 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import itertools
-import os
 import time
 from collections import defaultdict
 
@@ -17,12 +16,13 @@ import pytest
 
 from pugsd.arm.config import ArmConfig, ArmSafetyConfig, ArmSerialConfig, ArmTelemetryConfig
 from pugsd.arm.controller import ArmController
-from pugsd.arm.protocol import ALL_AXES, Packet, PacketID, StreamDecoder, make_packet
+from pugsd.arm.protocol import ALL_AXES, Packet, PacketID, make_packet
 from pugsd.arm.sim import close_pty, make_pty_pair
 from pugsd.arm.transport import SerialTransport
 from pugsd.config import load_config_dict
 from pugsd.errors import ConfigError
 from tests.arm.helpers import fast_config, run, sim_and_controller, small_grasp, wait_until
+from tests.arm.test_transport import _read_packets
 
 P = PacketID
 
@@ -234,16 +234,3 @@ def test_rs485_requests_written_waits_for_the_last_request_and_commands_still_go
             close_pty(master)
 
     run(main(), 20)
-
-
-async def _read_packets(master: int, n: int, within_s: float = 2.0) -> list[Packet]:
-    """Read the arm side of a pty until ``n`` packets have been decoded (bounded)."""
-    dec = StreamDecoder()
-    out: list[Packet] = []
-    t_end = time.monotonic() + within_s
-    while len(out) < n and time.monotonic() < t_end:
-        try:
-            out += dec.feed(os.read(master, 4096))
-        except BlockingIOError:
-            await asyncio.sleep(0.002)
-    return out

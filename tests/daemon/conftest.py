@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import dataclasses
 import json
 import os
@@ -10,7 +12,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import AsyncIterator, Coroutine, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -77,6 +79,22 @@ class RecordingPublisher:
     def put(self, payload: bytes) -> int:
         self.puts.append(bytes(payload))
         return len(self.puts)
+
+
+@contextlib.asynccontextmanager
+async def running_worker(d: Any, worker: Coroutine[Any, Any, None]) -> AsyncIterator[None]:
+    """No zenoh: run one of the daemon's workers (``d._grasp_worker()``, ...) on this event loop;
+    on exit stop it and shut the daemon's executors down."""
+    d._loop = asyncio.get_running_loop()
+    task = asyncio.create_task(worker)
+    try:
+        yield
+    finally:
+        d._stopping = True
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+            ex.shutdown(wait=True)
 
 
 @dataclass

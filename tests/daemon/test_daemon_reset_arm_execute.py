@@ -13,7 +13,7 @@ from typing import Any
 from pugsd.config import load_config_dict
 from pugsd.daemon.app import Daemon, InputRejected
 from pugsd.daemon.notify import Notifier
-from tests.daemon.conftest import FakePipeline, RecordingPublisher
+from tests.daemon.conftest import FakePipeline, RecordingPublisher, running_worker
 
 
 @dataclass
@@ -50,17 +50,9 @@ def _daemon() -> tuple[Daemon, FakeArm]:
 
 def _run(d: Daemon, body: Any) -> None:
     async def main() -> None:
-        d._loop = asyncio.get_running_loop()
-        worker = asyncio.create_task(d._arm_worker())
-        try:
+        async with running_worker(d, d._arm_worker()):
             await body()
             await asyncio.sleep(0.2)  # the arm worker's turn
-        finally:
-            d._stopping = True
-            worker.cancel()
-            await asyncio.gather(worker, return_exceptions=True)
-            for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
-                ex.shutdown(wait=True)
 
     asyncio.run(main())
 

@@ -16,7 +16,7 @@ from pugsd.daemon.notify import Notifier
 from pugsd.errors import EmptyCloudError
 from pugsd.wire import codec
 from pugsd.wire.types import MARKER_ARRAY
-from tests.daemon.conftest import FakePipeline, RecordingPublisher, Result, TrainStats
+from tests.daemon.conftest import FakePipeline, RecordingPublisher, Result, TrainStats, running_worker
 
 
 @dataclass
@@ -40,10 +40,8 @@ def test_grasps_scored_across_a_reset_are_not_published() -> None:
     d._publishers = pubs  # type: ignore[assignment]
 
     async def main() -> tuple[int, int]:
-        d._loop = asyncio.get_running_loop()
         d.ready = d.was_ready = d._changed = True
-        worker = asyncio.create_task(d._grasp_worker())
-        try:
+        async with running_worker(d, d._grasp_worker()):
             # the computation is inside score (model lock held)
             assert await asyncio.to_thread(pipe.scoring.wait, 10.0)
             reset = asyncio.create_task(d._reset())  # bumps the generation, waits for the lock
@@ -53,12 +51,6 @@ def test_grasps_scored_across_a_reset_are_not_published() -> None:
             await asyncio.wait_for(reset, 10.0)
             await asyncio.sleep(0.1)
             return before, len(pubs["grasps"].puts)
-        finally:
-            d._stopping = True
-            worker.cancel()
-            await asyncio.gather(worker, return_exceptions=True)
-            for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
-                ex.shutdown(wait=True)
 
     before, after = asyncio.run(main())
     assert pipe.resets == 1
@@ -98,22 +90,14 @@ def test_a_reset_during_idle_training_rejects_nothing() -> None:
     d._publishers = {role: RecordingPublisher() for role in ("grasps", "markers", "cloud", "status")}  # type: ignore[assignment]
 
     async def main() -> None:
-        d._loop = asyncio.get_running_loop()
         d._last_frame_s = time.monotonic()  # a frame was integrated: idle training rounds run
-        worker = asyncio.create_task(d._model_worker())
-        try:
+        async with running_worker(d, d._model_worker()):
             assert await asyncio.to_thread(pipe.training.wait, 10.0)  # a step holds the model lock
             reset = asyncio.create_task(d._reset())  # bumps the generation, waits for the lock
             await asyncio.sleep(0.1)
             pipe.finish.set()
             await asyncio.wait_for(reset, 10.0)
             await asyncio.sleep(0.3)
-        finally:
-            d._stopping = True
-            worker.cancel()
-            await asyncio.gather(worker, return_exceptions=True)
-            for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
-                ex.shutdown(wait=True)
 
     asyncio.run(main())
     assert pipe.resets == 1
