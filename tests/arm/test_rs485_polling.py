@@ -148,6 +148,23 @@ def test_rs485_poller_does_not_wait_for_the_next_tick() -> None:
     run(main(), 30)
 
 
+def _worst_through_a_grasp(cfg: ArmConfig, after_s: float) -> float:
+    """Start-up, 0.5 s idle, a small grasp and ``after_s`` idle on the simulated RS-485 line:
+    asserts the grasp succeeded without a watchdog trip; returns the worst report interval."""
+
+    async def main() -> float:
+        async with sim_and_controller("pty", cfg, rs485=True) as (_sim, ctl):
+            times = _record_reports(ctl)
+            await asyncio.sleep(0.5)
+            rep = await small_grasp(ctl)
+            assert rep.ok, rep.reason
+            await asyncio.sleep(after_s)
+            assert not ctl.trips, ctl.trips
+            return _worst_interval(times)  # every device reported
+
+    return run(main(), 60)
+
+
 @pytest.mark.parametrize(
     ("rate_hz", "setpoint_hz"), [(10.0, 50.0), (7.0, 10.0)], ids=["10Hz_sp50", "7Hz_sp10"]
 )
@@ -160,19 +177,7 @@ def test_rs485_default_watchdog_passes_and_holds_idle_and_moving(rate_hz: float,
                  "motion": {"setpoint_rate_hz": setpoint_hz}}}
     ).arm  # fmt: skip
     assert checked.safety.watchdog_s == 0.25 > checked.rs485_report_period()["bound_s"]
-    cfg = _cfg(rate_hz, checked.safety.watchdog_s, setpoint_hz=setpoint_hz)
-
-    async def main() -> None:
-        async with sim_and_controller("pty", cfg, rs485=True) as (_sim, ctl):
-            times = _record_reports(ctl)
-            await asyncio.sleep(0.5)
-            rep = await small_grasp(ctl)
-            assert rep.ok, rep.reason
-            await asyncio.sleep(0.3)
-            assert not ctl.trips, ctl.trips
-            _worst_interval(times)  # every device reported
-
-    run(main(), 60)
+    _worst_through_a_grasp(_cfg(rate_hz, checked.safety.watchdog_s, setpoint_hz=setpoint_hz), 0.3)
 
 
 def test_rs485_watchdog_just_above_the_bound_holds_through_a_grasp() -> None:
@@ -185,18 +190,8 @@ def test_rs485_watchdog_just_above_the_bound_holds_through_a_grasp() -> None:
     with pytest.raises(ConfigError, match="watchdog_s"):
         _cfg(14.0, bound - 0.001)
     cfg = _cfg(14.0, round(1.2 * bound, 3))
-
-    async def main() -> None:
-        async with sim_and_controller("pty", cfg, rs485=True) as (_sim, ctl):
-            times = _record_reports(ctl)
-            await asyncio.sleep(0.5)
-            rep = await small_grasp(ctl)
-            assert rep.ok, rep.reason
-            assert not ctl.trips, ctl.trips
-            worst = _worst_interval(times)
-            assert 0.5 * bound < worst < cfg.safety.watchdog_s, (worst, bound)
-
-    run(main(), 60)
+    worst = _worst_through_a_grasp(cfg, 0.0)
+    assert 0.5 * bound < worst < cfg.safety.watchdog_s, (worst, bound)
 
 
 def test_rs485_requests_written_waits_for_the_last_request_and_commands_still_go_first() -> None:
