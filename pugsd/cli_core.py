@@ -8,7 +8,7 @@ import sys
 import time
 
 from pugsd import __version__
-from pugsd.config import config_warnings, core_of, dump_config, load_config
+from pugsd.config import PugsdConfig, config_warnings, core_of, dump_config, load_config
 from pugsd.core.types import ScoredGrasps
 from pugsd.errors import ConfigError
 
@@ -31,10 +31,31 @@ def _check_config(args: argparse.Namespace) -> int:
                 f"{exc} (`pugsd run` refuses it unless [daemon] allow_non_loopback = true)"
             ) from None
     zenoh_config(cfg.zenoh)  # zenoh's own parser: unknown keys and bad values
+    problems = cuda_problems(cfg)
+    if problems:
+        raise ConfigError("; ".join(problems))
     for w in config_warnings(cfg):
         sys.stderr.write(f"{args.file}: warning: {w}\n")
     sys.stdout.write(f"{args.file}: ok\n")
     return 0
+
+
+def cuda_problems(cfg: PugsdConfig) -> list[str]:
+    """Settings that need a CUDA device this machine's torch does not see: ``pugsd run`` refuses
+    them when it builds the model, so check-config (the unit's ExecStartPre) refuses them too.
+    torch is imported only when a setting asks for CUDA."""
+    fof_device = cfg.fof.query_device
+    if "cuda" not in (cfg.svgp.device, fof_device):
+        return []
+    import torch
+
+    if torch.cuda.is_available():
+        return []
+    return [
+        f"{key} = cuda, but torch sees no CUDA device on this machine (use cpu or auto)"
+        for key, value in (("svgp.device", cfg.svgp.device), ("fof.query_device", fof_device))
+        if value == "cuda"
+    ]
 
 
 def _dump_config(args: argparse.Namespace) -> int:

@@ -335,3 +335,39 @@ def test_offline_set_wins_over_the_sequences_own_overrides(monkeypatch: pytest.M
         with pytest.raises(Stop):
             main(argv)
     assert seen == [0.01, 0.002]
+
+
+@pytest.mark.parametrize(
+    ("overrides", "keys"),
+    [
+        (["svgp.device=cuda"], ["svgp.device"]),
+        (["fof.query_device=cuda"], ["fof.query_device"]),
+        (["svgp.device=cuda", "fof.query_device=cuda"], ["svgp.device", "fof.query_device"]),
+    ],
+)
+def test_check_config_refuses_cuda_settings_on_a_machine_without_cuda(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], overrides: list[str], keys: list[str]
+) -> None:
+    """`pugsd run` refuses these when it builds the model; check-config (the unit's ExecStartPre)
+    used to print ok for them."""
+    import torch
+
+    from pugsd.core.fof import FofStore
+    from pugsd.core.predictive import OccupancySVGP
+
+    ref = str(ROOT / "config" / "pugsd.toml")
+    args = [a for o in overrides for a in ("--set", o)]
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    cfg = load_config(ref, overrides)
+    builders = {"svgp.device": lambda: OccupancySVGP(cfg.svgp), "fof.query_device": lambda: FofStore(cfg.fof)}
+    for key in keys:  # what `pugsd run` meets when it builds the model
+        with pytest.raises(ConfigError, match="no CUDA device"):
+            builders[key]()
+    assert main(["check-config", ref, *args]) == 1
+    err = capsys.readouterr().err
+    for key in keys:
+        assert f"{key} = cuda, but torch sees no CUDA device" in err
+    assert err.count("no CUDA device") == len(keys)
+    assert main(["check-config", ref, "--set", "svgp.device=auto"]) == 0
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert main(["check-config", ref, *args]) == 0
