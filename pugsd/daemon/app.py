@@ -1311,7 +1311,7 @@ class Daemon:
             log.info("grasp results discarded: the map was reset while they were computed")
             return
         for role, data in payloads.items():
-            self._publishers[role].put(data)
+            self._put_output(role, data)
         if "cloud" in payloads:
             self._last_cloud_published_s = time.monotonic()
         if result is None:
@@ -1334,6 +1334,26 @@ class Daemon:
                 float(g.baseline_confidence[0]),
                 float(g.sigma2_occ[0]),
             )
+
+    def _put_output(self, role: str, data: bytes) -> bool:
+        """Publish one output; a failed put (zenoh refusing it: a closed or broken session) is
+        logged and counted (``publish_failed``, per role in ``publish_failed.<role>``) instead of
+        escaping into the event loop's exception handler. The results stay queryable
+        (``grasps/latest``). ``daemon.max_consecutive_failures`` failed puts in a row, of any
+        role, make the daemon unhealthy, so systemd restarts it with a fresh session; one role
+        that keeps failing while the others go out does not (a restart would not mend it)."""
+        try:
+            self._publishers[role].put(data)
+        except Exception as exc:
+            self.health.count("publish_failed")
+            self.health.count(f"publish_failed.{role}")
+            n = self.health.failed("publish")
+            of_role = self.health.counts[f"publish_failed.{role}"]
+            if of_role <= 10 or of_role % 100 == 0:  # the first ten of a role, then every 100th
+                log.warning("publishing %s failed (%d so far, %d puts in a row): %s", role, of_role, n, exc)
+            return False
+        self.health.succeeded("publish")
+        return True
 
     def _streaming(self, now: float) -> bool:
         """Frames are coming: one is queued, or the last came less than ``pause_publish_s`` ago."""
@@ -1491,12 +1511,8 @@ class Daemon:
         if self.cfg.daemon.publish_cloud:
             payloads["cloud"] = codec.encode_cloud(np.zeros((0, 3)), stamp_ns, self._frame_id)
         for role, data in payloads.items():
-            pub = self._publishers.get(role)
-            try:
-                if pub is not None:
-                    pub.put(data)
-            except Exception as exc:  # a failed put must not fail the reset
-                log.warning("reset: publishing the cleared %s failed: %s", role, exc)
+            if role in self._publishers:  # a failed put is counted and does not fail the reset
+                self._put_output(role, data)
 
     def _output_stamp_ns(self, stamp_ns: int) -> int:
         """The stamp for outputs after integrating a frame stamped ``stamp_ns``: the newest frame
@@ -1571,10 +1587,7 @@ class Daemon:
             await asyncio.sleep(period)
             st = self.status()
             self.latest_status = st
-            try:
-                self._publishers["status"].put(codec.encode_status(_jsonable(st)))
-            except Exception as exc:
-                log.warning("status publish failed: %s", exc)
+            self._put_output("status", codec.encode_status(_jsonable(st)))
             c = st["counts"]
             stale = st["inputs"]["stale"]
             self._report_stale(stale)
