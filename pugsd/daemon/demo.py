@@ -272,7 +272,10 @@ async def _demo_main(
                 i += 1
                 next_t += 1.0 / rate_hz
                 stop_camera.wait(max(0.0, next_t - time.monotonic()))
-            msg = f"[{time.monotonic() - t_start:6.1f} s] camera done: {i} frames; training on"
+            msg = (
+                f"[{time.monotonic() - t_start:6.1f} s] camera done: {i} frames; training on "
+                "(the daemon will log the camera's streams as silent: expected here)"
+            )
             with contextlib.suppress(RuntimeError):
                 loop.call_soon_threadsafe(write, msg)
 
