@@ -18,7 +18,7 @@ from typing import IO, Any
 
 from mcap.reader import make_reader
 from mcap.records import Channel, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.well_known import MessageEncoding, Profile, SchemaEncoding
 from mcap.writer import CompressionType, Writer
 
@@ -274,6 +274,7 @@ def scan(path: str | Path) -> FileInfo:
     info.complete = False
     info.error = res.error
     info.message_count = res.messages
+    info.chunk_count = res.chunks
     info.start_ns, info.end_ns = res.start_ns, res.end_ns
     info.profile, info.library = res.profile, res.library
     info.schemas = {s.name: s.encoding for s in res.schemas.values()}
@@ -305,6 +306,7 @@ class StreamResult:
     channels: dict[int, Channel] = field(default_factory=dict)
     channel_counts: dict[int, int] = field(default_factory=dict)
     metadata: list[Metadata] = field(default_factory=list)
+    chunks: int = 0  # chunks read whole (CRC checked, every record parsed)
     error: str = ""  # why reading stopped before the footer ("" if the file was complete)
 
 
@@ -319,14 +321,25 @@ class _Abort(Exception):
 def _stream(path: Path, on_record: Any, *, fh: IO[bytes] | None = None) -> StreamResult:
     """Read records in file order until the footer, end of file or the first bad record (from
     ``fh`` when given, else by opening ``path``). ``on_record`` may raise :class:`_Abort`."""
-    from mcap.records import DataEnd, Footer, Header
+    from mcap.records import Chunk, DataEnd, Footer, Header
 
     res = StreamResult()
     data_end = False  # every message is read; the summary, footer and magic must follow
+
+    def records(reader: StreamReader) -> Iterator[Any]:
+        """The reader's records with each chunk's records in its place (counting the chunks)."""
+        for rec in reader.records:
+            if isinstance(rec, Chunk):
+                inner = breakup_chunk(rec, validate_crc=True)
+                res.chunks += 1
+                yield from inner
+            else:
+                yield rec
+
     with contextlib.nullcontext(fh) if fh is not None else _open_read(path) as f:
-        reader = StreamReader(f, validate_crcs=True, record_size_limit=1 << 31)
+        reader = StreamReader(f, validate_crcs=True, record_size_limit=1 << 31, emit_chunks=True)
         try:
-            for rec in reader.records:
+            for rec in records(reader):
                 if data_end:  # the summary repeats what the data section gave
                     continue
                 if isinstance(rec, Header):

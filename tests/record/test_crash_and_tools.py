@@ -219,6 +219,26 @@ def test_recover_truncated_files_in_process(frames_factory: Any, tmp_path: Path)
     assert res.messages == len(full) and res.error == ""
 
 
+def test_scan_counts_the_whole_chunks_of_an_incomplete_file(frames_factory: Any, tmp_path: Path) -> None:
+    """``mcap info`` on a file without a summary (a recorder's .part, a crash) streams through it;
+    its chunk count is that of the chunks read whole (it said 0 chunks before)."""
+    src = tmp_path / "src.mcap"
+    write_recording(src, frames_factory(6), chunk_size=16384)
+    data = src.read_bytes()
+    ends = _chunk_ends(src)
+    assert scan(src).complete and scan(src).chunk_count == len(ends) >= 4
+    no_footer = tmp_path / "no_footer.mcap.part"
+    no_footer.write_bytes(data[:-100])
+    info = scan(no_footer)
+    assert not info.complete and info.chunk_count == len(ends)
+    cut = ends[2][0] + 10  # inside the fourth chunk: three read whole
+    torn = tmp_path / "torn.mcap.part"
+    torn.write_bytes(data[:cut])
+    info = scan(torn)
+    assert not info.complete and info.chunk_count == 3
+    assert info.message_count == sum(n for _, n in ends[:3])
+
+
 def test_cli_info_and_recover(synth_recording: Any, tmp_path: Path,
                               capsys: pytest.CaptureFixture[str]) -> None:  # fmt: skip
     src, _ = synth_recording
