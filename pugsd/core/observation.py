@@ -25,7 +25,7 @@ import numpy as np
 from pugsd.config import ObservationConfig
 from pugsd.core.geometry import skew
 from pugsd.core.types import DepthFrame
-from pugsd.errors import EmptyCloudError
+from pugsd.errors import CovarianceError, EmptyCloudError
 
 
 @dataclass(frozen=True)
@@ -117,4 +117,11 @@ class Observation:
             self.cfg.rotation_term,
             self.cfg.regulariser_m,
         )
+        if not (np.all(np.isfinite(mu_W)) and np.all(np.isfinite(cov_W))):
+            # a finite but huge pose covariance (or intrinsics, pose) overflows in Eq. 1-3:
+            # refused before anything reaches the point store, which a non-finite Gaussian poisons
+            raise CovarianceError(
+                f"frame {frame.stamp_ns}: non-finite covariance or point in the world frame (Eq. "
+                f"1-3 overflow; largest pose_cov entry {float(np.abs(frame.pose_cov).max()):.3g})"
+            )
         return PointBatch(frame.stamp_ns, mu_W, cov_W, frame.T_W_C[:3, 3].copy())

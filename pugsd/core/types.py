@@ -41,12 +41,15 @@ def check_covariance(cov: np.ndarray, n: int, what: str = "covariance") -> np.nd
         raise CovarianceError(f"{what}: expected {n}x{n}, got shape {C.shape}")
     if not np.all(np.isfinite(C)):
         raise CovarianceError(f"{what}: non-finite values")
+    # judged on C scaled to entries in [-1, 1] and symmetrised as 0.5 C + 0.5 C^T: entries near
+    # the float64 limit must not overflow (C + C^T, C - C^T) into an infinite covariance
     scale = max(float(np.abs(C).max()), 1e-30)
-    if np.abs(C - C.T).max() > 1e-6 * scale:
+    S = C / scale
+    if np.abs(S - S.T).max() > 1e-6:
         raise CovarianceError(f"{what}: not symmetric")
-    if np.linalg.eigvalsh(C).min() < -1e-9 * scale:
+    if np.linalg.eigvalsh(S).min() < -1e-9:
         raise CovarianceError(f"{what}: not positive semi-definite")
-    return 0.5 * (C + C.T)
+    return 0.5 * C + 0.5 * C.T
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:
