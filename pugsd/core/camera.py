@@ -35,6 +35,16 @@ class PinholeCamera:
             )
         if self.width <= 0 or self.height <= 0:
             raise InputError(f"invalid image size {self.width}x{self.height}")
+        # the largest ray component (rays()): a focal length so small (a subnormal 5e-324 from
+        # the wire) that it overflows makes every back-projected point infinite
+        with np.errstate(all="ignore"):
+            y = np.float64(max(abs(self.cy), abs(self.height - 1 - self.cy))) / np.float64(self.fy)
+            x = (max(abs(self.cx), abs(self.width - 1 - self.cx)) + abs(self.skew) * y) / np.float64(self.fx)
+        if not (np.isfinite(x) and np.isfinite(y)):
+            raise InputError(
+                f"invalid intrinsics fx={self.fx} fy={self.fy} cx={self.cx} cy={self.cy}: "
+                "the pixel rays overflow"
+            )
 
     @property
     def K(self) -> np.ndarray:
