@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from pugsd.errors import ConfigError, DecodeError
-from pugsd.wire.types import type_hash
+from pugsd.wire.types import known_type, type_hash
 
 KEY_STYLES = ("rmw_zenoh", "ros2dds")
 HASH_MODES = ("rihs01", "humble")
@@ -57,6 +57,11 @@ def topic_key(
     if key_style != "rmw_zenoh":
         raise ConfigError(f"key_style must be one of {KEY_STYLES}, got {key_style!r}")
     if hash_mode == "rihs01":
+        if not known_type(typename):  # e.g. a recording's custom or corrupt schema name
+            raise ConfigError(
+                f"no RIHS01 type hash for {typename[:100]!r}: not a message type pugsd knows "
+                "(use hash_mode 'humble' or key_style 'ros2dds' for it)"
+            )
         h = type_hash(typename)
     elif hash_mode == "humble":
         h = HUMBLE_HASH
