@@ -77,6 +77,8 @@ def _coerce(value: Any, tp: Any, path: str) -> Any:
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"{path}: expected an integer, got {type(value).__name__}")
+        if not -(1 << 63) <= value < (1 << 63):  # tomllib's are unbounded; no setting needs more
+            raise ConfigError(f"{path}: expected a 64-bit integer, got one of {value.bit_length()} bits")
         return value
     if tp is bool:
         if not isinstance(value, bool):
