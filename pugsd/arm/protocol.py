@@ -595,8 +595,9 @@ def packet_to_json(p: Packet) -> dict[str, object]:
     if isinstance(vals, str):
         out["values"] = vals
     elif p.spec is not None and p.spec.kind == "f32":
-        # shortest text that round-trips through binary32 (4.123, not 4.123000144958496)
-        out["values"] = [float(f"{v:.9g}") if not _short_f32(v) else float(_short_f32(v)) for v in vals]
+        # shortest text that round-trips through binary32 (4.123, not 4.123000144958496); NaN and
+        # infinities as the strings Python's json would write unquoted (not valid JSON)
+        out["values"] = [_json_f32(v) for v in vals]
     else:
         out["values"] = list(vals)
     if p.packet_id == PacketID.MODE and isinstance(vals, tuple) and vals:
@@ -610,13 +611,25 @@ def packet_to_json(p: Packet) -> dict[str, object]:
     return out
 
 
+def _json_f32(v: float) -> float | str:
+    if math.isnan(v):
+        return "NaN"
+    if math.isinf(v):
+        return "Infinity" if v > 0 else "-Infinity"
+    short = _short_f32(v)
+    return float(short) if short else float(f"{v:.9g}")
+
+
 def _short_f32(v: float) -> str:
     """Shortest decimal text whose binary32 rounding equals ``v`` ('' if none up to 9 digits)."""
     target = struct.pack("<f", v)
     for digits in range(1, 10):
         t = f"{v:.{digits}g}"
-        if struct.pack("<f", float(t)) == target:
-            return t
+        try:
+            if struct.pack("<f", float(t)) == target:
+                return t
+        except OverflowError:  # near FLT_MAX a short text rounds beyond binary32 (3.403e38)
+            continue
     return ""
 
 
