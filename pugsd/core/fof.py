@@ -225,8 +225,17 @@ class FofStore:
         """Voxel hash keys, 21 bits per axis: voxel indices relative to the first observation's
         voxel (so that a map far from its frame's origin, e.g. in UTM coordinates, hashes as well
         as one near it), +-2^20 voxels (+-4194 m at 4 mm). Points beyond that are refused
-        (InputError) before anything is stored: packed, they would collide with other voxels."""
-        ijk = np.floor(points_W / self.cfg.voxel_size_m).astype(np.int64)
+        (InputError) before anything is stored: packed, they would collide with other voxels.
+        Points too far from the world origin for an int64 voxel index (a garbage pose such as a
+        1e300 m translation) are refused first: cast, they would anchor the map at garbage."""
+        with np.errstate(all="ignore"):
+            idx = np.floor(points_W / self.cfg.voxel_size_m)
+        if not np.all(np.abs(idx) < 2.0**62):
+            far_m = float(np.abs(points_W).max())
+            raise InputError(
+                f"points {far_m:.3g} m from the world origin: too far for any voxel index (a bad pose?)"
+            )
+        ijk = idx.astype(np.int64)
         origin = ijk[0] if self._key_origin is None else self._key_origin
         rel = ijk - origin + (1 << 20)
         if rel.min() < 0 or rel.max() >= (1 << 21):

@@ -154,6 +154,7 @@ def reason_class(exc: BaseException) -> str:
     text = str(exc).lower()
     for key, words in (
         ("out_of_map_range", ("voxel hash",)),
+        ("beyond_any_map", ("too far for any voxel index",)),
         ("too_small_for_stereo", ("too small for the disparity search",)),
         ("malformed_cdr", ("malformed cdr", "truncated cdr", "cdr encapsulation", "not bytes")),
         ("wrong_type", ("not accepted (expected", "unsupported pose type", "rmw_zenoh key")),

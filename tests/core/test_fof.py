@@ -132,6 +132,24 @@ def test_voxel_hash_is_relative_to_the_first_observation_and_refuses_what_it_can
     assert len(s) == 4
 
 
+@pytest.mark.parametrize("far_m", [1e300, -1e300, 1e17])
+def test_points_too_far_for_any_voxel_index_are_refused_before_they_anchor_the_map(far_m: float) -> None:
+    """A garbage pose (a 1e300 m translation: finite, so it passes the pose checks) as the map's
+    first observation: cast to int64 its voxel indices were garbage, the map was anchored there
+    and every good frame after it was refused as out of the hash's range."""
+    cov = np.tile(np.eye(3) * 1e-6, (4, 1, 1))
+    local = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0021, 0.3, -0.2], [0.0061, 0.3, -0.2]])
+    s = FofStore(FofConfig(voxel_size_m=0.004))
+    with pytest.raises(InputError, match="too far for any voxel index"):
+        s.insert(local + np.array([far_m, 0.0, 0.0]), cov)
+    assert len(s) == 0
+    s.insert(local + np.array([500_000.0, 4_200_000.0, -10.0]), cov)  # the map starts at the good frame
+    assert len(s) == 4
+    with pytest.raises(InputError, match="too far for any voxel index"):
+        s.insert(local + np.array([0.0, far_m, 0.0]), cov)
+    assert len(s) == 4 and s.weight.sum() == 4
+
+
 def test_store_cap_evicts_oldest() -> None:
     cfg = FofConfig(voxel_size_m=0.001, max_voxels=100)
     store = FofStore(cfg)

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import pytest
 import zenoh
 
 from pugsd.config import FofConfig, load_config_dict
@@ -64,3 +65,21 @@ def test_frames_always_out_of_the_maps_range_make_the_daemon_unhealthy(
     assert st["rejected"].get("integrate: out_of_map_range") == 5
     assert any("integrate" in p for p in problems), problems
     assert not any("integrate" in p for p in after_reset), after_reset
+
+
+def test_points_too_far_for_any_map_are_a_rejection_of_their_own_not_the_maps_fault() -> None:
+    """A garbage pose (1e300 m) is refused by the store before it anchors the map; the daemon
+    counts it as ``beyond_any_map``, which, unlike ``out_of_map_range``, does not blame the map
+    (a restart would not mend the input)."""
+    from pugsd.daemon.app import _MAP_AT_FAULT, reason_class
+    from pugsd.errors import InputError
+
+    store = FofStore(FofConfig())
+    cov = np.tile(np.eye(3) * 1e-6, (2, 1, 1))
+    with pytest.raises(InputError) as far:
+        store.insert(np.array([[1e300, 0.0, 0.0], [1e300, 0.1, 0.0]]), cov)
+    assert reason_class(far.value) == "beyond_any_map" not in _MAP_AT_FAULT
+    store.insert(np.zeros((2, 3)), cov)
+    with pytest.raises(InputError) as out:
+        store.insert(np.full((2, 3), 5000.0), cov)
+    assert reason_class(out.value) == "out_of_map_range" in _MAP_AT_FAULT
