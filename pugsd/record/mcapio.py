@@ -11,6 +11,8 @@ import json
 import logging
 import os
 import platform
+import struct
+import zlib
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -124,12 +126,45 @@ class RecordedMessage:
     file_index: int
 
 
+_FOOTER = struct.Struct("<BQQQI")  # opcode, record length, summary_start, summary_offset_start, crc
+
+
+def summary_crc_error(f: IO[bytes]) -> str:
+    """Why the file's summary section fails its checksum ("" when it passes, has none, or the
+    file has no footer). The mcap reader ignores the footer's ``summary_crc``: a bit flip in the
+    summary would silently change a channel's topic or type (chunk CRCs cover only the data)."""
+    try:
+        f.seek(0, os.SEEK_END)
+        size = f.tell()
+        end = size - 8  # the closing magic
+        if end - _FOOTER.size < 8:
+            return ""
+        f.seek(end - _FOOTER.size)
+        opcode, length, summary_start, _, crc = _FOOTER.unpack(f.read(_FOOTER.size))
+        if opcode != 0x02 or length != 20 or crc == 0:  # not a footer, or written without CRCs
+            return ""
+        start = summary_start if summary_start else end - _FOOTER.size
+        if not 8 <= start <= end - _FOOTER.size:
+            return f"footer: summary start {summary_start} is outside the file"
+        f.seek(start)
+        got = zlib.crc32(f.read(end - 4 - start))
+    finally:
+        f.seek(0)
+    if got != crc:
+        return f"summary checksum mismatch (expected {crc:#010x}, got {got:#010x})"
+    return ""
+
+
 def _iter_file(
     path: Path, idx: int, topics: list[str] | None, start_ns: int | None, end_ns: int | None
 ) -> Iterator[tuple[int, int, int, RecordedMessage]]:
     with _open_read(path) as f:
         try:
-            # the chunk CRCs: a corrupt chunk is an error, not altered payloads (zstd has no checksum)
+            # the chunk CRCs: a corrupt chunk is an error, not altered payloads (zstd has no
+            # checksum); the summary's, which the reader does not check, tells what the channels are
+            bad_summary = summary_crc_error(f)
+            if bad_summary:
+                raise DecodeError(f"{path}: {bad_summary}; try `pugsd mcap recover`")
             reader = make_reader(f, validate_crcs=True)
             it = reader.iter_messages(
                 topics=topics, starting_at=start_ns, ending_before=end_ns, log_time_order=True
@@ -241,11 +276,12 @@ def scan(path: str | Path) -> FileInfo:
         except OSError as exc:
             raise file_error(p, exc) from None
         info = FileInfo(str(p), size, complete=False)
+        summary_error = summary_crc_error(f)
         try:
             reader = make_reader(f)
             header = reader.get_header()
             info.profile, info.library = header.profile, header.library
-            summary = reader.get_summary()
+            summary = None if summary_error else reader.get_summary()
         except Exception:
             summary = None
         if summary is not None and summary.statistics is not None:
@@ -272,7 +308,7 @@ def scan(path: str | Path) -> FileInfo:
     # incomplete: stream through
     res = _stream(p, lambda *_: None)
     info.complete = False
-    info.error = res.error
+    info.error = f"{summary_error}; every message was read" if summary_error and not res.error else res.error
     info.message_count = res.messages
     info.chunk_count = res.chunks
     info.start_ns, info.end_ns = res.start_ns, res.end_ns
