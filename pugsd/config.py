@@ -43,13 +43,16 @@ class StereoConfig:
         "not rejected)",
         unit="px",
         ge=0,
+        le=65520,  # the SGBM parameters are C ints; no image is wider (a multiple of 16)
     )
-    min_disparity: int = opt(0, "smallest disparity searched", unit="px", ge=0)
+    min_disparity: int = opt(0, "smallest disparity searched", unit="px", ge=0, le=65535)
     block_size: int = opt(5, "SGBM block size (odd)", unit="px", ge=1, le=31)
     uniqueness_ratio: int = opt(10, "SGBM uniqueness ratio", unit="%", ge=0, le=100)
-    speckle_window_size: int = opt(50, "SGBM speckle filter window (0 disables)", unit="px", ge=0)
-    speckle_range: int = opt(2, "SGBM speckle filter disparity range", unit="px", ge=0)
-    disp12_max_diff: int = opt(1, "left-right consistency check (-1 disables)", unit="px", ge=-1)
+    speckle_window_size: int = opt(
+        50, "SGBM speckle filter window (0 disables)", unit="px", ge=0, le=2**31 - 1
+    )
+    speckle_range: int = opt(2, "SGBM speckle filter disparity range", unit="px", ge=0, le=65535)
+    disp12_max_diff: int = opt(1, "left-right consistency check (-1 disables)", unit="px", ge=-1, le=65535)
     min_depth_m: float = opt(
         0.2,
         "nearer depths are invalid (NaN); with num_disparities = 0 the search reaches this near",

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import subprocess
 import sys
@@ -371,3 +372,24 @@ def test_check_config_refuses_cuda_settings_on_a_machine_without_cuda(
     assert main(["check-config", ref, "--set", "svgp.device=auto"]) == 0
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert main(["check-config", ref, *args]) == 0
+
+
+@pytest.mark.parametrize(
+    "key",
+    ["num_disparities", "min_disparity", "speckle_window_size", "speckle_range", "disp12_max_diff"],
+)
+def test_the_sgbm_settings_are_bounded_where_opencv_still_takes_them(key: str) -> None:
+    """OpenCV's SGBM parameters are C ints: stereo.speckle_range = 2^40 passed check-config and
+    every frame then failed with ValueError("integer won't fit into a C int")."""
+    from pugsd.core.camera import PinholeCamera, StereoRig
+    from pugsd.core.stereo import StereoDepth
+
+    field = {f.name: f for f in dataclasses.fields(PugsdConfig().stereo)}[key]
+    top = field.metadata["le"]
+    cfg = load_config_dict({"stereo": {key: top}})
+    rig = StereoRig(PinholeCamera(500.0, 500.0, 319.5, 239.5, 640, 480), 0.1)
+    StereoDepth(cfg.stereo)._matcher(1, rig)  # the largest accepted value reaches OpenCV
+    with pytest.raises(ConfigError, match=rf"stereo\.{key}: .* is above the maximum"):
+        load_config_dict({"stereo": {key: top + 1}})
+    with pytest.raises(ConfigError, match=rf"stereo\.{key}"):
+        load_config_dict({"stereo": {key: 1 << 40}})
