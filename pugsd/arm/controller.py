@@ -504,7 +504,8 @@ class ArmController:
         self._rng = np.random.default_rng(cfg.kinematics.ik_random_seed)
         self.state = "idle"
         self.trip_reason: str | None = None
-        self.trips: list[dict[str, Any]] = []
+        self.trips: list[dict[str, Any]] = []  # the latest MAX_TRIPS_KEPT trips
+        self.trips_total = 0
         self.last_report: ExecutionReport | None = None
         self._abort: str | None = None
         self._exec_lock = asyncio.Lock()
@@ -655,6 +656,9 @@ class ArmController:
                 return f"device 0x{d:02X} hardware flags {ax.flags.names}"
         return None
 
+    #: watchdog trips kept in ``trips`` (the status shows the last 10; ``trips_total`` counts all)
+    MAX_TRIPS_KEPT = 100
+
     #: while tripped the stop is sent again: 3 times RESEND_QUICK_S apart, then every RESEND_SLOW_S
     RESEND_QUICK_S = 0.1
     RESEND_SLOW_S = 0.5
@@ -707,6 +711,9 @@ class ArmController:
         self.trip_reason = reason
         t = time.monotonic()
         self.trips.append({"t_monotonic": t, "reason": reason, "state": self.state})
+        self.trips_total += 1
+        if len(self.trips) > self.MAX_TRIPS_KEPT:  # a flapping link trips and re-arms for hours
+            del self.trips[: -self.MAX_TRIPS_KEPT]
         log.error("arm watchdog tripped: %s", reason)
         self._abort = f"watchdog: {reason}"
         await self._send_stop()
@@ -759,6 +766,7 @@ class ArmController:
                 "bound_s": self.cfg.safety.watchdog_s,
                 "tripped": self.trip_reason,
                 "trips": self.trips[-10:],
+                "trips_total": self.trips_total,
             },
             "last_report": self.last_report.to_dict() if self.last_report else None,
         }
