@@ -26,6 +26,14 @@ class RecordConfig:
     )
     rotate_size_bytes: int = opt(1073741824, "start a new file beyond this size", unit="B", ge=1048576)
     rotate_duration_s: float = opt(600.0, "start a new file after this long", unit="s", gt=0.0)
+    max_total_bytes: int = opt(
+        0,
+        "keep the finished recordings of this name_prefix in directory within this size: after each "
+        "finished file the oldest are deleted (never the newest; the file being written comes on "
+        "top); 0: no limit, recording stops when the disk is full",
+        unit="B",
+        ge=0,
+    )
     queue_max_bytes: int = opt(
         268435456,
         "payload bytes waiting for the writer thread before the oldest are dropped "

@@ -22,6 +22,7 @@ import contextlib
 import errno
 import logging
 import os
+import re
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -181,11 +182,13 @@ class RecorderStats:
     deletes: int = 0  # zenoh DELETE samples (no message to record): skipped
     callback_errors: int = 0  # samples lost to an exception in the zenoh callback
     files_finished: int = 0
+    files_deleted: int = 0  # finished recordings deleted to keep within max_total_bytes
+    bytes_deleted: int = 0
     bytes_written: int = 0  # finished files plus the current file so far
     disk_full: bool = False
     error: str = ""
     current_file: str = ""
-    files: list[str] = field(default_factory=list)  # every finished file (not in as_dict)
+    files: list[str] = field(default_factory=list)  # every finished file not deleted (not in as_dict)
 
     def as_dict(self) -> dict[str, Any]:
         """The counters for a status message: bounded in size, so ``files`` is replaced by
@@ -657,8 +660,50 @@ class Recorder:
             self.stats.files.append(str(final))
             self.stats.files_finished += 1
             log.info("recorder: finished %s", final)
+            self._enforce_max_total(final)
         else:
             log.error("recorder: left %s unfinished (use `pugsd mcap recover`)", part)
+
+    def _enforce_max_total(self, newest: Path) -> None:
+        """``max_total_bytes``: delete the oldest finished recordings of this name prefix in the
+        directory (``.mcap`` files named as this recorder names them, earlier runs' included;
+        never ``newest``, never a ``.part``) until the rest fit. Rotation alone never frees space."""
+        limit = self.cfg.max_total_bytes
+        if limit <= 0:
+            return
+        name = re.compile(re.escape(self.cfg.name_prefix) + r"_\d{8}T\d{6}Z_\d{3,}\.mcap")
+        found = []
+        try:
+            for p in self.directory.iterdir():
+                if not name.fullmatch(p.name):
+                    continue
+                with contextlib.suppress(OSError):  # deleted meanwhile (another recorder)
+                    st = p.stat()
+                    found.append((st.st_mtime_ns, p.name, p, st.st_size))
+        except OSError as exc:
+            log.warning("recorder: cannot list %s to keep it within max_total_bytes: %s", self.directory, exc)
+            return
+        found.sort()  # oldest first (names alone misorder index 1000 before 999)
+        total = sum(size for *_, size in found)
+        for _, _, p, size in found:
+            if total <= limit:
+                break
+            if p == newest:
+                continue
+            try:
+                p.unlink()
+            except FileNotFoundError:
+                pass  # another recorder deleted it
+            except OSError as exc:
+                log.warning("recorder: cannot delete %s: %s", p, exc)
+                continue
+            total -= size
+            self.stats.files_deleted += 1
+            self.stats.bytes_deleted += size
+            with contextlib.suppress(ValueError):
+                self.stats.files.remove(str(p))
+            log.info("recorder: deleted %s (%d B) to keep recordings within max_total_bytes = %d B",
+                     p, size, limit)  # fmt: skip
 
     def _publish(self, part: Path) -> Path:
         """Rename the finished ``.part`` to its ``.mcap`` name, or to a later free index when that
