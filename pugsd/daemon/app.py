@@ -320,6 +320,8 @@ class Daemon:
         # the outputs' stamp: written and read under _model_lock (with the map it labels)
         self._newest_stamp_ns = 0
         self.grasps_published = 0
+        self._grasps_logged_s = -math.inf  # when grasps were last logged (monotonic)
+        self._grasps_logged_n = 0  # grasps_published then
 
     # --- lifecycle ------------------------------------------------------------------------------
 
@@ -575,7 +577,10 @@ class Daemon:
     def _close(self) -> None:
         if self.recorder is not None:
             files = self.recorder.stop(timeout=self.cfg.daemon.shutdown_timeout_s)
-            log.info("recording finished: %s", ", ".join(str(f) for f in files) or "no file")
+            # hours of rotation leave thousands of files: name the last five, count the rest
+            shown = ", ".join(str(f) for f in files[-5:]) or "no file"
+            more = f" (and {len(files) - 5} earlier)" if len(files) > 5 else ""
+            log.info("recording finished: %d file(s): %s%s", len(files), shown, more)
             self.recorder = None
         self._undeclare_subscribers()
         for ent in self._entities:
@@ -780,9 +785,12 @@ class Daemon:
 
     def _offer_command(self, cmd: Command) -> bool:
         ok = self.commands.offer(cmd)
-        if not ok:
-            self.health.reject("commands", "queue full" if not self._stopping else "shutting down")
-            log.warning("command %s rejected: %s", cmd.name, self.commands.reject_reason())
+        if not ok:  # counted each; logged like rejected input: the first five, then every 100th
+            reason = "queue full" if not self._stopping else "shutting down"
+            self.health.reject("commands", reason)
+            n = self.health.rejected[f"commands: {reason}"]
+            if n <= 5 or n % 100 == 0:
+                log.warning("command %s rejected (#%d): %s", cmd.name, n, self.commands.reject_reason())
         return ok
 
     def _reject(self, role: str, exc: BaseException) -> None:
@@ -894,11 +902,12 @@ class Daemon:
             cov = carried_cov(pm.cov)
             jumps = self.poses.jumps_back
             self.poses.add(PoseSample(pm.stamp_ns, pm.T, cov))
-            if self.poses.jumps_back != jumps:
-                log.warning(
+            n = self.poses.jumps_back
+            if n != jumps and (n <= 5 or n % 100 == 0):  # a stray old stamp in every few poses
+                log.warning(  # would log each one: the first five, then every 100th
                     "pose: stamps went back by more than daemon.pose_max_gap_s (a restarted source "
-                    "or a stepped clock); the pose buffer starts afresh at %d ns (%d times so far)",
-                    pm.stamp_ns, self.poses.jumps_back,
+                    "or a stepped clock); the pose buffer starts afresh at %d ns (#%d)",
+                    pm.stamp_ns, n,
                 )  # fmt: skip
             if pm.frame_id:
                 self._frame_id = pm.frame_id
@@ -1326,15 +1335,21 @@ class Daemon:
         if newest_recv is not None:
             self.health.observe("newest_frame_to_grasps", time.monotonic() - newest_recv)
         g = result.grasps
-        if len(g):
+        now = time.monotonic()
+        # one line per publication was 86 400 a day at 1 Hz: the first grasps (since the start or
+        # a reset), then at most one line per _GRASPS_LOG_S with the updates published meanwhile
+        if len(g) and now - self._grasps_logged_s >= _GRASPS_LOG_S:
             log.info(
-                "grasps v%s: %d, top PUGS %.3f (baseline %.3f, sigma2 %.3g)",
+                "grasps v%s: %d, top PUGS %.3f (baseline %.3f, sigma2 %.3g); %d update(s) published "
+                "since the last such line",
                 self.model_version,
                 len(g),
                 float(g.pugs_confidence[0]),
                 float(g.baseline_confidence[0]),
                 float(g.sigma2_occ[0]),
+                self.grasps_published - self._grasps_logged_n,
             )
+            self._grasps_logged_s, self._grasps_logged_n = now, self.grasps_published
 
     def _put_output(self, role: str, data: bytes) -> bool:
         """Publish one output; a failed put (zenoh refusing it: a closed or broken session) is
@@ -1495,6 +1510,7 @@ class Daemon:
         self._last_frame_s = None
         self._newest_recv_s = None
         self.elbo = None
+        self._grasps_logged_s = -math.inf  # the new map's first grasps are logged
         self.health.count("resets")
         self._publish_cleared(cleared_stamp_ns)
         log.info("reset: map cleared")
@@ -1639,6 +1655,7 @@ _MAP_AT_FAULT = frozenset({"out_of_map_range"})
 _SIDE_ACTIVE_S = 2.0  # a mask/std topic counts as active this long after its last message
 _STREAM_ROLES = ("left_image", "right_image", "depth", "pose")  # inputs that flow continuously
 _UNHEALTHY_RELOG_S = 300.0  # an unchanged unhealthy state is logged again this often
+_GRASPS_LOG_S = 60.0  # published grasps are logged at most this often (the first ones at once)
 _NUMBER = re.compile(r"\d+(?:\.\d+)?")
 
 # the stages (``_busy`` keys, health stages) each worker task runs its calls under

@@ -1,0 +1,38 @@
+# SPDX-License-Identifier: Apache-2.0
+"""A pose stream with a stray old stamp every few messages (a driver that sometimes sends stamp 0
+or sim time, two localisers on one topic) restarts the pose buffer each time: counted in the
+status, but logged like rejections (the first five, then every 100th), not once per pose. The
+daemon is driven on the calling thread (no zenoh session): samples go straight to ``_on_inbound``."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import pytest
+
+from pugsd.config import load_config_dict
+from pugsd.daemon.app import Daemon, Inbound
+from pugsd.wire import codec
+from pugsd.wire.topics import key_for
+from tests.daemon.conftest import FakePipeline, daemon_config_dict
+
+COV = np.eye(6) * 1e-6
+
+
+def test_alternating_pose_clocks_do_not_log_a_warning_per_pose(
+    port: int, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    d = Daemon(load_config_dict(daemon_config_dict(port)), FakePipeline())
+    key = key_for(d.cfg.topics, "pose")
+    wall = 1_700_000_000 * 10**9
+    for i in range(300):  # a good pose, then a stray one stamped 1 s after the epoch
+        for stamp in (wall + i * 10**8, 10**9 + i):
+            d._on_inbound(Inbound("pose", key, codec.encode_pose_with_covariance(stamp, np.eye(4), COV),
+                                  time.monotonic()))  # fmt: skip
+    jumps = d.status()["waiting"]["pose_clock_jumps_back"]
+    assert jumps == 300  # every stray pose restarts the buffer, and is counted
+    logged = [r for r in caplog.records if "stamps went back" in r.getMessage()]
+    assert 1 <= len(logged) <= 5 + jumps // 100, len(logged)  # was 300: one per stray pose
