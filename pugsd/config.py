@@ -269,7 +269,13 @@ class ReconstructionConfig:
 
     tsdf_voxel_m: float = opt(0.003, "TSDF voxel size (paper: 3 mm)", unit="m", gt=0.0)
     sdf_trunc_voxels: float = opt(4.0, "TSDF truncation distance in voxels", gt=0.0)
-    block_count: int = opt(40000, "VoxelBlockGrid block capacity", ge=100)
+    block_count: int = opt(
+        40000,
+        "VoxelBlockGrid block capacity (8^3 voxels, about 10 kB each, allocated at start); beyond "
+        "it the blocks observed longest ago are evicted, so the grid never grows with the "
+        "explored space",
+        ge=100,
+    )
     sample_points: int = opt(8000, "points sampled from the fused surface", ge=100)
     outlier_nb_neighbors: int = opt(20, "statistical outlier removal neighbourhood", ge=1)
     outlier_std_ratio: float = opt(

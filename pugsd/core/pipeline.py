@@ -421,6 +421,8 @@ class PugsPipeline:
             "points": self.points,
             "voxels": len(self.store),
             "evicted": self.store.evicted,
+            "tsdf_blocks": self.recon.blocks,
+            "tsdf_blocks_evicted": self.recon.blocks_evicted,
             "model_version": self.svgp.version,
             "svgp_steps": self.svgp.total_steps,
             "elbo": float(t.elbo) if t is not None else float("nan"),

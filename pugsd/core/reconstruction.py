@@ -60,6 +60,14 @@ class Reconstruction:
         )
         self.frames = 0
         self.camera_centers_W: list[np.ndarray] = []
+        # the frame (1-based) that last touched each buffer slot of the grid's block hash map
+        self._last_seen = np.zeros(self._vbg.hashmap().capacity(), dtype=np.int64)
+        self.blocks_evicted = 0
+
+    @property
+    def blocks(self) -> int:
+        """Blocks in the grid now."""
+        return 0 if self._vbg is None else int(self._vbg.hashmap().size())
 
     def close(self) -> None:
         """Free the voxel grid now (also done for every grid at exit, see ``_LIVE``); the next
@@ -90,9 +98,46 @@ class Reconstruction:
         blocks = self._vbg.compute_unique_block_coordinates(
             depth_img, K, ext, 1.0, max_depth, trunc
         )
+        self._make_room(blocks)
         self._vbg.integrate(blocks, depth_img, color_img, K, ext, 1.0, max_depth, trunc)
         self.frames += 1
+        hm = self._vbg.hashmap()
+        if len(self._last_seen) < hm.capacity():  # open3d grew the map (one frame over the bound)
+            self._last_seen = np.concatenate(
+                [self._last_seen, np.zeros(hm.capacity() - len(self._last_seen), np.int64)]
+            )
+        buf, found = hm.find(blocks)
+        self._last_seen[buf.numpy()[found.numpy()]] = self.frames
         self._add_view(frame.T_W_C[:3, 3])
+
+    def _make_room(self, blocks: Any) -> None:
+        """Keep the grid within its ``block_count`` capacity: before a frame would overfill it,
+        the blocks observed longest ago that the frame does not touch are evicted (like the
+        point store's ``max_voxels``). Without it the grid grew with the explored space for as long as
+        the daemon ran: open3d doubles its hash map and every block's buffers each time it is
+        full (a survey leg of 150 frames took it from 0.9 to 2.3 GiB). An evicted block's slot
+        is cleared: open3d reuses the slot for the next new block and does not clear it."""
+        hm = self._vbg.hashmap()
+        # open3d grows the map when its size plus the frame's blocks, found or not, exceed the
+        # capacity: room is made for all of them
+        need = hm.size() + len(blocks) - self.cfg.block_count
+        if need <= 0:
+            return
+        buf, found = hm.find(blocks)
+        found_np = found.numpy()
+        active = hm.active_buf_indices().numpy().astype(np.int64)
+        in_frame = np.zeros(len(self._last_seen), dtype=bool)
+        in_frame[buf.numpy()[found_np]] = True
+        candidates = active[~in_frame[active]]
+        if len(candidates) == 0:
+            return  # one frame alone needs more blocks than the bound: open3d grows the map
+        victims = candidates[np.argsort(self._last_seen[candidates], kind="stable")[:need]]
+        victims_t = o3d.core.Tensor(victims.astype(np.int32))
+        hm.erase(hm.key_tensor()[victims_t])
+        for name in ("tsdf", "weight", "color"):
+            self._vbg.attribute(name).numpy()[victims] = 0.0
+        self._last_seen[victims] = 0
+        self.blocks_evicted += len(victims)
 
     def _add_view(self, c_W: np.ndarray) -> None:
         """Keep camera centres (for normal orientation and the proposer's view preference) more
