@@ -669,7 +669,7 @@ class Daemon:
         (``bridge_errors`` in the status) and logged, the first five then every 100th."""
         with self._bridge_lock:
             n = self.bridge_errors[role] = self.bridge_errors.get(role, 0) + 1
-        if n <= 5 or n % 100 == 0:
+        if _log_nth(n):
             log.error("%s sample lost in the zenoh callback (#%d): %s: %s", role, n, type(exc).__name__, exc)
 
     def _bridge_query(self, kind: str) -> Callable[[Any], None]:
@@ -789,7 +789,7 @@ class Daemon:
             reason = "queue full" if not self._stopping else "shutting down"
             self.health.reject("commands", reason)
             n = self.health.rejected[f"commands: {reason}"]
-            if n <= 5 or n % 100 == 0:
+            if _log_nth(n):
                 log.warning("command %s rejected (#%d): %s", cmd.name, n, self.commands.reject_reason())
         return ok
 
@@ -801,7 +801,7 @@ class Daemon:
         cls = reason_class(exc)
         self.health.reject(role, cls)
         n = self.health.rejected[f"{role}: {cls}"]
-        if n <= 5 or n % 100 == 0:
+        if _log_nth(n):
             log.warning("rejected %s input (%s, #%d): %s", role, cls, n, exc)
 
     def _drop(self, stage: str, reason: str, n: int = 1) -> None:
@@ -820,7 +820,7 @@ class Daemon:
         n = self.health.counts[key]
         if n == 1:
             log.error("%s failed: %s", what, exc, exc_info=exc)
-        elif n <= 5 or n % 100 == 0:
+        elif _log_nth(n):
             log.error("%s failed (#%d): %s: %s", what, n, type(exc).__name__, exc)
 
     def dropped_total(self) -> int:
@@ -847,7 +847,7 @@ class Daemon:
         if item.lost_before:  # counted by self.upstream; logged like rejections
             self.health.count(f"upstream_gaps.{item.role}")
             n = self.health.counts[f"upstream_gaps.{item.role}"]
-            if n <= 5 or n % 100 == 0:
+            if _log_nth(n):
                 log.warning(
                     "%s: %d message(s) lost before pugsd (rmw_zenoh sequence gap #%d): the "
                     "publisher's congestion control or the link dropped them",
@@ -903,7 +903,7 @@ class Daemon:
             jumps = self.poses.jumps_back
             self.poses.add(PoseSample(pm.stamp_ns, pm.T, cov))
             n = self.poses.jumps_back
-            if n != jumps and (n <= 5 or n % 100 == 0):  # a stray old stamp in every few poses
+            if n != jumps and _log_nth(n):  # a stray old stamp in every few poses
                 log.warning(  # would log each one: the first five, then every 100th
                     "pose: stamps went back by more than daemon.pose_max_gap_s (a restarted source "
                     "or a stepped clock); the pose buffer starts afresh at %d ns (#%d)",
@@ -1156,7 +1156,7 @@ class Daemon:
             n = self.health.counts[key]
             if n == 1:
                 log.exception("%s stage failed; continuing", stage)
-            elif n <= 5 or n % 100 == 0:
+            elif _log_nth(n):
                 log.error("%s stage failed (#%d): %s: %s", stage, n, type(exc).__name__, exc)
         else:
             self.health.succeeded(stage)
@@ -1365,7 +1365,7 @@ class Daemon:
             self.health.count(f"publish_failed.{role}")
             n = self.health.failed("publish")
             of_role = self.health.counts[f"publish_failed.{role}"]
-            if of_role <= 10 or of_role % 100 == 0:  # the first ten of a role, then every 100th
+            if _log_nth(of_role, first=10):  # the first ten of a role, then every 100th
                 log.warning("publishing %s failed (%d so far, %d puts in a row): %s", role, of_role, n, exc)
             return False
         self.health.succeeded("publish")
@@ -1655,6 +1655,12 @@ _MAP_AT_FAULT = frozenset({"out_of_map_range"})
 _SIDE_ACTIVE_S = 2.0  # a mask/std topic counts as active this long after its last message
 _STREAM_ROLES = ("left_image", "right_image", "depth", "pose")  # inputs that flow continuously
 _UNHEALTHY_RELOG_S = 300.0  # an unchanged unhealthy state is logged again this often
+def _log_nth(n: int, first: int = 5) -> bool:
+    """Whether the ``n``-th (1-based) of a repeated event is logged: the first ``first``, then
+    every 100th (each is counted regardless)."""
+    return n <= first or n % 100 == 0
+
+
 _GRASPS_LOG_S = 60.0  # published grasps are logged at most this often (the first ones at once)
 _NUMBER = re.compile(r"\d+(?:\.\d+)?")
 

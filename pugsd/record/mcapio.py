@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
+from mcap.opcode import Opcode
 from mcap.reader import make_reader
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
@@ -141,7 +142,7 @@ def summary_crc_error(f: IO[bytes]) -> str:
             return ""
         f.seek(end - _FOOTER.size)
         opcode, length, summary_start, _, crc = _FOOTER.unpack(f.read(_FOOTER.size))
-        if opcode != 0x02 or length != 20 or crc == 0:  # not a footer, or written without CRCs
+        if opcode != Opcode.FOOTER or length != 20 or crc == 0:  # not a footer, or written without CRCs
             return ""
         start = summary_start if summary_start else end - _FOOTER.size
         if not 8 <= start <= end - _FOOTER.size:
