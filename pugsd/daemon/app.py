@@ -900,15 +900,21 @@ class Daemon:
                 raise InputRejected("wrong_type", f"pose: type {typename[:100]!r} not accepted")
             pm = codec.decode_pose(data, typename, self._pose_stamped_cov)
             cov = carried_cov(pm.cov)
-            jumps = self.poses.jumps_back
+            jumps, strays = self.poses.jumps_back, self.poses.strays
             self.poses.add(PoseSample(pm.stamp_ns, pm.T, cov))
             n = self.poses.jumps_back
-            if n != jumps and _log_nth(n):  # a stray old stamp in every few poses
-                log.warning(  # would log each one: the first five, then every 100th
+            if n != jumps and _log_nth(n):  # a source flapping between clocks would log each
+                log.warning(
                     "pose: stamps went back by more than daemon.pose_max_gap_s (a restarted source "
                     "or a stepped clock); the pose buffer starts afresh at %d ns (#%d)",
                     pm.stamp_ns, n,
                 )  # fmt: skip
+            if self.poses.strays != strays:  # found out now, by the pose after it
+                self._reject("pose", InputRejected("stray_stamp", (
+                    f"a pose stamped {self.poses.last_stray_ns} ns, more than daemon.pose_max_gap_s "
+                    "off the pose timeline, was a stray (the poses after it went on with the "
+                    "timeline): ignored"
+                )))  # fmt: skip
             if pm.frame_id:
                 self._frame_id = pm.frame_id
             self.health.count("poses")
@@ -1593,6 +1599,7 @@ class Daemon:
                 "unpaired_dropped": self.pairer.unpaired_dropped,
                 "poses": len(self.poses),
                 "pose_clock_jumps_back": self.poses.jumps_back,
+                "pose_strays": self.poses.strays,
             },
             "pipeline": pstats,
             "recorder": None if self.recorder is None else self.recorder.stats.as_dict(),

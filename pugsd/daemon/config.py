@@ -96,8 +96,9 @@ class DaemonConfig:
     )
     pose_max_gap_s: float = opt(
         0.5,
-        "never interpolate between poses further apart than this; a pose stamped this much before "
-        "the newest one restarts the pose buffer (the source's clock went back)",
+        "never interpolate between poses further apart than this; two poses in a row stamped this "
+        "much before the newest one restart the pose buffer (the source's clock went back), one "
+        "alone is ignored as a stray",
         unit="s",
         gt=0.0,
         le=3600.0,

@@ -122,13 +122,27 @@ class PoseBuffer:
     ``max_gap_ns`` apart. The covariance is that of the latest pose (by stamp, not after the later
     bracketing pose) that carries one; ``default_cov`` when none has.
 
-    A pose stamped more than ``max_gap_ns`` before the newest one means the pose source's clock went
-    back (a restarted source, a replay loop, a stepped clock; zenoh delivers one publisher's samples
-    in order): the buffer starts afresh from it (``jumps_back`` counts these), keeping only the newest
-    covariance. Kept, the old timeline's poses would stay "newest" and every later pose would be
-    evicted on arrival once the ring is full, so no frame would get a pose again. An image stamped
-    that far before the newest pose waits (for the restarted source's poses) rather than failing
-    at once: its pose may come after it.
+    A pose stamped more than ``max_gap_ns`` before the newest one is held until the next pose says
+    which timeline goes on:
+    - the next pose follows the held one by at most ``max_gap_ns`` (and is as far back): two poses
+      agree on a timeline behind the buffer's. The pose source's clock went back (a restarted
+      source, a replay loop, a stepped clock; zenoh delivers one publisher's samples in order): the
+      buffer starts afresh from them (``jumps_back`` counts these), keeping only the newest
+      covariance. Kept, the old timeline's poses would stay "newest" and every later pose would be
+      evicted on arrival once the ring is full, so no frame would get a pose again. But when the
+      held pose is within ``max_gap_ns`` of the pose before the newest one, and the newest one was
+      alone more than ``max_gap_ns`` ahead of that, the newest pose was the stray (a future
+      stamp): it is dropped and the two poses go on the timeline.
+    - the next pose continues the buffer's timeline: the held pose was a stray (a driver that once
+      sends stamp 0 or sim time, a second localiser on the topic) and is dropped (``strays`` counts
+      these, ``last_stray_ns`` is the latest one's stamp). Taken at once, a single stray used to
+      restart the buffer and cost the frames stamped before the next good pose.
+    - neither: it is held instead (the held one counts as a stray).
+    A clock that goes back thus costs one pose period. Poses ahead of the newest one are taken at
+    once, however far (a source that paused, or publishes a pose per frame at a low rate: exact
+    stamps need no bracketing pair). An image stamped more than ``max_gap_ns`` before the newest
+    pose waits (for the restarted source's poses) rather than failing at once: its pose may come
+    after it.
     """
 
     def __init__(self, capacity: int, max_gap_ns: int, default_cov: np.ndarray) -> None:
@@ -139,7 +153,10 @@ class PoseBuffer:
         self._samples: list[PoseSample] = []
         self._cov_stamps: list[int] = []
         self._covs: list[np.ndarray] = []
+        self._held: PoseSample | None = None  # off the timeline, until the next pose says
         self.jumps_back = 0
+        self.strays = 0
+        self.last_stray_ns: int | None = None
 
     def __len__(self) -> int:
         return len(self._stamps)
@@ -148,14 +165,50 @@ class PoseBuffer:
     def newest_ns(self) -> int | None:
         return self._stamps[-1] if self._stamps else None
 
+    def _fits(self, stamp_ns: int) -> bool:
+        """Not more than ``max_gap_ns`` before the newest pose (an empty buffer takes any)."""
+        return not self._stamps or stamp_ns >= self._stamps[-1] - self.max_gap_ns
+
     def add(self, sample: PoseSample) -> None:
-        if self._stamps and sample.stamp_ns < self._stamps[-1] - self.max_gap_ns:
+        """Take one pose (see the class docstring for poses far behind the newest one)."""
+        held = self._held
+        if self._fits(sample.stamp_ns):
+            self._held = None
+            self._insert(sample)
+            if held is not None:  # the timeline went on without it
+                self._stray(held)
+            return
+        if held is None or not 0 < sample.stamp_ns - held.stamp_ns <= self.max_gap_ns:
+            # the first pose far back, or one that does not follow the held one (a repeat of its
+            # stamp included): held in its place, the held one counted as a stray
+            if held is not None:
+                self._stray(held)
+            self._held = sample
+            return
+        self._held = None  # two poses agree on a timeline behind the buffer's
+        st, gap = self._stamps, self.max_gap_ns
+        if len(st) >= 2 and st[-1] - st[-2] > gap and abs(held.stamp_ns - st[-2]) <= gap:
+            self._stray(self._samples[-1])  # the newest pose was alone ahead of the timeline they go on
+            newest = st.pop()
+            self._samples.pop()
+            if self._cov_stamps and self._cov_stamps[-1] == newest:
+                self._cov_stamps.pop()
+                self._covs.pop()
+        else:  # the clock went back: start afresh
             last_cov = self._covs[-1] if self._covs else None
             self.clear()
             self.jumps_back += 1
             if last_cov is not None:  # still the latest covariance the source reported
-                self._cov_stamps.append(sample.stamp_ns)
+                self._cov_stamps.append(held.stamp_ns)
                 self._covs.append(last_cov)
+        self._insert(held)
+        self._insert(sample)
+
+    def _stray(self, sample: PoseSample) -> None:
+        self.strays += 1
+        self.last_stray_ns = sample.stamp_ns
+
+    def _insert(self, sample: PoseSample) -> None:
         i = bisect.bisect_left(self._stamps, sample.stamp_ns)
         if i < len(self._stamps) and self._stamps[i] == sample.stamp_ns:
             self._samples[i] = sample
@@ -178,6 +231,7 @@ class PoseBuffer:
             self._covs.pop(0)
 
     def clear(self) -> None:
+        self._held = None
         self._stamps.clear()
         self._samples.clear()
         self._cov_stamps.clear()
@@ -207,6 +261,10 @@ class PoseBuffer:
             return PoseLookup("fail", reason="image is older than every buffered pose")
         a, b = self._samples[i - 1], self._samples[i]
         if b.stamp_ns - a.stamp_ns > self.max_gap_ns:
+            if i == len(st) - 1 and stamp_ns - a.stamp_ns <= self.max_gap_ns:
+                # the newest pose alone far ahead: a source that paused, or a stray future stamp
+                # that the next poses show up (see add); the image's own pose may still come
+                return PoseLookup("wait", reason="the newest pose is alone more than pose_max_gap_s ahead")
             # a constant head (a drop counter key); the numbers in parentheses, for the log
             gap_s, max_s = (b.stamp_ns - a.stamp_ns) / 1e9, self.max_gap_ns / 1e9
             return PoseLookup(

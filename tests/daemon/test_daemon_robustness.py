@@ -442,6 +442,42 @@ def test_frames_after_a_pose_clock_jump_are_kept_when_images_come_first(
         dt.stop()
 
 
+@pytest.mark.parametrize("stray_ns", [10**9, 10**18], ids=["stamp_far_back", "stamp_far_ahead"])
+def test_a_stray_pose_stamp_between_good_poses_costs_no_frame(
+    port: int, client: zenoh.Session, stray_ns: int
+) -> None:
+    """Poses 50 ms either side of each frame, and between them one stray pose (a driver's stamp
+    near 0, or a garbage one far ahead): the stray used to restart the pose buffer (or, ahead,
+    make the next good pose look like a clock jump back), and the frame between the poses around
+    it was dropped for want of a bracketing pair. Now the stray is ignored and counted."""
+    pipe = FakePipeline()
+    dt, src = start_with_source(load_config_dict(daemon_config_dict(port)), client, pipe)
+    d = dt.daemon
+    try:
+        t0 = 2000 * 10**9
+        for i in range(4):
+            t = t0 + i * 2 * 10**8
+            src.put("pose", codec.encode_pose_with_covariance(t - 5 * 10**7, pose_at(0.01 * i), COV))
+            src.put("pose", codec.encode_pose_with_covariance(stray_ns + i, pose_at(9.0), COV))
+            src.put("pose", codec.encode_pose_with_covariance(t + 5 * 10**7, pose_at(0.01 * i + 0.001), COV))
+            left = np.random.default_rng(i).integers(0, 255, (48, 64), dtype=np.uint8)
+            src.put("left_image", codec.encode_image(left, t, "left"))  # no pose at its stamp
+            src.put("right_image", codec.encode_image(np.roll(left, -3, axis=1), t, "right"))
+            time.sleep(0.05)
+        # the stream goes on (a stray ahead is found out by the second good pose after it)
+        src.put("pose", codec.encode_pose_with_covariance(t0 + 8 * 10**8, pose_at(0.04), COV))
+        settled = lambda: _passed_on(d, pipe) + sum(d.health.dropped.values()) >= 4  # noqa: E731
+        wait_for(settled, 10.0, "four frames passed on or dropped")
+        time.sleep(0.1)
+        assert _passed_on(d, pipe) == 4, d.health.snapshot().get("dropped")
+        waiting = d.status()["waiting"]
+        assert waiting["pose_clock_jumps_back"] == 0
+        assert waiting["pose_strays"] == d.health.rejected["pose: stray_stamp"] == 4
+    finally:
+        src.close()
+        dt.stop()
+
+
 def test_a_disparity_search_short_of_min_depth_is_logged_once_per_rig(
     port: int, client: zenoh.Session, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -6,6 +6,7 @@ from pugsd.daemon.timesync import (
     ExactPairer,
     PoseBuffer,
     PoseGate,
+    PoseLookup,
     PoseSample,
     interpolate_pose,
     matrix_from_quat,
@@ -72,7 +73,9 @@ def test_pose_buffer_interpolates_and_takes_latest_covariance() -> None:
     assert far.lookup(9_960).state == "fail"  # older, but within max_gap of the newest
     assert far.lookup(9_940).state == "wait"
     far.add(PoseSample(9_940, np.eye(4), None))
-    assert far.jumps_back == 1 and far.lookup(9_940).state == "ready"
+    assert far.jumps_back == 0 and far.lookup(9_940).state == "wait"  # held: a stray, or new?
+    far.add(PoseSample(9_945, np.eye(4), None))  # follows it, still far back: a new timeline
+    assert far.jumps_back == 1 and far.lookup(9_940).state == "ready" and len(far) == 2
     # before any covariance: the default
     buf2 = PoseBuffer(10, 10**9, cov_default)
     buf2.add(PoseSample(0, np.eye(4), None))
@@ -90,12 +93,14 @@ def test_pose_buffer_refuses_large_gaps_and_is_bounded() -> None:
     for t in (2000, 3000, 4000):
         buf.add(PoseSample(t, np.eye(4), None))
     assert len(buf) == 3
-    # 3500 is more than max_gap before the newest (4000): a clock jump, the buffer starts afresh
+    # 3500 is more than max_gap before the newest (4000): held; 3550 follows it, so the clock
+    # went back and the buffer starts afresh from both
     buf.add(PoseSample(3500, np.eye(4), None))
-    assert buf.jumps_back == 1 and len(buf) == 1
+    assert buf.jumps_back == 0 and len(buf) == 3
+    buf.add(PoseSample(3550, np.eye(4), None))
+    assert buf.jumps_back == 1 and len(buf) == 2 and buf.strays == 0
     assert buf.lookup(3450).state == "fail"  # older than every pose, within max_gap
     assert buf.lookup(3200).state == "wait"  # as far back as a jump: its pose may yet come
-    buf.add(PoseSample(3550, np.eye(4), None))
     assert buf.lookup(3520).state == "ready"
     # a late pose within max_gap of the newest is sorted in, not a jump
     buf.add(PoseSample(3460, np.eye(4), None))
@@ -126,12 +131,12 @@ def test_exact_pairer_counts_replaced_halves_and_what_clear_discards() -> None:
 
 def test_pose_gap_drop_reason_has_a_constant_head() -> None:
     """The head (before " (") keys the drop counter: the gap itself only goes to the log."""
-    buf = PoseBuffer(10, 5 * 10**8, np.zeros((6, 6)))
     heads = set()
-    for k, gap in enumerate((600_000_000, 607_000_000, 1_234_000_000)):
-        t0 = 10**10 * (k + 1)
-        buf.add(PoseSample(t0, np.eye(4), None))
-        buf.add(PoseSample(t0 + gap, np.eye(4), None))
+    for gap in (600_000_000, 607_000_000, 1_234_000_000):
+        buf = PoseBuffer(10, 5 * 10**8, np.zeros((6, 6)))
+        t0 = 10**10
+        for t in (t0, t0 + gap, t0 + gap + 10**8):  # after the gap, not alone: a pause, no stray
+            buf.add(PoseSample(t, np.eye(4), None))
         res = buf.lookup(t0 + gap // 2)
         assert res.state == "fail" and f"{gap / 1e9:.3f} s" in res.reason
         heads.add(res.reason.split(" (", 1)[0])
@@ -198,3 +203,75 @@ def test_pose_buffer_sorts_in_late_poses_within_the_gap() -> None:
     assert buf.jumps_back == 0 and len(buf) == 5
     r = buf.lookup(60)
     assert r.state == "ready" and r.T_W_C is not None and np.allclose(r.T_W_C[:3, 3], [60, 0, 0])
+
+
+def _x(r: PoseLookup) -> float:
+    assert r.state == "ready" and r.T_W_C is not None, r.reason
+    return float(r.T_W_C[0, 3])
+
+
+def test_a_stray_old_stamp_is_ignored_and_the_timeline_kept() -> None:
+    """One pose stamped far back (a driver's stamp 0) between good ones: it used to restart the
+    buffer, so a frame between the poses around it had no bracketing pair and was dropped."""
+    buf = PoseBuffer(capacity=16, max_gap_ns=100, default_cov=np.eye(6))
+    for t in (1000, 1050, 1100):
+        buf.add(PoseSample(t, pose(np.eye(3), (t, 0, 0)), None))
+    buf.add(PoseSample(0, pose(np.eye(3), (-1, 0, 0)), None))  # the stray: held
+    assert buf.lookup(1120).state == "wait" and len(buf) == 3 and buf.strays == 0
+    buf.add(PoseSample(1150, pose(np.eye(3), (1150, 0, 0)), None))  # the timeline goes on
+    assert buf.strays == 1 and buf.last_stray_ns == 0 and buf.jumps_back == 0 and len(buf) == 4
+    assert _x(buf.lookup(1120)) == pytest.approx(1120.0)
+    # the same stamp twice is not a new timeline: a new one needs a pose after the held one
+    buf.add(PoseSample(5, np.eye(4), None))
+    buf.add(PoseSample(5, np.eye(4), None))
+    buf.add(PoseSample(1200, pose(np.eye(3), (1200, 0, 0)), None))
+    assert buf.strays == 3 and buf.last_stray_ns == 5 and buf.jumps_back == 0 and len(buf) == 5
+
+
+def test_a_stray_future_stamp_is_dropped_when_the_timeline_goes_on_behind_it() -> None:
+    """A lone pose stamped far ahead (garbage) became the newest: the next good poses looked like
+    a clock jump back and restarted the buffer, and the frames in between were dropped."""
+    cov_good, cov_bad = np.eye(6) * 1e-4, np.eye(6) * 7.0
+    buf = PoseBuffer(capacity=16, max_gap_ns=100, default_cov=np.eye(6))
+    for t in (1000, 1050, 1100):
+        buf.add(PoseSample(t, pose(np.eye(3), (t, 0, 0)), cov_good))
+    buf.add(PoseSample(10**6, pose(np.eye(3), (-1, 0, 0)), cov_bad))  # the stray, taken for now
+    # a frame after the last good pose waits: the pose alone ahead may be a stray
+    r = buf.lookup(1120)
+    assert r.state == "wait" and "alone" in r.reason
+    assert buf.lookup(1150).state == "wait"
+    assert buf.lookup(1201).state == "fail" and "gap" in buf.lookup(1201).reason  # beyond the gap
+    buf.add(PoseSample(1150, pose(np.eye(3), (1150, 0, 0)), cov_good))  # held: far behind 10**6
+    buf.add(PoseSample(1200, pose(np.eye(3), (1200, 0, 0)), cov_good))  # follows it: the stray goes
+    assert buf.strays == 1 and buf.last_stray_ns == 10**6 and buf.jumps_back == 0
+    assert buf.newest_ns == 1200 and len(buf) == 5
+    r = buf.lookup(1120)
+    assert _x(r) == pytest.approx(1120.0) and r.cov is not None and np.allclose(r.cov, cov_good)
+    assert _x(buf.lookup(1060)) == pytest.approx(1060.0)  # the poses before it are kept
+
+
+def test_a_pause_ahead_and_a_clock_step_back_are_not_strays() -> None:
+    buf = PoseBuffer(capacity=16, max_gap_ns=100, default_cov=np.eye(6))
+    for t in (1000, 1050):
+        buf.add(PoseSample(t, pose(np.eye(3), (t, 0, 0)), None))
+    # the source paused for 950 and goes on: taken at once, and the poses after it join
+    for t in (2000, 2050):
+        buf.add(PoseSample(t, pose(np.eye(3), (t, 0, 0)), None))
+    assert len(buf) == 4 and buf.strays == 0 and _x(buf.lookup(2025)) == pytest.approx(2025.0)
+    assert buf.lookup(1500).state == "fail"  # across the pause: no interpolation
+    # the clock steps back by 600 (not near the pose before the newest): a new timeline
+    buf.add(PoseSample(1450, pose(np.eye(3), (1450, 0, 0)), None))
+    buf.add(PoseSample(1500, pose(np.eye(3), (1500, 0, 0)), None))
+    assert buf.jumps_back == 1 and buf.strays == 0 and len(buf) == 2
+    assert _x(buf.lookup(1475)) == pytest.approx(1475.0)
+
+
+def test_a_pose_per_frame_at_a_low_rate_is_taken_at_once() -> None:
+    """Poses further apart than max_gap (a localiser publishing one per frame at 1 Hz): each is
+    the newest at once, and a frame with its exact stamp gets it without waiting."""
+    buf = PoseBuffer(capacity=16, max_gap_ns=5 * 10**8, default_cov=np.eye(6))
+    for k in range(5):
+        t = 10**12 + k * 10**9
+        buf.add(PoseSample(t, pose(np.eye(3), (k, 0, 0)), None))
+        assert _x(buf.lookup(t)) == k
+    assert buf.strays == 0 and buf.jumps_back == 0 and len(buf) == 5
