@@ -343,19 +343,30 @@ def decode_camera_info(data: bytes) -> CameraInfoMsg:
         raise DecodeError(f"{CAMERA_INFO}: non-finite K or P")
     P = P.reshape(3, 4)
     src = P[:, :3] if P[0, 0] > 0 else K.reshape(3, 3)
+    # binning and region of interest as image_geometry's PinholeCameraModel reads them: K and P
+    # are those of the full-resolution camera; the images are the ROI (the whole image when its
+    # size is 0) divided by the binning (0 and 1: none); the ROI offset moves the principal point
+    bx, by = max(int(m.binning_x), 1), max(int(m.binning_y), 1)
+    roi = m.roi
+    roi_w, roi_h = int(roi.width) or int(m.width), int(roi.height) or int(m.height)
+    if int(roi.x_offset) + roi_w > int(m.width) or int(roi.y_offset) + roi_h > int(m.height):
+        raise DecodeError(
+            f"{CAMERA_INFO}: region of interest {roi_w}x{roi_h}+{roi.x_offset}+{roi.y_offset} is "
+            f"outside the {m.width}x{m.height} image"
+        )
     try:
         cam = PinholeCamera(
-            fx=float(src[0, 0]),
-            fy=float(src[1, 1]),
-            cx=float(src[0, 2]),
-            cy=float(src[1, 2]),
-            width=int(m.width),
-            height=int(m.height),
-            skew=float(src[0, 1]),
+            fx=float(src[0, 0]) / bx,
+            fy=float(src[1, 1]) / by,
+            cx=(float(src[0, 2]) - int(roi.x_offset)) / bx,
+            cy=(float(src[1, 2]) - int(roi.y_offset)) / by,
+            width=roi_w // bx,
+            height=roi_h // by,
+            skew=float(src[0, 1]) / bx,
         )
     except PugsdError as exc:
         raise DecodeError(f"{CAMERA_INFO}: {exc}") from None
-    baseline = -float(P[0, 3]) / cam.fx if P[0, 0] > 0 else 0.0
+    baseline = -float(P[0, 3]) / float(P[0, 0]) if P[0, 0] > 0 else 0.0  # Tx / fx: binning-free
     return CameraInfoMsg(
         _stamp_ns(m.header, CAMERA_INFO),
         str(m.header.frame_id),

@@ -158,6 +158,59 @@ def test_camera_info_round_trip_baseline_and_golden() -> None:
     assert (g.width, g.height, g.distortion_model) == (640, 480, "plumb_bob")
 
 
+def _info_with(data: bytes, binning: tuple[int, int], roi: tuple[int, int, int, int]) -> bytes:
+    """``data`` (a CameraInfo) with binning (x, y) and ROI (x_offset, y_offset, width, height)."""
+    import dataclasses
+
+    m = codec.deserialize(data, CAMERA_INFO)
+    r = dataclasses.replace(m.roi, x_offset=roi[0], y_offset=roi[1], width=roi[2], height=roi[3])
+    m = dataclasses.replace(m, binning_x=binning[0], binning_y=binning[1], roi=r)
+    return codec.serialize(m, CAMERA_INFO)
+
+
+def _project(cam: PinholeCamera, X_C: np.ndarray) -> np.ndarray:
+    return (cam.K @ X_C)[:2] / X_C[2]
+
+
+@pytest.mark.parametrize(
+    "binning, roi",
+    [
+        ((2, 2), (0, 0, 0, 0)),
+        ((4, 2), (0, 0, 0, 0)),
+        ((1, 1), (100, 40, 320, 240)),
+        ((2, 2), (64, 48, 512, 384)),
+    ],
+)
+def test_camera_info_binning_and_roi_as_image_geometry(
+    binning: tuple[int, int], roi: tuple[int, int, int, int]
+) -> None:
+    """K and P describe the full-resolution camera; a binned or cropped image's pixel of a point
+    is the full-resolution pixel minus the ROI offset, divided by the binning (image_geometry's
+    PinholeCameraModel). The baseline does not change. Before: the full-resolution intrinsics and
+    size, so every binned image was refused for its size (or an ROI crop mis-projected)."""
+    cam = PinholeCamera(fx=500.0, fy=501.0, cx=319.5, cy=239.5, width=640, height=480, skew=0.5)
+    left_b, right_b = codec.encode_stereo_infos(StereoRig(cam, 0.12), STAMP)
+    left = codec.decode_camera_info(_info_with(left_b, binning, roi))
+    right = codec.decode_camera_info(_info_with(right_b, binning, roi))
+    (bx, by), (x0, y0, w, h) = binning, roi
+    assert (left.camera.width, left.camera.height) == ((w or 640) // bx, (h or 480) // by)
+    rig = codec.stereo_rig_from_infos(left, right)
+    assert rig.baseline_m == pytest.approx(0.12)
+    for X_C in (np.array([0.1, -0.05, 1.0]), np.array([-0.3, 0.2, 2.5])):
+        uv_full = _project(cam, X_C)
+        expected = (uv_full - [x0, y0]) / [bx, by]
+        np.testing.assert_allclose(_project(rig.left, X_C), expected, rtol=0, atol=1e-9)
+
+
+def test_camera_info_roi_outside_the_image_is_refused() -> None:
+    cam = PinholeCamera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
+    data = _info_with(codec.encode_camera_info(cam, 1), (1, 1), (400, 0, 320, 240))
+    with pytest.raises(DecodeError, match="region of interest 320x240"):
+        codec.decode_camera_info(data)
+    with pytest.raises(DecodeError, match="image size"):  # binned to nothing
+        codec.decode_camera_info(_info_with(codec.encode_camera_info(cam, 1), (1024, 1), (0, 0, 0, 0)))
+
+
 def test_stereo_rig_rejects_unrectified() -> None:
     a = PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480)
     b = PinholeCamera(510.0, 500.0, 320.0, 240.0, 640, 480)
