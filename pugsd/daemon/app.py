@@ -69,9 +69,9 @@ log = logging.getLogger(__name__)
 
 R = TypeVar("R")
 
-STEREO_ENCODINGS = ("mono8", "rgb8", "bgr8")
+STEREO_ENCODINGS = codec.STEREO_ENCODINGS
 DEPTH_ENCODINGS = ("32FC1", "16UC1")
-MASK_ENCODINGS = ("mono8",)
+MASK_ENCODINGS = codec.MASK_ENCODINGS
 
 
 class Pipeline(Protocol):

@@ -98,7 +98,7 @@ class _FrameAssembler:
             return []
         try:
             if role in ("left_image", "right_image"):
-                img = codec.decode_image(data, ("mono8", "rgb8", "bgr8"))
+                img = codec.decode_image(data, codec.STEREO_ENCODINGS)
                 (self.left if role == "left_image" else self.right)[img.stamp_ns] = img
                 if img.stamp_ns in self.left and img.stamp_ns in self.right:
                     self.rigs[img.stamp_ns] = self._rig()
@@ -109,7 +109,7 @@ class _FrameAssembler:
                 p = codec.decode_pose(data, typename or POSE_COV_STAMPED, self.pose_cov)
                 self.poses.add(PoseSample(p.stamp_ns, p.T, carried_cov(p.cov)))
             elif role == "mask":
-                mk = codec.decode_image(data, ("mono8",))
+                mk = codec.decode_image(data, codec.MASK_ENCODINGS)
                 self.masks[mk.stamp_ns] = mk.array > 0
                 self._note_image(mk.stamp_ns)
         except DecodeError as exc:

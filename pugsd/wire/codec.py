@@ -40,11 +40,18 @@ from pugsd.wire.types import (
 #: encoding -> (numpy dtype, channels)
 IMAGE_ENCODINGS: dict[str, tuple[np.dtype[Any], int]] = {
     "mono8": (np.dtype(np.uint8), 1),
+    "8UC1": (np.dtype(np.uint8), 1),  # cv_bridge's name for the same bytes
     "rgb8": (np.dtype(np.uint8), 3),
     "bgr8": (np.dtype(np.uint8), 3),
+    "rgba8": (np.dtype(np.uint8), 4),
+    "bgra8": (np.dtype(np.uint8), 4),  # e.g. ZED cameras' rectified images
     "32FC1": (np.dtype(np.float32), 1),
     "16UC1": (np.dtype(np.uint16), 1),
 }
+
+#: the encodings a stereo image may have (``ImageMsg.rgb_or_mono`` gives mono or RGB), and a mask
+STEREO_ENCODINGS = ("mono8", "8UC1", "rgb8", "bgr8", "rgba8", "bgra8")
+MASK_ENCODINGS = ("mono8", "8UC1")
 
 _CDR_LE = b"\x00\x01\x00\x00"
 _CDR_BE = b"\x00\x00\x00\x00"
@@ -199,9 +206,14 @@ class ImageMsg:
     array: np.ndarray
 
     def rgb_or_mono(self) -> np.ndarray:
-        """mono8 as (H, W), rgb8/bgr8 as RGB (H, W, 3); depth encodings unchanged."""
+        """mono8/8UC1 as (H, W); rgb8, bgr8, rgba8, bgra8 as RGB (H, W, 3), alpha dropped;
+        depth encodings unchanged."""
         if self.encoding == "bgr8":
             return np.ascontiguousarray(self.array[:, :, ::-1])
+        if self.encoding == "rgba8":
+            return np.ascontiguousarray(self.array[:, :, :3])
+        if self.encoding == "bgra8":
+            return np.ascontiguousarray(self.array[:, :, 2::-1])
         return self.array
 
     def depth_m(self) -> np.ndarray:
@@ -236,7 +248,7 @@ def encode_image(
     dtype, ch = IMAGE_ENCODINGS[encoding]
     want_ndim = 2 if ch == 1 else 3
     if a.ndim != want_ndim or (ch > 1 and a.shape[2] != ch):
-        raise ValueError(f"{encoding} needs shape (H, W{', 3' if ch > 1 else ''}), got {a.shape}")
+        raise ValueError(f"{encoding} needs shape (H, W{f', {ch}' if ch > 1 else ''}), got {a.shape}")
     a = np.ascontiguousarray(a, dtype=dtype.newbyteorder("<"))
     h, w = a.shape[:2]
     msg = msg_class(IMAGE)(

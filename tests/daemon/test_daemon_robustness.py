@@ -478,6 +478,40 @@ def test_a_stray_pose_stamp_between_good_poses_costs_no_frame(
         dt.stop()
 
 
+def test_bgra8_and_8uc1_stereo_images_reach_the_pipeline_as_rgb_and_mono(
+    port: int, client: zenoh.Session
+) -> None:
+    """A ZED-style camera publishes bgra8, cv_bridge's mono images may say 8UC1: both used to be
+    refused (wrong_encoding); the pipeline gets RGB (alpha dropped) and mono."""
+    lefts: list[np.ndarray] = []
+
+    class Recording(FakePipeline):
+        def depth_from_stereo(self, frame: StereoFrame) -> DepthFrame:
+            lefts.append(frame.left.copy())
+            return super().depth_from_stereo(frame)
+
+    pipe = Recording()
+    dt, src = start_with_source(load_config_dict(daemon_config_dict(port)), client, pipe)
+    d = dt.daemon
+    try:
+        rng = np.random.default_rng(5)
+        rgb = rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)
+        bgra = np.concatenate([rgb[..., ::-1], np.full((48, 64, 1), 255, np.uint8)], axis=2)
+        mono = rng.integers(0, 255, (48, 64), dtype=np.uint8)
+        for i, (img, enc) in enumerate([(bgra, "bgra8"), (mono, "8UC1")]):
+            t = 3000 * 10**9 + i * 10**8
+            src.put("pose", codec.encode_pose_with_covariance(t, pose_at(0.01 * i), COV))
+            src.put("left_image", codec.encode_image(img, t, "left", enc))
+            src.put("right_image", codec.encode_image(np.roll(img, -3, axis=1), t, "right", enc))
+        wait_for(lambda: len(lefts) == 2, 10.0, "both frames at the pipeline")
+        np.testing.assert_array_equal(lefts[0], rgb)
+        np.testing.assert_array_equal(lefts[1], mono)
+        assert not d.health.rejected
+    finally:
+        src.close()
+        dt.stop()
+
+
 def test_a_disparity_search_short_of_min_depth_is_logged_once_per_rig(
     port: int, client: zenoh.Session, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -96,6 +96,9 @@ def _grasps(n: int = 4) -> ScoredGrasps:
         ("bgr8", np.arange(5 * 6 * 3, dtype=np.uint8).reshape(5, 6, 3)[::-1].copy()),
         ("32FC1", np.linspace(0.1, 2.0, 20, dtype=np.float32).reshape(4, 5)),
         ("16UC1", np.arange(20, dtype=np.uint16).reshape(4, 5) * 300),
+        ("8UC1", np.arange(12 * 7, dtype=np.uint8).reshape(7, 12)),
+        ("rgba8", np.arange(5 * 6 * 4, dtype=np.uint8).reshape(5, 6, 4)),
+        ("bgra8", np.arange(5 * 6 * 4, dtype=np.uint8).reshape(5, 6, 4)[::-1].copy()),
     ],
 )
 def test_image_round_trip_and_golden(encoding: str, arr: np.ndarray) -> None:
@@ -112,7 +115,7 @@ def test_image_round_trip_and_golden(encoding: str, arr: np.ndarray) -> None:
         encoding,
         0,
     )
-    assert g.step == arr.shape[1] * arr.itemsize * (3 if arr.ndim == 3 else 1)
+    assert g.step == arr.shape[1] * arr.itemsize * (arr.shape[2] if arr.ndim == 3 else 1)
     assert bytes(g.data) == np.ascontiguousarray(arr).astype(arr.dtype.newbyteorder("<")).tobytes()
     assert g.header.stamp.sec * 10**9 + g.header.stamp.nanosec == STAMP
     assert g.header.frame_id == "left"
@@ -126,6 +129,18 @@ def test_image_bgr_to_rgb_and_depth() -> None:
     mm = np.array([[0, 1500]], dtype=np.uint16)
     d = codec.decode_image(codec.encode_image(mm, 1)).depth_m()
     assert np.isnan(d[0, 0]) and d[0, 1] == pytest.approx(1.5)
+
+
+@pytest.mark.parametrize("encoding", ["rgb8", "bgr8", "rgba8", "bgra8"])
+def test_colour_images_come_out_rgb_with_alpha_dropped(encoding: str) -> None:
+    rgb = np.random.default_rng(3).integers(0, 256, (4, 5, 3), dtype=np.uint8)
+    alpha = np.full((4, 5, 1), 77, dtype=np.uint8)
+    arr = {"rgb8": rgb, "bgr8": rgb[..., ::-1], "rgba8": np.concatenate([rgb, alpha], axis=2),
+           "bgra8": np.concatenate([rgb[..., ::-1], alpha], axis=2)}[encoding]  # fmt: skip
+    img = codec.decode_image(codec.encode_image(arr, 1, encoding=encoding), codec.STEREO_ENCODINGS)
+    out = img.rgb_or_mono()
+    assert out.shape == (4, 5, 3) and out.flags.c_contiguous
+    np.testing.assert_array_equal(out, rgb)
 
 
 def test_image_with_row_padding_and_big_endian() -> None:
