@@ -38,3 +38,37 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray | None = None) -
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     return make_T(np.stack([x, y, z], axis=1), np.asarray(eye, float))
+
+
+def quat_xyzw_to_R(q_xyzw: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a unit quaternion in ROS order (x, y, z, w)."""
+    x, y, z, w = np.asarray(q_xyzw, dtype=np.float64)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def compose_pose_cov(
+    T_W_B: np.ndarray, cov_B: np.ndarray | None, T_B_C: np.ndarray
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The pose of a frame C rigidly mounted on a body B: ``T_W_C = T_W_B T_B_C``, and its 6x6
+    covariance from the body's, both in ROS's ``(dt, phi)`` convention (pugsd.core.types: the
+    origin's error and a small rotation ``R = exp(phi^) R_bar`` about the world axes).
+
+    A rotation error ``phi`` of the body turns C's origin, at ``a = R_W_B t_B_C`` from the body's,
+    with it: ``dt_C = dt_B + phi x a = dt_B - [a]_x phi``, while ``phi_C = phi_B`` (a left,
+    world-frame perturbation passes through the right factor ``T_B_C`` unchanged). So
+    ``cov_C = J cov_B J^T`` with ``J = [[I, -[a]_x], [0, I]]``, exact to first order in ``phi``;
+    the mount itself is taken as exactly known. ``cov_B`` None stays None."""
+    T_W_C = np.asarray(T_W_B, dtype=np.float64) @ np.asarray(T_B_C, dtype=np.float64)
+    if cov_B is None:
+        return T_W_C, None
+    a = T_W_B[:3, :3] @ T_B_C[:3, 3]
+    J = np.eye(6)
+    J[:3, 3:] = -skew(a)
+    cov_C = J @ np.asarray(cov_B, dtype=np.float64) @ J.T
+    return T_W_C, 0.5 * (cov_C + cov_C.T)

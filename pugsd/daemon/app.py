@@ -42,6 +42,7 @@ import zenoh
 
 from pugsd.config import config_warnings
 from pugsd.core.camera import StereoRig
+from pugsd.core.geometry import compose_pose_cov
 from pugsd.core.stereo import reach_m as stereo_reach_m
 from pugsd.core.types import DepthFrame, ScoredGrasps, StereoFrame
 from pugsd.daemon.health import Health
@@ -246,6 +247,7 @@ class Daemon:
         self._last_train_s = 0.0  # time.monotonic() of the last training step
         default_cov = default_pose_cov(d.pose_std_translation_m, d.pose_std_rotation_rad)
         self._pose_stamped_cov = default_cov
+        self._T_B_C = d.T_B_C  # the camera's mount on the body whose pose comes in (None: none)
         self.poses = PoseBuffer(q.poses, int(d.pose_max_gap_s * 1e9), default_cov)
         self.gate: PoseGate[tuple[str, Any, float]] = PoseGate(self.poses, d.pose_wait_s, q.pose_wait)
         self.pairer: ExactPairer[codec.ImageMsg, codec.ImageMsg] = ExactPairer(q.unpaired)
@@ -899,9 +901,11 @@ class Daemon:
             if typename not in POSE_TYPES.values():
                 raise InputRejected("wrong_type", f"pose: type {typename[:100]!r} not accepted")
             pm = codec.decode_pose(data, typename, self._pose_stamped_cov)
-            cov = carried_cov(pm.cov)
+            T_W_C, cov = pm.T, carried_cov(pm.cov)
+            if self._T_B_C is not None:  # the pose of the body carrying the camera
+                T_W_C, cov = compose_pose_cov(T_W_C, cov, self._T_B_C)
             jumps, strays = self.poses.jumps_back, self.poses.strays
-            self.poses.add(PoseSample(pm.stamp_ns, pm.T, cov))
+            self.poses.add(PoseSample(pm.stamp_ns, T_W_C, cov))
             n = self.poses.jumps_back
             if n != jumps and _log_nth(n):  # a source flapping between clocks would log each
                 log.warning(

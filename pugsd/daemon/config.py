@@ -3,9 +3,13 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 
+import numpy as np
+
 from pugsd.configbase import opt
+from pugsd.core.geometry import make_T, quat_xyzw_to_R
 from pugsd.errors import ConfigError
 from pugsd.wire.topics import graph_token_problems
 
@@ -115,6 +119,19 @@ class DaemonConfig:
         unit="rad",
         ge=0.0,
     )
+    T_B_C_xyz_m: tuple[float, ...] = opt(
+        (0.0, 0.0, 0.0),
+        "camera origin in the frame of the pose input (a body carrying the camera, e.g. an "
+        "Odometry's child_frame_id): the pose of the left camera's optical frame (x right, y down, "
+        "z forward) is pose * T_B_C, its covariance propagated to first order; identity: the "
+        "input is the camera pose",
+        unit="m",
+    )
+    T_B_C_quat_xyzw: tuple[float, ...] = opt(
+        (0.0, 0.0, 0.0, 1.0),
+        "camera rotation in the frame of the pose input, a unit quaternion in ROS order x y z w "
+        "(as tf2's static transforms)",
+    )
     markers_top_k: int = opt(10, "grasps drawn in the MarkerArray", ge=0)
     publish_cloud: bool = opt(True, "publish the fused cloud with sigma2_occ and PUGS confidence")
     cloud_interval_s: float = opt(
@@ -151,6 +168,25 @@ class DaemonConfig:
     def __post_init__(self) -> None:
         _check_key("prefix", self.prefix)
         _check_key("node_name", self.node_name)
+        xyz, q = self.T_B_C_xyz_m, self.T_B_C_quat_xyzw
+        if len(xyz) != 3 or not all(math.isfinite(v) for v in xyz):
+            raise ConfigError(f"T_B_C_xyz_m: expected 3 finite values, got {list(xyz)}")
+        if len(q) != 4 or not all(math.isfinite(v) for v in q):
+            raise ConfigError(f"T_B_C_quat_xyzw: expected 4 finite values, got {list(q)}")
+        norm = math.sqrt(sum(v * v for v in q))
+        if abs(norm - 1.0) > 1e-3:  # a typo, not rounding: refused rather than normalised
+            raise ConfigError(
+                f"T_B_C_quat_xyzw: {list(q)} is not a unit quaternion (norm {norm:.6g}); "
+                "the order is x y z w"
+            )
+
+    @property
+    def T_B_C(self) -> np.ndarray | None:
+        """The camera's mount in the pose input's frame (4x4), None when it is the identity."""
+        if tuple(self.T_B_C_xyz_m) == (0.0, 0.0, 0.0) and tuple(self.T_B_C_quat_xyzw) == (0.0, 0.0, 0.0, 1.0):
+            return None
+        q = np.asarray(self.T_B_C_quat_xyzw, dtype=np.float64)
+        return make_T(quat_xyzw_to_R(q / np.linalg.norm(q)), np.asarray(self.T_B_C_xyz_m, dtype=np.float64))
 
 
 _NOT_TOPICS = ("key_style", "hash_mode", "pose_type", "ros_graph_tokens")
@@ -177,11 +213,15 @@ class TopicsConfig:
     right_image: str = opt("/stereo/right/image_raw", "right rectified image (sensor_msgs/Image)")
     left_info: str = opt("/stereo/left/camera_info", "left CameraInfo")
     right_info: str = opt("/stereo/right/camera_info", "right CameraInfo")
-    pose: str = opt("/camera_pose", "camera pose (PoseWithCovarianceStamped or PoseStamped)")
+    pose: str = opt(
+        "/camera_pose",
+        "camera pose (PoseWithCovarianceStamped, PoseStamped or Odometry), or the pose of the "
+        "body carrying the camera with [daemon] T_B_C_xyz_m / T_B_C_quat_xyzw",
+    )
     pose_type: str = opt(
         "PoseWithCovarianceStamped",
         "pose message type when the key does not say (ros2dds keys)",
-        choices=("PoseWithCovarianceStamped", "PoseStamped"),
+        choices=("PoseWithCovarianceStamped", "PoseStamped", "Odometry"),
     )
     mask: str = opt("/stereo/left/mask", "optional object mask aligned with the left image")
     depth: str = opt("/depth/image", "depth image input (32FC1 m or 16UC1 mm) instead of stereo")

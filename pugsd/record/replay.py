@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from pugsd.core.camera import StereoRig
+from pugsd.core.geometry import compose_pose_cov
 from pugsd.core.types import ScoredGrasps, StereoFrame
 from pugsd.daemon.config import DaemonConfig, TopicsConfig
 from pugsd.daemon.timesync import PoseBuffer, PoseLookup, PoseSample, carried_cov, default_pose_cov
@@ -64,8 +65,10 @@ class _FrameAssembler:
         stats: AssembleStats,
         max_pending: int,
         pose_capacity: int = POSE_CAPACITY,
+        T_B_C: np.ndarray | None = None,
     ) -> None:
         self.t = topics
+        self.T_B_C = T_B_C  # the camera's mount on the body whose pose was recorded (None: none)
         self.pose_cov = pose_cov  # PoseStamped input, and before any pose carried a covariance
         self.st = stats
         self.max_pending = max_pending
@@ -107,7 +110,10 @@ class _FrameAssembler:
                 self.info["l" if role == "left_info" else "r"] = codec.decode_camera_info(data)
             elif role == "pose":
                 p = codec.decode_pose(data, typename or POSE_COV_STAMPED, self.pose_cov)
-                self.poses.add(PoseSample(p.stamp_ns, p.T, carried_cov(p.cov)))
+                T_W_C, cov = p.T, carried_cov(p.cov)
+                if self.T_B_C is not None:  # as the daemon does
+                    T_W_C, cov = compose_pose_cov(T_W_C, cov, self.T_B_C)
+                self.poses.add(PoseSample(p.stamp_ns, T_W_C, cov))
             elif role == "mask":
                 mk = codec.decode_image(data, codec.MASK_ENCODINGS)
                 self.masks[mk.stamp_ns] = mk.array > 0
@@ -196,7 +202,8 @@ def iter_frames(
     ``daemon`` (``[daemon]``, default: its defaults) gives ``max_pose_gap_ns``
     (``pose_max_gap_s``) and ``pose_cov`` (``pose_std_translation_m`` / ``pose_std_rotation_rad``:
     the covariance of ``PoseStamped`` input and of frames before any pose carried one) unless
-    these are given explicitly."""
+    these are given explicitly, and the camera's mount ``T_B_C`` on the body whose pose was
+    recorded (``T_B_C_xyz_m`` / ``T_B_C_quat_xyzw``)."""
     d = daemon if daemon is not None else DaemonConfig()
     if pose_cov is None:
         pose_cov = default_pose_cov(d.pose_std_translation_m, d.pose_std_rotation_rad)
@@ -204,7 +211,7 @@ def iter_frames(
         max_pose_gap_ns = int(d.pose_max_gap_s * 1e9)
     st = stats if stats is not None else AssembleStats()
     asm = _FrameAssembler(topics or TopicsConfig(), np.asarray(pose_cov, dtype=np.float64), max_pose_gap_ns,
-                          st, max_pending, pose_capacity)  # fmt: skip
+                          st, max_pending, pose_capacity, d.T_B_C)  # fmt: skip
     for m in iter_recording(paths):
         yield from asm.feed(m.topic, m.typename, m.data)
     yield from asm.finish()

@@ -25,6 +25,7 @@ from pugsd.wire.types import (
     GRASP_ARRAY,
     IMAGE,
     MARKER_ARRAY,
+    ODOMETRY,
     POINT_CLOUD2,
     POINT_FIELD,
     POSE_COV_STAMPED,
@@ -485,12 +486,46 @@ def decode_pose_stamped(data: bytes, cov: np.ndarray | None = None) -> PoseMsg:
     return PoseMsg(_stamp_ns(m.header, POSE_STAMPED), str(m.header.frame_id), T, C)
 
 
+def encode_odometry(
+    stamp_ns: int, T: np.ndarray, cov: np.ndarray, frame_id: str = "world", child_frame_id: str = "base_link"
+) -> bytes:
+    """nav_msgs/Odometry with the pose and its covariance (``T``: child -> frame_id); zero twist."""
+    C = np.asarray(cov, dtype=np.float64)
+    if C.shape != (6, 6):
+        raise ValueError(f"covariance must be 6x6, got {C.shape}")
+    PwC = msg_class("geometry_msgs/msg/PoseWithCovariance")
+    TwC = msg_class("geometry_msgs/msg/TwistWithCovariance")
+    Twist, Vector3 = msg_class("geometry_msgs/msg/Twist"), msg_class("geometry_msgs/msg/Vector3")
+    zero = Vector3(x=0.0, y=0.0, z=0.0)
+    msg = msg_class(ODOMETRY)(
+        header=_header(stamp_ns, frame_id),
+        child_frame_id=child_frame_id,
+        pose=PwC(pose=_pose_msg(T), covariance=C.reshape(-1).copy()),
+        twist=TwC(twist=Twist(linear=zero, angular=zero), covariance=np.zeros(36)),
+    )
+    return serialize(msg, ODOMETRY)
+
+
+def decode_odometry(data: bytes) -> PoseMsg:
+    """The pose (child -> header.frame_id) and pose covariance of a nav_msgs/Odometry; the twist
+    is not used."""
+    m = deserialize(data, ODOMETRY)
+    T = _pose_matrix(m.pose.pose, ODOMETRY)
+    C = np.asarray(m.pose.covariance, dtype=np.float64)
+    if C.size != 36:
+        raise DecodeError(f"{ODOMETRY}: covariance has {C.size} values, expected 36")
+    C = _check_cov(C.reshape(6, 6), ODOMETRY)
+    return PoseMsg(_stamp_ns(m.header, ODOMETRY), str(m.header.frame_id), T, C)
+
+
 def decode_pose(data: bytes, typename: str, cov: np.ndarray | None = None) -> PoseMsg:
-    """Either pose type by name (``typename`` from the key / recording)."""
+    """Any pose type by name (``typename`` from the key / recording)."""
     if typename == POSE_COV_STAMPED:
         return decode_pose_with_covariance(data)
     if typename == POSE_STAMPED:
         return decode_pose_stamped(data, cov)
+    if typename == ODOMETRY:
+        return decode_odometry(data)
     raise DecodeError(f"unsupported pose type {typename!r}")
 
 

@@ -25,6 +25,7 @@ from pugsd.wire.types import (
     GRASP_ARRAY,
     IMAGE,
     MARKER_ARRAY,
+    ODOMETRY,
     POINT_CLOUD2,
     POSE_COV_STAMPED,
     POSE_STAMPED,
@@ -32,7 +33,7 @@ from pugsd.wire.types import (
     type_hash,
 )
 
-#: TopicsConfig field -> default message type (``pose`` also accepts PoseStamped)
+#: TopicsConfig field -> default message type (``pose`` also accepts PoseStamped and Odometry)
 ROLE_TYPES: dict[str, str] = {
     "left_image": IMAGE,
     "right_image": IMAGE,
@@ -76,7 +77,11 @@ def subscribe_key_for(topics: Any, role: str) -> str:
 
 
 #: ``[topics] pose_type`` -> the ROS type the daemon decodes the pose input as
-POSE_TYPES = {"PoseWithCovarianceStamped": POSE_COV_STAMPED, "PoseStamped": POSE_STAMPED}
+POSE_TYPES = {
+    "PoseWithCovarianceStamped": POSE_COV_STAMPED,
+    "PoseStamped": POSE_STAMPED,
+    "Odometry": ODOMETRY,
+}
 
 
 def role_type(topics: Any, role: str) -> str:
@@ -163,7 +168,7 @@ def ros_graph_tokens(
 ) -> RosGraphTokens:
     """The graph tokens of a node ``/<node_name>`` in session ``zid`` (``str(session.zid())``)
     publishing ``outputs`` and subscribing ``inputs``. Namespace and enclave are ROS's default
-    ``/``; the pose input is announced with ``[topics] pose_type`` (pugsd takes either type). The
+    ``/``; the pose input is announced with ``[topics] pose_type`` (pugsd takes any of them). The
     QoS fields are all written (:data:`PUBLISHER_QOS`: ``1:2:1,10:9223372036,854775807:...``)."""
     problems = graph_token_problems(topics, node_name)
     if problems:

@@ -112,6 +112,48 @@ def test_pose_stamped_uses_the_configured_covariance(
     assert np.allclose(np.diag(f.pose_cov)[:3], 1e-4) and np.allclose(np.diag(f.pose_cov)[3:], 0.0)
 
 
+def test_odometry_of_the_body_with_the_camera_mount(port: int, client: zenoh.Session) -> None:
+    """nav_msgs/Odometry of the vehicle and [daemon] T_B_C_*: the frame gets T_W_B T_B_C and the
+    covariance carried through the mount (a yaw error swings the camera, 0.5 m ahead, sideways)."""
+    from pugsd.wire.publisher import Publisher
+    from pugsd.wire.topics import key_for
+    from pugsd.wire.types import ODOMETRY
+
+    q_BC = [0.0, 0.0, np.sin(np.pi / 4), np.cos(np.pi / 4)]  # camera yawed 90 deg on the body
+    cfg = load_config_dict(daemon_config_dict(port, T_B_C_xyz_m=[0.5, 0.0, 0.0], T_B_C_quat_xyzw=q_BC))
+    pipe = FakePipeline()
+    notifier = RecordingNotifier()
+    dt = DaemonThread(Daemon(cfg, pipe, notifier=notifier)).start()
+    src = Source(client)
+    odom = Publisher(client, key_for(cfg.topics, "pose", ODOMETRY))
+    try:
+        wait_for(lambda: "READY=1" in notifier.sent, 10.0, "READY")
+        src.wait_matching()
+        wait_for(lambda: odom.matching, 10.0, "pose subscriber")
+        src.infos()
+        time.sleep(0.2)
+        T_W_B = pose(np.pi / 2, 1.0)  # body at x = 1, yawed 90 deg: the camera is at (1, 0.5, 0)
+        s2 = 4e-4
+        cov_B = np.diag([1e-6, 1e-6, 1e-6, 0.0, 0.0, s2])
+        odom.put(codec.encode_odometry(2 * 10**9, T_W_B, cov_B, "odom", "base_link"))
+        img = np.random.default_rng(0).integers(0, 255, (48, 64), dtype=np.uint8)
+        src.put("left_image", codec.encode_image(img, 2 * 10**9, "left"))
+        src.put("right_image", codec.encode_image(img, 2 * 10**9, "right"))
+        wait_for(lambda: len(pipe.frames) == 1, 10.0, "the frame")
+    finally:
+        odom.undeclare()
+        src.close()
+        dt.stop()
+    f = pipe.frames[0]
+    np.testing.assert_allclose(f.T_W_C[:3, 3], [1.0, 0.5, 0.0], atol=1e-12)
+    np.testing.assert_allclose(f.T_W_C[:3, :3], rot_z(np.pi), atol=1e-12)
+    # the lever arm a = (0, 0.5, 0): phi_z moves the camera by phi x a = (-0.5 phi, 0, 0)
+    expected = cov_B.copy()
+    expected[0, 0] += 0.25 * s2
+    expected[0, 5] = expected[5, 0] = -0.5 * s2
+    np.testing.assert_allclose(f.pose_cov, expected, rtol=0, atol=1e-15)
+
+
 def test_ros2dds_key_style(port: int, client: zenoh.Session) -> None:
     """zenoh-bridge-ros2dds keys (topic name only, no type or hash) work end to end."""
     from pugsd.daemon.config import TopicsConfig

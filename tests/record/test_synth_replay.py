@@ -324,3 +324,32 @@ def test_replay_prints_pugs_confidences_that_can_be_read() -> None:
     )
     lines = list(iter_top(g))
     assert "pugs=9.9e-07" in lines[0] and "pugs=5e-07" in lines[1], lines
+
+
+def test_replay_composes_a_recorded_body_odometry_with_the_camera_mount(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """As the daemon: Odometry of the body and [daemon] T_B_C_* give T_W_B T_B_C and the
+    covariance carried through the mount (camera 0.5 m ahead: a yaw error moves it sideways)."""
+    from pugsd.config import load_config_dict
+    from pugsd.wire.types import ODOMETRY
+
+    cfg = load_config_dict({"daemon": {"T_B_C_xyz_m": [0.5, 0.0, 0.0]}})
+    s2 = 9e-4
+    cov_B = np.diag([1e-6, 1e-6, 1e-6, 0.0, 0.0, s2])
+    stamps = [1_000_000_000 + i * 100_000_000 for i in range(3)]
+    p = tmp_path / "odom.mcap"
+    poses = []
+    for i, s in enumerate(stamps):
+        T = np.eye(4)
+        T[0, 3] = 0.1 * i
+        poses.append((s, codec.encode_odometry(s, T, cov_B), ODOMETRY))
+    _write_pose_recording(p, cfg.topics, poses, stamps)
+    monkeypatch.setattr("pugsd.models.make_pipeline", _Capture)
+    assert replay([p], cfg).frames == 3
+    want = cov_B.copy()
+    want[1, 1] += 0.25 * s2
+    want[1, 5] = want[5, 1] = 0.5 * s2
+    for i, f in enumerate(_Capture.last):
+        np.testing.assert_allclose(f.T_W_C[:3, 3], [0.1 * i + 0.5, 0.0, 0.0], atol=1e-12)
+        np.testing.assert_allclose(f.pose_cov, want, rtol=0, atol=1e-15)

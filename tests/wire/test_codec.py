@@ -240,6 +240,31 @@ def test_stereo_rig_rejects_unrectified() -> None:
 # --------------------------------------------------------------------------- poses
 
 
+def test_odometry_pose_round_trip_and_golden() -> None:
+    from pugsd.wire.types import ODOMETRY
+
+    T = np.eye(4)
+    T[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
+    T[:3, 3] = [1.0, -2.0, 3.5]
+    rng = np.random.default_rng(2)
+    A = rng.normal(size=(6, 6)) * 0.01
+    cov = A @ A.T
+    data = codec.encode_odometry(STAMP, T, cov, "odom", "base_link")
+    p = codec.decode_pose(data, ODOMETRY)
+    assert p.stamp_ns == STAMP and p.frame_id == "odom"
+    np.testing.assert_allclose(p.T, T, atol=1e-12)
+    assert p.cov is not None
+    np.testing.assert_allclose(p.cov, cov, rtol=0, atol=1e-15)
+    g = golden(ODOMETRY, data)
+    assert g.child_frame_id == "base_link" and g.header.frame_id == "odom"
+    assert (g.pose.pose.position.x, g.pose.pose.position.y, g.pose.pose.position.z) == (1.0, -2.0, 3.5)
+    np.testing.assert_allclose(np.asarray(g.pose.covariance).reshape(6, 6), cov, rtol=0, atol=1e-15)
+    bad = cov.copy()
+    bad[0, 0] = -1.0
+    with pytest.raises(DecodeError, match="Odometry: covariance is not positive semi-definite"):
+        codec.decode_pose(codec.encode_odometry(STAMP, T, bad), ODOMETRY)
+
+
 def test_pose_with_covariance_round_trip_and_golden() -> None:
     T = _T()
     A = np.random.default_rng(0).normal(size=(6, 6))
