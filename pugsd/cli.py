@@ -18,6 +18,7 @@ _COMMAND_MODULES = (
     "pugsd.sim.cli",
     "pugsd.record.cli",
     "pugsd.daemon.cli",
+    "pugsd.daemon.client",
     "pugsd.bench.cli",
 )
 

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from pugsd.daemon.client import query_daemon
 from pugsd.errors import ArmError, PortInUseError
 
 log = logging.getLogger(__name__)
@@ -277,37 +278,6 @@ def _arm_stop(args: argparse.Namespace) -> int:
             return 0
     _out(f"daemon: {_stop_via_daemon(full, args.timeout)}")
     return 0
-
-
-def query_daemon(full_cfg: Any, suffix: str, timeout: float = 2.0) -> tuple[bytes | None, list[str]]:
-    """One query on the daemon's ``<prefix>/<suffix>``: the first ok reply's payload (None if
-    none came within ``timeout``) and the text of the error replies."""
-    from pugsd.wire.session import close_session, open_session, tool_config
-
-    key = f"{full_cfg.daemon.prefix}/{suffix}"
-    # a peer that connects to the daemon's listen endpoints (multicast scouting and gossip off),
-    # under the same loopback policy as the daemon itself
-    session = open_session(
-        tool_config(full_cfg.zenoh), require_loopback=not full_cfg.daemon.allow_non_loopback
-    )
-    try:
-        t_end = time.monotonic() + timeout
-        while time.monotonic() < t_end:  # let the connection to the daemon come up first
-            with contextlib.suppress(Exception):
-                if list(session.info.peers_zid()) or list(session.info.routers_zid()):
-                    break
-            time.sleep(0.01)
-        errors: list[str] = []
-        for reply in session.get(key, timeout=max(0.1, t_end - time.monotonic())):
-            if reply.ok is not None:
-                return reply.ok.payload.to_bytes(), errors
-            err = reply.err
-            if err is not None:
-                with contextlib.suppress(Exception):
-                    errors.append(err.payload.to_string())
-        return None, errors
-    finally:
-        close_session(session)
 
 
 def fetch_latest_grasps(full_cfg: Any, timeout: float = 2.0) -> Any:

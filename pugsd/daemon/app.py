@@ -1581,9 +1581,12 @@ class Daemon:
         except Exception as exc:  # stats are best effort
             pstats = {"error": str(exc)}
         snap = self.health.snapshot()
+        problems = self.health.problems()
         return {
             "node": self.cfg.daemon.node_name,
             "stamp_ns": time.time_ns(),
+            "healthy": not problems,  # the watchdog's verdict: WATCHDOG=1 pings go out while true
+            "problems": problems,
             "ready": self.ready,
             "was_ready": self.was_ready,
             "model_version": self.model_version,

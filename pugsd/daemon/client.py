@@ -1,0 +1,166 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Clients of a running daemon: ``pugsd status``, ``pugsd grasps``, ``pugsd reset``.
+
+Each opens a zenoh peer that connects to the daemon's listen endpoints (the config's ``[zenoh]``,
+multicast scouting and gossip off, under the daemon's own loopback policy), asks one query on
+``<prefix>/...`` and prints the answer.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import sys
+import time
+from typing import Any
+
+from pugsd.config import load_config
+
+
+def query_daemon(full_cfg: Any, suffix: str, timeout: float = 2.0) -> tuple[bytes | None, list[str]]:
+    """One query on the daemon's ``<prefix>/<suffix>``: the first ok reply's payload (None if
+    none came within ``timeout``) and the text of the error replies."""
+    from pugsd.wire.session import close_session, open_session, tool_config
+
+    key = f"{full_cfg.daemon.prefix}/{suffix}"
+    # a peer that connects to the daemon's listen endpoints (multicast scouting and gossip off),
+    # under the same loopback policy as the daemon itself
+    session = open_session(
+        tool_config(full_cfg.zenoh), require_loopback=not full_cfg.daemon.allow_non_loopback
+    )
+    try:
+        t_end = time.monotonic() + timeout
+        while time.monotonic() < t_end:  # let the connection to the daemon come up first
+            with contextlib.suppress(Exception):
+                if list(session.info.peers_zid()) or list(session.info.routers_zid()):
+                    break
+            time.sleep(0.01)
+        errors: list[str] = []
+        for reply in session.get(key, timeout=max(0.1, t_end - time.monotonic())):
+            if reply.ok is not None:
+                return reply.ok.payload.to_bytes(), errors
+            err = reply.err
+            if err is not None:
+                with contextlib.suppress(Exception):
+                    errors.append(err.payload.to_string())
+        return None, errors
+    finally:
+        close_session(session)
+
+
+def _ask(args: argparse.Namespace, suffix: str) -> tuple[Any, bytes | None]:
+    """The config and the reply's payload; a missing reply is printed (with the daemon's error
+    replies) and gives None."""
+    cfg = load_config(args.config, args.set or ())
+    data, errors = query_daemon(cfg, suffix, args.timeout)
+    if data is None:
+        key = f"{cfg.daemon.prefix}/{suffix}"
+        detail = "; ".join(errors) or "no reply (is the daemon running, on these zenoh endpoints?)"
+        sys.stderr.write(f"pugsd: {key}: {detail}\n")
+    return cfg, data
+
+
+def status_lines(st: dict[str, Any]) -> list[str]:
+    """A daemon status (the JSON of ``<prefix>/status``) in a few lines for an operator."""
+    c = st.get("counts", {})
+    frames = c.get("frames.stereo", 0) + c.get("frames.depth", 0)
+    verdict = "healthy" if st.get("healthy", True) else "UNHEALTHY: " + "; ".join(st.get("problems", []))
+    lines = [
+        f"{st.get('node', '?')}: {verdict}; up {st.get('uptime_s', 0):.0f} s; "
+        f"ready {st.get('ready')}; model version {st.get('model_version')}",
+        f"frames {frames}, integrated {c.get('integrated', 0)}, grasps published "
+        f"{st.get('grasps_published', 0)}, rejected {c.get('rejected', 0)}, dropped {c.get('dropped', 0)}",
+    ]
+    inputs = st.get("inputs", {})
+    ages = ", ".join(f"{k} {v:.1f} s" for k, v in inputs.get("age_s", {}).items()) or "none yet"
+    lines.append(f"inputs (time since last): {ages}")
+    if inputs.get("stale"):
+        lines.append(f"stale inputs: {' '.join(inputs['stale'])}")
+    for title, key in (("rejected", "rejected"), ("dropped", "dropped")):
+        for reason, n in sorted(st.get(key, {}).items(), key=lambda kv: -kv[1])[:10]:
+            lines.append(f"  {title} {n:>8}  {reason}")
+    lat = st.get("latency", {})
+    if lat:
+        parts = [f"{k} {v['p50_ms']:.0f}/{v['p95_ms']:.0f}" for k, v in lat.items() if "p50_ms" in v]
+        lines.append("latency p50/p95 ms: " + ", ".join(parts))
+    return lines
+
+
+def _status(args: argparse.Namespace) -> int:
+    _, data = _ask(args, "status")
+    if data is None:
+        return 1
+    st = json.loads(data)
+    if args.json:
+        sys.stdout.write(json.dumps(st, indent=2) + "\n")
+    else:
+        sys.stdout.write("\n".join(status_lines(st)) + "\n")
+    return 0 if st.get("healthy", True) else 3
+
+
+def _grasps(args: argparse.Namespace) -> int:
+    from pugsd.wire.codec import decode_grasp_array
+
+    _, data = _ask(args, "grasps/latest")
+    if data is None:
+        return 1
+    g = decode_grasp_array(data)
+    n = min(len(g), args.top) if args.top > 0 else len(g)
+    if args.json:
+        rows = [
+            {
+                "rank": i,
+                "id": int(g.grasp_id[i]),
+                "wrist_xyz_m": [round(float(v), 6) for v in g.pose_W[i][:3, 3]],
+                "approach": [round(float(v), 6) for v in g.pose_W[i][:3, 2]],
+                "width_m": float(g.width_m[i]),
+                "baseline_confidence": float(g.baseline_confidence[i]),
+                "sigma2_occ": float(g.sigma2_occ[i]),
+                "pugs_confidence": float(g.pugs_confidence[i]),
+            }
+            for i in range(n)
+        ]
+        sys.stdout.write(json.dumps({"stamp_ns": int(g.stamp_ns), "grasps": rows}, indent=2) + "\n")
+        return 0
+    sys.stdout.write(f"{len(g)} grasps, stamp {int(g.stamp_ns)} ns, best first (PUGS confidence)\n")
+    sys.stdout.write(f"{'rank':>4} {'id':>6}  {'wrist x, y, z [m]':>26}  {'width':>6}  "
+                     f"{'baseline':>8}  {'sigma2_occ':>10}  {'PUGS':>10}\n")  # fmt: skip
+    for i in range(n):
+        x, y, z = g.pose_W[i][:3, 3]
+        sys.stdout.write(
+            f"{i:>4} {int(g.grasp_id[i]):>6}  {x:>8.3f} {y:>8.3f} {z:>8.3f}  {g.width_m[i]:>6.3f}  "
+            f"{g.baseline_confidence[i]:>8.3f}  {g.sigma2_occ[i]:>10.3g}  {g.pugs_confidence[i]:>10.3g}\n"
+        )
+    return 0
+
+
+def _reset(args: argparse.Namespace) -> int:
+    _, data = _ask(args, "reset")
+    if data is None:
+        return 1
+    sys.stdout.write(f"reset: {data.decode('utf-8', 'replace')}\n")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    def common(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--config", default=None, help="the daemon's TOML config ([zenoh], [daemon] prefix)")
+        p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key")
+        p.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the reply (default 3)")
+
+    p = sub.add_parser(
+        "status",
+        help="ask a running daemon for its status (exit 0 healthy, 1 no reply, 3 unhealthy)",
+    )
+    common(p)
+    p.add_argument("--json", action="store_true", help="print the status JSON as the daemon sent it")
+    p.set_defaults(func=_status)
+    p = sub.add_parser("grasps", help="ask a running daemon for its latest grasps (best first)")
+    common(p)
+    p.add_argument("--top", type=int, default=10, help="grasps to print (0: all; default 10)")
+    p.add_argument("--json", action="store_true", help="print them as JSON")
+    p.set_defaults(func=_grasps)
+    p = sub.add_parser("reset", help="ask a running daemon to clear its map and model")
+    common(p)
+    p.set_defaults(func=_reset)
