@@ -32,7 +32,7 @@ import re
 import sys
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
@@ -317,6 +317,9 @@ class Daemon:
         self._last_frame_s: float | None = None  # monotonic time of the last integrated frame
         self._newest_recv_s: float | None = None  # receive time of the newest integrated frame
         self._last_recv_s: dict[str, float] = {}  # monotonic receive time per input stream
+        # a frame's stamp minus the newest pose stamp when it arrived (s), the latest 200: shows a
+        # clock offset between camera and pose source (frames then drop waiting for a pose)
+        self._stamp_skew_s: deque[float] = deque(maxlen=200)
         self._stale_reported: set[str] = set()  # streams logged as stale and not yet resumed
         self._short_search_rig: tuple[float, float, int] | None = None  # rig warned of, see _stereo_rig
         # the outputs' stamp: written and read under _model_lock (with the map it labels)
@@ -968,6 +971,9 @@ class Daemon:
             raise InputRejected("wrong_type", msg)
 
     def _admit(self, stamp_ns: int, entry: tuple[str, Any, float], now_s: float) -> None:
+        newest = self.poses.newest_ns
+        if newest is not None:
+            self._stamp_skew_s.append((stamp_ns - newest) / 1e9)
         for _, reason in self.gate.add(stamp_ns, entry, now_s):
             self._drop("pose_wait", reason)
         self._poll_gate()
@@ -1552,6 +1558,21 @@ class Daemon:
             return stamp_ns
         return newest
 
+    def _skew_summary(self) -> dict[str, float | int]:
+        """The latest frames' stamp minus the newest pose stamp when each arrived, in seconds:
+        near zero or a pose period below it with synchronised clocks; a constant far from zero
+        is an offset between the camera's clock and the pose source's (or a pose source lagging
+        by that much), which ``pose_max_gap_s`` and ``pose_wait_s`` cannot bridge."""
+        if not self._stamp_skew_s:
+            return {"n": 0}
+        a = np.fromiter(self._stamp_skew_s, dtype=np.float64)
+        return {
+            "n": int(a.size),
+            "p50": round(float(np.median(a)), 4),
+            "min": round(float(a.min()), 4),
+            "max": round(float(a.max()), 4),
+        }
+
     def input_ages_s(self, now: float | None = None) -> dict[str, float]:
         """Seconds since each input stream (left/right image, depth, pose) last sent."""
         t = time.monotonic() if now is None else now
@@ -1598,7 +1619,11 @@ class Daemon:
             "query_ingress": {"pending": self.query_ingress.pending, "dropped": self.query_ingress.dropped},
             "deletes_ignored": self.deletes_ignored,
             "bridge_errors": dict(self.bridge_errors),
-            "inputs": {"age_s": self.input_ages_s(), "stale": self.stale_inputs()},
+            "inputs": {
+                "age_s": self.input_ages_s(),
+                "stale": self.stale_inputs(),
+                "frame_minus_newest_pose_s": self._skew_summary(),
+            },
             "upstream": self.upstream.snapshot(),
             "waiting": {
                 "pose_gate": len(self.gate),

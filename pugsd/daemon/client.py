@@ -77,6 +77,12 @@ def status_lines(st: dict[str, Any]) -> list[str]:
     lines.append(f"inputs (time since last): {ages}")
     if inputs.get("stale"):
         lines.append(f"stale inputs: {' '.join(inputs['stale'])}")
+    skew = inputs.get("frame_minus_newest_pose_s", {})
+    if skew.get("n"):
+        lines.append(
+            f"frame stamp - newest pose stamp: median {skew['p50']:+.3f} s (min {skew['min']:+.3f}, "
+            f"max {skew['max']:+.3f}, last {skew['n']} frames)"
+        )
     for title, key in (("rejected", "rejected"), ("dropped", "dropped")):
         for reason, n in sorted(st.get(key, {}).items(), key=lambda kv: -kv[1])[:10]:
             lines.append(f"  {title} {n:>8}  {reason}")
