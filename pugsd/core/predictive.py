@@ -23,6 +23,7 @@ import collections
 import copy
 import logging
 import math
+import weakref
 from dataclasses import dataclass
 from typing import Any
 
@@ -48,6 +49,40 @@ def resolve_num_inducing(num_inducing: int, device_type: str) -> int:
     if num_inducing > 0:
         return num_inducing
     return NUM_INDUCING_AUTO_CUDA if device_type == "cuda" else NUM_INDUCING_AUTO_CPU
+
+
+def _cycle_links(modules: tuple[torch.nn.Module | None, ...], keep: tuple[torch.nn.Module, ...]) -> list[Any]:
+    kept = {id(m) for k in keep for m in k.modules()}
+    return [m for top in modules if top is not None for m in top.modules() if id(m) not in kept]
+
+
+def release_modules(*modules: torch.nn.Module | None, keep: tuple[torch.nn.Module, ...] = ()) -> None:
+    """Break the reference cycles of gpytorch modules that are being dropped, so that they (and
+    their tensors) are freed as soon as the last reference goes, not when Python's cyclic
+    collector next runs a full collection. Every gpytorch ``Module`` registers its own bound
+    method as a ``load_state_dict`` pre-hook (module -> hook -> module), and a variational
+    strategy holds its model (model -> strategy -> model), so every dropped model, likelihood,
+    ELBO and prediction snapshot (with its memoised factorisations: ~1 MB at M = 250) was garbage
+    that only a full (generation-2) collection frees, and in the daemon (~380 000 tracked objects)
+    that came once an hour: under map resets and the grasp thread's snapshots ~150 MB of it piled
+    up, and glibc kept the heap's peak after it was freed (RSS +300 MB in 55 minutes, 2026-11-24
+    soak). Only for modules that are dropped: a released variational strategy has no model any
+    more. Submodules in ``keep`` (and theirs) are left alone: a likelihood that outlives its ELBO."""
+    for m in _cycle_links(modules, keep):
+        m._load_state_dict_pre_hooks.clear()
+        if isinstance(m.__dict__.get("model"), torch.nn.Module):  # gpytorch's strategy -> model
+            del m.__dict__["model"]
+
+
+def _acyclic(model: torch.nn.Module, likelihood: torch.nn.Module) -> None:
+    """Make a prediction-only copy free of reference cycles while it is in use (see
+    ``release_modules``): its ``load_state_dict`` hooks go (it was loaded once and never is
+    again) and its variational strategy refers to the model weakly (the model owns the strategy)."""
+    for m in _cycle_links((model, likelihood), ()):
+        m._load_state_dict_pre_hooks.clear()
+        owner = m.__dict__.get("model")
+        if isinstance(owner, torch.nn.Module):
+            object.__setattr__(m, "model", weakref.proxy(owner))
 
 
 def farthest_point_sample(
@@ -161,6 +196,7 @@ class OccupancySVGP:
             model.variational_strategy.variational_params_initialized.fill_(1)
         lik = gpytorch.likelihoods.GaussianLikelihood()
         lik.noise = self.cfg.noise_init
+        self._release_model()
         self.model = model.to(device=self.device, dtype=self.dtype)
         self.likelihood = lik.to(device=self.device, dtype=self.dtype)
         self._mll = gpytorch.mlls.VariationalELBO(self.likelihood, self.model, num_data=len(x))
@@ -229,9 +265,19 @@ class OccupancySVGP:
     def initialised(self) -> bool:
         return self.model is not None
 
-    def reset(self) -> None:
+    def _release_model(self) -> None:
+        """Drop the model, likelihood, ELBO and optimizers (``release_modules``: freed now, not by
+        a later full collection)."""
+        release_modules(self.model, self.likelihood, self._mll)
         self.model = None
         self.likelihood = None
+        self._mll = None
+        self._ngd = None
+        self._adam = None
+        self._good_state = None
+
+    def reset(self) -> None:
+        self._release_model()
         self.total_steps = 0
         self._elbos.clear()
         self.version += 1
@@ -400,6 +446,7 @@ class OccupancySVGP:
             model = model.to(device=self.device, dtype=self.dtype)
             model.covar_module.load_state_dict(self.model.covar_module.state_dict())
             model.variational_strategy.variational_params_initialized.fill_(1)
+        release_modules(self.model, self._mll, keep=(self.likelihood,))
         self.model = model
         self._write_whitened_q(m_w, S_w)
         self._mll = gpytorch.mlls.VariationalELBO(self.likelihood, self.model, num_data=len(x))
@@ -551,6 +598,7 @@ class OccupancySVGP:
             tmp = torch.linalg.solve_triangular(L_new, cov, upper=False)
             S_new = torch.linalg.solve_triangular(L_new, tmp.mT, upper=False).mT
             S_new = 0.5 * (S_new + S_new.mT) + 1e-10 * eye_new
+        release_modules(kern)  # a float64 copy for this call only
         return m_new, S_new
 
     def _write_whitened_q(
@@ -652,6 +700,7 @@ class OccupancySVGP:
         model.load_state_dict(self.model.state_dict())
         lik = gpytorch.likelihoods.GaussianLikelihood().to(device=self.device, dtype=self.dtype)
         lik.load_state_dict(self.likelihood.state_dict())
+        _acyclic(model, lik)  # freed when the grasp thread drops it (one a second), not by a full gc
         return SvgpSnapshot(model, lik, self.cfg, self._t)
 
 
