@@ -444,28 +444,34 @@ def _check_cov(C: np.ndarray, typename: str) -> np.ndarray:
     return 0.5 * C + 0.5 * C.T
 
 
-def encode_pose_with_covariance(
-    stamp_ns: int, T: np.ndarray, cov: np.ndarray, frame_id: str = "world"
-) -> bytes:
+def _pose_with_cov_msg(T: np.ndarray, cov: np.ndarray) -> Any:
+    """A geometry_msgs/PoseWithCovariance (the body of PoseWithCovarianceStamped and Odometry)."""
     C = np.asarray(cov, dtype=np.float64)
     if C.shape != (6, 6):
         raise ValueError(f"covariance must be 6x6, got {C.shape}")
     PwC = msg_class("geometry_msgs/msg/PoseWithCovariance")
-    msg = msg_class(POSE_COV_STAMPED)(
-        header=_header(stamp_ns, frame_id),
-        pose=PwC(pose=_pose_msg(T), covariance=C.reshape(-1).copy()),
-    )
+    return PwC(pose=_pose_msg(T), covariance=C.reshape(-1).copy())
+
+
+def _pose_msg_with_cov(m: Any, typename: str) -> PoseMsg:
+    """The PoseMsg of a decoded message with ``header`` and a PoseWithCovariance ``pose``."""
+    T = _pose_matrix(m.pose.pose, typename)
+    C = np.asarray(m.pose.covariance, dtype=np.float64)
+    if C.size != 36:
+        raise DecodeError(f"{typename}: covariance has {C.size} values, expected 36")
+    C = _check_cov(C.reshape(6, 6), typename)
+    return PoseMsg(_stamp_ns(m.header, typename), str(m.header.frame_id), T, C)
+
+
+def encode_pose_with_covariance(
+    stamp_ns: int, T: np.ndarray, cov: np.ndarray, frame_id: str = "world"
+) -> bytes:
+    msg = msg_class(POSE_COV_STAMPED)(header=_header(stamp_ns, frame_id), pose=_pose_with_cov_msg(T, cov))
     return serialize(msg, POSE_COV_STAMPED)
 
 
 def decode_pose_with_covariance(data: bytes) -> PoseMsg:
-    m = deserialize(data, POSE_COV_STAMPED)
-    T = _pose_matrix(m.pose.pose, POSE_COV_STAMPED)
-    C = np.asarray(m.pose.covariance, dtype=np.float64)
-    if C.size != 36:
-        raise DecodeError(f"{POSE_COV_STAMPED}: covariance has {C.size} values, expected 36")
-    C = _check_cov(C.reshape(6, 6), POSE_COV_STAMPED)
-    return PoseMsg(_stamp_ns(m.header, POSE_COV_STAMPED), str(m.header.frame_id), T, C)
+    return _pose_msg_with_cov(deserialize(data, POSE_COV_STAMPED), POSE_COV_STAMPED)
 
 
 def encode_pose_stamped(stamp_ns: int, T: np.ndarray, frame_id: str = "world") -> bytes:
@@ -490,17 +496,13 @@ def encode_odometry(
     stamp_ns: int, T: np.ndarray, cov: np.ndarray, frame_id: str = "world", child_frame_id: str = "base_link"
 ) -> bytes:
     """nav_msgs/Odometry with the pose and its covariance (``T``: child -> frame_id); zero twist."""
-    C = np.asarray(cov, dtype=np.float64)
-    if C.shape != (6, 6):
-        raise ValueError(f"covariance must be 6x6, got {C.shape}")
-    PwC = msg_class("geometry_msgs/msg/PoseWithCovariance")
     TwC = msg_class("geometry_msgs/msg/TwistWithCovariance")
     Twist, Vector3 = msg_class("geometry_msgs/msg/Twist"), msg_class("geometry_msgs/msg/Vector3")
     zero = Vector3(x=0.0, y=0.0, z=0.0)
     msg = msg_class(ODOMETRY)(
         header=_header(stamp_ns, frame_id),
         child_frame_id=child_frame_id,
-        pose=PwC(pose=_pose_msg(T), covariance=C.reshape(-1).copy()),
+        pose=_pose_with_cov_msg(T, cov),
         twist=TwC(twist=Twist(linear=zero, angular=zero), covariance=np.zeros(36)),
     )
     return serialize(msg, ODOMETRY)
@@ -509,13 +511,7 @@ def encode_odometry(
 def decode_odometry(data: bytes) -> PoseMsg:
     """The pose (child -> header.frame_id) and pose covariance of a nav_msgs/Odometry; the twist
     is not used."""
-    m = deserialize(data, ODOMETRY)
-    T = _pose_matrix(m.pose.pose, ODOMETRY)
-    C = np.asarray(m.pose.covariance, dtype=np.float64)
-    if C.size != 36:
-        raise DecodeError(f"{ODOMETRY}: covariance has {C.size} values, expected 36")
-    C = _check_cov(C.reshape(6, 6), ODOMETRY)
-    return PoseMsg(_stamp_ns(m.header, ODOMETRY), str(m.header.frame_id), T, C)
+    return _pose_msg_with_cov(deserialize(data, ODOMETRY), ODOMETRY)
 
 
 def decode_pose(data: bytes, typename: str, cov: np.ndarray | None = None) -> PoseMsg:

@@ -31,6 +31,13 @@ def pose(a: float, x: float) -> np.ndarray:
     return T
 
 
+def _images_at(src: Source, stamp_ns: int) -> None:
+    """A stereo pair (random texture, zero disparity) stamped ``stamp_ns``, without a pose."""
+    img = np.random.default_rng(0).integers(0, 255, (48, 64), dtype=np.uint8)
+    src.put("left_image", codec.encode_image(img, stamp_ns, "left"))
+    src.put("right_image", codec.encode_image(img, stamp_ns, "right"))
+
+
 @pytest.fixture
 def daemon(port: int) -> Iterator[tuple[DaemonThread, FakePipeline]]:
     cfg = load_config_dict(daemon_config_dict(port, pose_std_translation_m=0.01, side_image_wait_s=0.3))
@@ -101,9 +108,7 @@ def test_pose_stamped_uses_the_configured_covariance(
         src.infos()
         time.sleep(0.2)
         src.put("pose_stamped", codec.encode_pose_stamped(2 * 10**9, pose(0.0, 0.5)))
-        img = np.random.default_rng(0).integers(0, 255, (48, 64), dtype=np.uint8)
-        src.put("left_image", codec.encode_image(img, 2 * 10**9, "left"))
-        src.put("right_image", codec.encode_image(img, 2 * 10**9, "right"))
+        _images_at(src, 2 * 10**9)
         wait_for(lambda: len(pipe.frames) == 1, 10.0, "the frame")
     finally:
         src.close()
@@ -136,9 +141,7 @@ def test_odometry_of_the_body_with_the_camera_mount(port: int, client: zenoh.Ses
         s2 = 4e-4
         cov_B = np.diag([1e-6, 1e-6, 1e-6, 0.0, 0.0, s2])
         odom.put(codec.encode_odometry(2 * 10**9, T_W_B, cov_B, "odom", "base_link"))
-        img = np.random.default_rng(0).integers(0, 255, (48, 64), dtype=np.uint8)
-        src.put("left_image", codec.encode_image(img, 2 * 10**9, "left"))
-        src.put("right_image", codec.encode_image(img, 2 * 10**9, "right"))
+        _images_at(src, 2 * 10**9)
         wait_for(lambda: len(pipe.frames) == 1, 10.0, "the frame")
     finally:
         odom.undeclare()
