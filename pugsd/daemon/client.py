@@ -49,16 +49,16 @@ def query_daemon(full_cfg: Any, suffix: str, timeout: float = 2.0) -> tuple[byte
         close_session(session)
 
 
-def _ask(args: argparse.Namespace, suffix: str) -> tuple[Any, bytes | None]:
-    """The config and the reply's payload; a missing reply is printed (with the daemon's error
-    replies) and gives None."""
+def _ask(args: argparse.Namespace, suffix: str) -> bytes | None:
+    """The reply's payload; a missing reply is printed (with the daemon's error replies) and
+    gives None."""
     cfg = load_config(args.config, args.set or ())
     data, errors = query_daemon(cfg, suffix, args.timeout)
     if data is None:
         key = f"{cfg.daemon.prefix}/{suffix}"
         detail = "; ".join(errors) or "no reply (is the daemon running, on these zenoh endpoints?)"
         sys.stderr.write(f"pugsd: {key}: {detail}\n")
-    return cfg, data
+    return data
 
 
 def status_lines(st: dict[str, Any]) -> list[str]:
@@ -94,7 +94,7 @@ def status_lines(st: dict[str, Any]) -> list[str]:
 
 
 def _status(args: argparse.Namespace) -> int:
-    _, data = _ask(args, "status")
+    data = _ask(args, "status")
     if data is None:
         return 1
     st = json.loads(data)
@@ -106,27 +106,16 @@ def _status(args: argparse.Namespace) -> int:
 
 
 def _grasps(args: argparse.Namespace) -> int:
+    from pugsd.record.replay import grasps_to_json
     from pugsd.wire.codec import decode_grasp_array
 
-    _, data = _ask(args, "grasps/latest")
+    data = _ask(args, "grasps/latest")
     if data is None:
         return 1
     g = decode_grasp_array(data)
     n = min(len(g), args.top) if args.top > 0 else len(g)
-    if args.json:
-        rows = [
-            {
-                "rank": i,
-                "id": int(g.grasp_id[i]),
-                "wrist_xyz_m": [round(float(v), 6) for v in g.pose_W[i][:3, 3]],
-                "approach": [round(float(v), 6) for v in g.pose_W[i][:3, 2]],
-                "width_m": float(g.width_m[i]),
-                "baseline_confidence": float(g.baseline_confidence[i]),
-                "sigma2_occ": float(g.sigma2_occ[i]),
-                "pugs_confidence": float(g.pugs_confidence[i]),
-            }
-            for i in range(n)
-        ]
+    if args.json:  # the form `pugsd replay` writes
+        rows = grasps_to_json(g)[:n]
         sys.stdout.write(json.dumps({"stamp_ns": int(g.stamp_ns), "grasps": rows}, indent=2) + "\n")
         return 0
     sys.stdout.write(f"{len(g)} grasps, stamp {int(g.stamp_ns)} ns, best first (PUGS confidence)\n")
@@ -142,7 +131,7 @@ def _grasps(args: argparse.Namespace) -> int:
 
 
 def _reset(args: argparse.Namespace) -> int:
-    _, data = _ask(args, "reset")
+    data = _ask(args, "reset")
     if data is None:
         return 1
     sys.stdout.write(f"reset: {data.decode('utf-8', 'replace')}\n")

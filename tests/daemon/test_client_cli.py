@@ -55,7 +55,7 @@ def test_status_grasps_and_reset_from_the_command_line(
         got = json.loads(out)
         assert rc == 0 and [g["id"] for g in got["grasps"]] == [int(i) for i in want.grasp_id]
         assert got["grasps"][0]["pugs_confidence"] == pytest.approx(float(want.pugs_confidence[0]))
-        np.testing.assert_allclose(got["grasps"][1]["wrist_xyz_m"], want.pose_W[1][:3, 3], atol=1e-6)
+        np.testing.assert_allclose(got["grasps"][1]["pose_W"], want.pose_W[1], atol=1e-12)
         rc, out, _ = _run(capsys, "grasps", *conf, "--top", "2")
         rows = out.strip().splitlines()
         assert rc == 0 and rows[0].startswith(f"{len(want)} grasps") and len(rows) == 2 + 2
