@@ -118,7 +118,9 @@ def _bpl_decode(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------- arm sim
 
 
-async def _sim_main(cfg: Any, transport: str, duration: float | None, port: int | None) -> None:
+async def _sim_main(
+    cfg: Any, transport: str, duration: float | None, port: int | None, object_mm: float | None = None
+) -> None:
     from pugsd.arm.sim import close_pty, make_pty_pair, sim_from_config
     from pugsd.arm.transport import CanTransport, FdStreamTransport, UdpTransport, can_mapping
 
@@ -146,8 +148,10 @@ async def _sim_main(cfg: Any, transport: str, duration: float | None, port: int 
         )
         where = f"can {c.interface}:{c.channel}"
     sim = sim_from_config(cfg, tr)
+    sim.jaw_block_mm = object_mm
     await sim.start()
-    _out(f"simulated Bravo 7 listening on {where}")
+    held = "" if object_mm is None else f"; an object stops the jaw at {object_mm} mm"
+    _out(f"simulated Bravo 7 listening on {where}{held}")
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -167,7 +171,13 @@ async def _sim_main(cfg: Any, transport: str, duration: float | None, port: int 
 
 def _arm_sim(args: argparse.Namespace) -> int:
     cfg = _load(args).arm
-    _run(_sim_main(cfg, args.transport or cfg.transport, args.duration, args.port))
+    if args.object_mm is not None:
+        lo, hi = sorted((cfg.motion.jaw_closed_mm, cfg.motion.jaw_open_mm))
+        if not lo <= args.object_mm <= hi:
+            raise ArmError(f"--object-mm {args.object_mm} is outside the jaw's range [{lo}, {hi}] mm")
+        if cfg.motion.jaw_open_mm < cfg.motion.jaw_closed_mm:
+            raise ArmError("--object-mm needs a jaw numbered open > closed (the simulator's jaw is)")
+    _run(_sim_main(cfg, args.transport or cfg.transport, args.duration, args.port, args.object_mm))
     return 0
 
 
@@ -347,13 +357,26 @@ def _arm_execute(args: argparse.Namespace) -> int:
         )
         for ph in rep["phases"]:
             _out(f"  {ph['name']:<9} {ph['duration_s']:.2f} s  converged={ph['converged']}")
+        if rep["grip"]:
+            at = f" (the close stopped it at {rep['grip_mm']:.2f} mm)" if rep["grip_mm"] is not None else ""
+            _out(f"  jaw: {_GRIP_TEXT.get(rep['grip'], rep['grip'])}{at}")
         if rep["grasp_pose_error_mm"] is not None:
             _out(
                 f"  grasp pose error {rep['grasp_pose_error_mm']:.2f} mm / "
                 f"{rep['grasp_pose_error_deg']:.2f} deg (convergence tolerance allows "
                 f"{rep['grasp_pose_error_bound_mm']:.2f} mm / {rep['grasp_pose_error_bound_deg']:.2f} deg)"
             )
-    return 0 if rep["ok"] else 2
+    if not rep["ok"]:
+        return 2
+    return 3 if rep["holding"] is False else 0
+
+
+_GRIP_TEXT = {
+    "held": "holding the object",
+    "empty": "holds nothing: it closed fully (missed, or the object slipped out in the close)",
+    "dropped": "holds nothing: it gripped, then closed fully during the lift (object lost)",
+    "unknown": "no jaw position reported: whether it holds the object is unknown",
+}
 
 
 # ---------------------------------------------------------------- registration
@@ -373,6 +396,13 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     )
     p.add_argument("--port", type=int, default=None, help="UDP port (default arm.sim.udp_port)")
     p.add_argument("--duration", type=float, default=None, help="exit after this many seconds")
+    p.add_argument(
+        "--object-mm",
+        type=float,
+        default=None,
+        help="an object between the fingers stops the closing jaw at this position (mm); "
+        "default: nothing to grip",
+    )
     p.set_defaults(func=_arm_sim)
 
     p = arm_sub.add_parser("status", help="joint positions, modes, flags and link health")

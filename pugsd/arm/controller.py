@@ -455,6 +455,13 @@ class ExecutionReport:
     q_pregrasp: list[float] = field(default_factory=list)
     q_grasp: list[float] = field(default_factory=list)
     q_lift: list[float] = field(default_factory=list)
+    # what the jaw holds (``ok`` says only that the motion ran to its end): True when the close
+    # phase stopped the jaw short of closed (an object between the fingers) and it still stood
+    # short of closed after the lift; False when it closed fully at the close ("empty") or during
+    # the lift ("dropped"); None when the close phase did not finish or the jaw reports nothing
+    holding: bool | None = None
+    grip: str = ""  # "held", "empty", "dropped", "unknown", or "" (the close phase did not finish)
+    grip_mm: float | None = None  # the jaw position where the close phase ended (mm)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -1025,6 +1032,20 @@ class ArmController:
     def _measured_q(self) -> np.ndarray:
         return self.model.from_device(self.link.raw_positions())
 
+    def _grip_outcome(self, close_mm: float | None, lift_mm: float | None) -> tuple[str, bool | None]:
+        """What the jaw holds after a grasp, from where the close and the lift phases left it:
+        an object between the fingers stops the jaw more than ``jaw_tol_mm`` short of closed (the
+        close phase accepts that stall as a grip), and a jaw that reaches closed holds nothing.
+        The jaw is commanded closed all through the lift, so an object lost there lets it close."""
+        if close_mm is None or lift_mm is None:
+            return "unknown", None
+        tol = self.cfg.motion.jaw_tol_mm
+        if self._jaw_openness(close_mm) <= tol:
+            return "empty", False
+        if self._jaw_openness(lift_mm) <= tol:
+            return "dropped", False
+        return "held", True
+
     def _jaw_openness(self, jaw_mm: float) -> float:
         """How far ``jaw_mm`` is from closed, towards open (mm; either numbering direction)."""
         mo = self.cfg.motion
@@ -1241,19 +1262,23 @@ class ArmController:
                     jaw_check="close",
                 )
                 rep.phases.append(closed)
+                rep.grip_mm = closed.jaw_mm
                 rep.state = "lift"
-                rep.phases.append(
-                    await self._follow(
-                        "lift",
-                        plan.lift,
-                        plan.jaw_closed_mm,
-                        plan.jaw_closed_mm,
-                        jaw_check="hold",
-                        jaw_grip_mm=closed.jaw_mm,
-                    )
+                lifted = await self._follow(
+                    "lift",
+                    plan.lift,
+                    plan.jaw_closed_mm,
+                    plan.jaw_closed_mm,
+                    jaw_check="hold",
+                    jaw_grip_mm=closed.jaw_mm,
                 )
+                rep.phases.append(lifted)
                 rep.state = "done"
                 rep.ok = True
+                rep.grip, rep.holding = self._grip_outcome(closed.jaw_mm, lifted.jaw_mm)
+                if rep.holding is False:
+                    log.warning("grasp %d: the motion ran to its end, but the jaw holds nothing (%s)",
+                                grasp_id, rep.grip)
             except Exception as exc:  # ANY failure once motion may have started stops the arm
                 if isinstance(exc, PugsdError):
                     rep.reason = str(exc)

@@ -138,6 +138,8 @@ def sim_process() -> Iterator[int]:
         "arm.sim.joint_speed_rad_s=4.0",
         "--set",
         "arm.sim.jaw_speed_mm_s=300.0",
+        "--object-mm",  # something to grip: an empty grasp exits 3
+        "6",
     ]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=os.getcwd())
     try:
@@ -204,6 +206,7 @@ def test_cli_sim_status_execute_stop(
     rc, out = _cli(capsys, "arm", "execute", "--json", "--pose", *pose, "--width", "0.03", *link, *fast)
     rep = json.loads(out)
     assert rc == 0 and rep["ok"], rep
+    assert (rep["grip"], rep["holding"]) == ("held", True) and rep["grip_mm"] == pytest.approx(6.0, abs=0.05)
     assert_pose_within_convergence(rep)
     # --grasp-id, with the daemon query replaced by a stub returning ScoredGrasps
     T2 = _pose_near_start([0.1, 0.15, -0.1, 0.1, 0.1, 0.1])
@@ -221,7 +224,7 @@ def test_cli_sim_status_execute_stop(
 
     monkeypatch.setattr(arm_cli, "fetch_latest_grasps", fake_fetch)
     rc, out = _cli(capsys, "arm", "execute", "--grasp-id", "9", *link, *fast)
-    assert rc == 0 and "grasp 9: OK" in out
+    assert rc == 0 and "grasp 9: OK" in out and "jaw: holding the object" in out
     assert main(["arm", "execute", "--grasp-id", "5", *link, *fast]) == 1  # not in the list
     # stop: safe mode on every device
     rc, out = _cli(capsys, "arm", "stop", *link)

@@ -313,6 +313,68 @@ def test_hold_packets_send_standby_first_to_disabled_or_passive_axes() -> None:
     assert all(p.data == bytes([int(Mode.STANDBY)]) for p in pk if p.packet_id == PacketID.MODE)
 
 
+# ---------------------------------------------------------------- activation feedback
+
+
+def _feed_positions(ctl: ArmController, q: np.ndarray = Q0, jaw_mm: float = 10.0) -> None:
+    raw = ctl.model.to_device(q)
+    for i, d in enumerate(JOINT_DEVICES):
+        ctl.link._ingest(make_packet(d, PacketID.POSITION, [float(raw[i])]))
+    ctl.link._ingest(make_packet(JAW_DEVICE, PacketID.POSITION, [jaw_mm]))
+
+
+def _feed_modes(ctl: ArmController, mode: Mode = Mode.POSITION) -> None:
+    for d in ALL_AXES:
+        ctl.link._ingest(make_packet(d, PacketID.MODE, [int(mode)]))
+
+
+@pytest.mark.parametrize("late", ["nothing", "modes only", "positions only", "all but the jaw"])
+def test_activation_refuses_feedback_from_before_it_began(late: str) -> None:
+    """The hold setpoints must be positions measured after activation began (an arm moved while
+    limp reports elsewhere than its last report): a position or a mode that predates the call,
+    on any axis, is refused once ``watchdog_s`` has passed."""
+    ctl, _ = _controller()
+    _feed(ctl)  # every axis reported, just before the activation
+
+    async def main() -> float:
+        async def report_late() -> None:
+            await asyncio.sleep(0.03)
+            if late == "modes only":
+                _feed_modes(ctl)
+            elif late == "positions only":
+                _feed_positions(ctl)
+            elif late == "all but the jaw":
+                _feed(ctl)
+                ctl.link.axes[JAW_DEVICE].t_position = time.monotonic() - 1.0
+
+        t0 = time.monotonic()
+        task = asyncio.create_task(report_late())
+        with pytest.raises(SafetyError, match="no fresh position and mode from device"):
+            await ctl._fresh_feedback()
+        await task
+        return time.monotonic() - t0
+
+    took = asyncio.run(main())
+    assert took >= ctl.cfg.safety.watchdog_s  # it waited for fresh feedback before refusing
+
+
+def test_activation_proceeds_on_feedback_newer_than_its_start() -> None:
+    ctl, _ = _controller()
+    _feed(ctl)
+
+    async def main() -> None:
+        async def report_late() -> None:
+            await asyncio.sleep(0.03)
+            _feed_positions(ctl)
+            _feed_modes(ctl)
+
+        task = asyncio.create_task(report_late())
+        await asyncio.wait_for(ctl._fresh_feedback(), ctl.cfg.safety.watchdog_s)
+        await task
+
+    asyncio.run(main())
+
+
 # ---------------------------------------------------------------- config bounds
 
 

@@ -107,6 +107,7 @@ def test_arm_execute_query(port: int, client: zenoh.Session, sim_process: int) -
         assert got.wait(30.0), "no arm report"
         rep = reports[-1]
         assert rep["ok"] is True and rep["grasp_id"] == 7, rep
+        assert rep["grip"] == "held" and rep["holding"] is True, rep  # the sim's 6 mm object
         assert_pose_within_convergence(rep)
         # grasp 8 sits at the arm's base: refused before any motion, reported, and the daemon
         # takes the next request
