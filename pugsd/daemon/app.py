@@ -181,6 +181,7 @@ class Inbound:
     payload: bytes
     recv_s: float  # time.monotonic()
     lost_before: int = 0  # messages of the same publisher missing just before this one
+    publisher: bytes | None = None  # the rmw_zenoh publisher GID (None: no valid attachment)
 
 
 @dataclass(frozen=True, slots=True)
@@ -248,6 +249,9 @@ class Daemon:
         default_cov = default_pose_cov(d.pose_std_translation_m, d.pose_std_rotation_rad)
         self._pose_stamped_cov = default_cov
         self._T_B_C = d.T_B_C  # the camera's mount on the body whose pose comes in (None: none)
+        self._pose_publisher: bytes | None = None  # the GID poses are taken from (pose_publisher_hold_s)
+        self._pose_publisher_s = 0.0  # time.monotonic() it was last heard
+        self._publishers_reported: dict[str, int] = {}  # inputs logged with several publishers
         self.poses = PoseBuffer(q.poses, int(d.pose_max_gap_s * 1e9), default_cov)
         self.gate: PoseGate[tuple[str, Any, float]] = PoseGate(self.poses, d.pose_wait_s, q.pose_wait)
         self.pairer: ExactPairer[codec.ImageMsg, codec.ImageMsg] = ExactPairer(q.unpaired)
@@ -650,14 +654,15 @@ class Daemon:
                     return
                 # before the ingress bound, so that what that bound drops is not also counted lost
                 att = sample.attachment
-                lost = upstream.observe(role, None if att is None else att.to_bytes())
+                now_s = time.monotonic()
+                lost, gid = upstream.observe_publisher(role, None if att is None else att.to_bytes(), now_s)
             except Exception as exc:  # a bug: counted and logged, never raised into zenoh
                 self._bridge_error(role, exc)
                 return
             if not gate.enter():
                 return
             try:
-                item = Inbound(role, str(sample.key_expr), sample.payload.to_bytes(), time.monotonic(), lost)
+                item = Inbound(role, str(sample.key_expr), sample.payload.to_bytes(), now_s, lost, gid)
             except Exception as exc:
                 gate.leave()
                 self._bridge_error(role, exc)
@@ -809,6 +814,41 @@ class Daemon:
         if _log_nth(n):
             log.warning("rejected %s input (%s, #%d): %s", role, cls, n, exc)
 
+    def _follow_pose_publisher(self, item: Inbound) -> None:
+        """Take poses from one publisher at a time (``daemon.pose_publisher_hold_s``): a pose of
+        another publisher while the followed one was heard within the hold is refused
+        (InputRejected ``second_publisher``); after that silence the newcomer is followed."""
+        hold_s, gid = self.cfg.daemon.pose_publisher_hold_s, item.publisher
+        if hold_s <= 0 or gid is None:
+            return
+        cur, silent_s = self._pose_publisher, item.recv_s - self._pose_publisher_s
+        if cur is not None and gid != cur and silent_s <= hold_s:
+            raise InputRejected(
+                "second_publisher",
+                f"a pose from publisher {gid.hex()[:12]} while publisher {cur.hex()[:12]}, whose poses "
+                f"are taken, was heard {max(silent_s, 0.0):.2f} s ago: ignored (two nodes publish on "
+                f"{item.key}? daemon.pose_publisher_hold_s = 0 takes every publisher's poses)",
+            )
+        if cur is not None and gid != cur:
+            self.health.count("pose_publisher_switches")
+            log.warning(
+                "pose: publisher %s silent for %.1f s; following publisher %s",
+                cur.hex()[:12], silent_s, gid.hex()[:12],
+            )  # fmt: skip
+        self._pose_publisher, self._pose_publisher_s = gid, max(self._pose_publisher_s, item.recv_s)
+
+    def _report_publishers(self, active: dict[str, int]) -> None:
+        """Log an input once when several publishers send on it (and again when the count grows)."""
+        for role, n in sorted(active.items()):
+            if n > 1 and n > self._publishers_reported.get(role, 1):
+                log.warning(
+                    "%s: %d publishers sent within the last %.1f s (a node launched twice? two "
+                    "drivers on one topic?)", role, n, _PUBLISHERS_WINDOW_S,
+                )  # fmt: skip
+            self._publishers_reported[role] = n
+        for role in set(self._publishers_reported) - set(active):
+            del self._publishers_reported[role]
+
     def _drop(self, stage: str, reason: str, n: int = 1) -> None:
         """Count ``n`` drops under the reason's stable head and log the full reason (with its
         numbers): the first five per key, then every 100th."""
@@ -904,6 +944,7 @@ class Daemon:
             if typename not in POSE_TYPES.values():
                 raise InputRejected("wrong_type", f"pose: type {typename[:100]!r} not accepted")
             pm = codec.decode_pose(data, typename, self._pose_stamped_cov)
+            self._follow_pose_publisher(item)
             T_W_C, cov = pm.T, carried_cov(pm.cov)
             if self._T_B_C is not None:  # the pose of the body carrying the camera
                 T_W_C, cov = compose_pose_cov(T_W_C, cov, self._T_B_C)
@@ -1624,7 +1665,11 @@ class Daemon:
                 "stale": self.stale_inputs(),
                 "frame_minus_newest_pose_s": self._skew_summary(),
             },
-            "upstream": self.upstream.snapshot(),
+            "upstream": {
+                **self.upstream.snapshot(),
+                "active_publishers": self.upstream.active(_PUBLISHERS_WINDOW_S),
+                "pose_publisher": None if self._pose_publisher is None else self._pose_publisher.hex()[:12],
+            },
             "waiting": {
                 "pose_gate": len(self.gate),
                 "unpaired": self.pairer.pending(),
@@ -1647,6 +1692,7 @@ class Daemon:
             c = st["counts"]
             stale = st["inputs"]["stale"]
             self._report_stale(stale)
+            self._report_publishers(st["upstream"]["active_publishers"])
             self.notifier.send(
                 f"STATUS=frames {c.get('frames.stereo', 0) + c.get('frames.depth', 0)}, "
                 f"integrated {c.get('integrated', 0)}, ready {self.ready}, "
@@ -1692,6 +1738,7 @@ class Daemon:
 # (the watchdog restarts it) rather than healthy and never integrating again.
 _MAP_AT_FAULT = frozenset({"out_of_map_range"})
 _SIDE_ACTIVE_S = 2.0  # a mask/std topic counts as active this long after its last message
+_PUBLISHERS_WINDOW_S = 5.0  # status upstream.active_publishers: publishers heard this recently
 _STREAM_ROLES = ("left_image", "right_image", "depth", "pose")  # inputs that flow continuously
 _UNHEALTHY_RELOG_S = 300.0  # an unchanged unhealthy state is logged again this often
 def _log_nth(n: int, first: int = 5) -> bool:

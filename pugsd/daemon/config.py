@@ -107,6 +107,16 @@ class DaemonConfig:
         gt=0.0,
         le=3600.0,
     )
+    pose_publisher_hold_s: float = opt(
+        1.0,
+        "poses are taken from one publisher (its rmw_zenoh GID) at a time: while the one followed "
+        "was heard within this long, poses of any other are ignored and counted (a localiser "
+        "launched twice, two nodes on one topic); after that much silence the next publisher is "
+        "followed (a restarted localiser). Poses without an rmw_zenoh attachment are always "
+        "taken. 0: take poses from every publisher",
+        unit="s",
+        ge=0.0,
+    )
     pose_std_translation_m: float = opt(
         0.002,
         "pose std for PoseStamped input and before any pose carried a covariance",

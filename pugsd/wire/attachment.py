@@ -78,12 +78,15 @@ class SequenceTracker:
     a tracker cannot tell the two apart, a source started after pugsd can). At most
     ``max_publishers`` GIDs are remembered per source (least recently seen forgotten); a forgotten
     publisher that returns starts afresh (and its numbers below the new baseline count again).
-    Thread-safe: zenoh may call subscribers from several threads.
+    :meth:`active` counts the publishers of each source heard lately: more than one on a camera
+    or pose topic is usually a node launched twice. Thread-safe: zenoh may call subscribers
+    from several threads.
     """
 
     def __init__(self, max_publishers: int = 32) -> None:
         self.max_publishers = max_publishers
         self._last: dict[str, OrderedDict[bytes, int]] = {}
+        self._heard_s: dict[str, dict[bytes, float]] = {}  # time.monotonic() of each GID's latest
         self.lost: Counter[str] = Counter()
         self.late: Counter[str] = Counter()
         self.restarts: Counter[str] = Counter()
@@ -94,14 +97,24 @@ class SequenceTracker:
     def observe(self, source: str, attachment: bytes | None) -> int:
         """Record one sample of ``source``; returns how many of its publisher's messages went
         missing just before it (0 when none, or when it carries no valid attachment)."""
+        return self.observe_publisher(source, attachment)[0]
+
+    def observe_publisher(
+        self, source: str, attachment: bytes | None, now_s: float | None = None
+    ) -> tuple[int, bytes | None]:
+        """:meth:`observe`, and the publisher's GID (None without a valid attachment).
+        ``now_s``: the receive time (time.monotonic(); default now)."""
         try:
             att = decode_attachment(attachment)
         except DecodeError:
             with self._lock:
                 self.untracked[source] += 1
-            return 0
+            return 0, None
         seq = att.sequence_number
+        t = time.monotonic() if now_s is None else now_s
         with self._lock:
+            heard = self._heard_s.setdefault(source, {})
+            heard[att.gid] = t
             seen = self._last.setdefault(source, OrderedDict())
             last = seen.get(att.gid)
             if last is not None and seq == 1 and last > 1:  # restarted: resync
@@ -112,15 +125,23 @@ class SequenceTracker:
             elif last is not None and seq <= last:
                 self.late[source] += 1
                 seen.move_to_end(att.gid)
-                return 0
+                return 0, att.gid
             seen[att.gid] = seq
             seen.move_to_end(att.gid)
             while len(seen) > self.max_publishers:
-                seen.popitem(last=False)
+                gone, _ = seen.popitem(last=False)
+                heard.pop(gone, None)
             gap = 0 if last is None else seq - last - 1
             if gap:
                 self.lost[source] += gap
-            return gap
+            return gap, att.gid
+
+    def active(self, within_s: float, now_s: float | None = None) -> dict[str, int]:
+        """Per source, the publishers (GIDs) heard within the last ``within_s`` seconds."""
+        t = time.monotonic() if now_s is None else now_s
+        with self._lock:
+            out = {src: sum(t - h <= within_s for h in hs.values()) for src, hs in self._heard_s.items()}
+        return {src: n for src, n in out.items() if n}
 
     def snapshot(self) -> dict[str, Any]:
         with self._lock:

@@ -386,3 +386,40 @@ def test_messages_lost_before_the_daemon_are_counted_from_sequence_numbers(
     warned = [r.getMessage() for r in caplog.records if "lost before pugsd" in r.getMessage()]
     assert len(warned) == 1 and warned[0].startswith("right_image: 2 message(s)"), warned
     src.close()
+
+
+def test_a_second_pose_publisher_is_refused_through_zenoh(
+    running: tuple[DaemonThread, FakePipeline, RecordingNotifier], client: zenoh.Session
+) -> None:
+    """Two rmw_zenoh publishers on the pose key (a localiser launched twice): the bridge reads
+    each pose's GID from its attachment; the first publisher's poses are taken, the second's
+    refused and counted, and the status names both as heard."""
+    from pugsd.wire.attachment import encode_attachment
+
+    dt, _, _ = running
+    d = dt.daemon
+    src = Source(client)
+    src.wait_matching("pose")
+    key = key_for(src.topics, "pose")
+    gid_b = bytes(range(16, 32))
+    t0 = 4_000_000_000
+    src.put("pose", codec.encode_pose_with_covariance(t0, pose_at(0.0), np.eye(6) * 1e-6))
+    wait_for(lambda: d.health.counts["poses"] == 1, 10.0, "the first localiser's first pose")
+    for i in range(1, 6):
+        stamp = t0 + i * 100_000_000
+        src.put("pose", codec.encode_pose_with_covariance(stamp, pose_at(0.01 * i), np.eye(6) * 1e-6))
+        other = codec.encode_pose_with_covariance(stamp - 10**9, pose_at(1.0), np.eye(6) * 1e-6)
+        client.put(key, other, attachment=encode_attachment(i, stamp, gid_b))
+        time.sleep(0.02)
+    wait_for(
+        lambda: d.health.counts["poses"] + d.health.rejected["pose: second_publisher"] == 11,
+        10.0,
+        "every pose taken or refused",
+    )
+    st = query_json(client, "pugs/status")
+    assert st["counts"]["poses"] == 6 and st["rejected"] == {"pose: second_publisher": 5}
+    assert st["waiting"]["poses"] == 6 and st["waiting"]["pose_clock_jumps_back"] == 0
+    up = st["upstream"]
+    assert up["active_publishers"]["pose"] == 2
+    assert up["pose_publisher"] == src.pubs["pose"].gid.hex()[:12]
+    src.close()

@@ -709,17 +709,17 @@ def test_an_error_in_the_zenoh_callback_is_counted_and_the_next_samples_flow(
     pipe = FakePipeline()
     dt, src = start_with_source(load_config_dict(daemon_config_dict(port)), client, pipe)
     d = dt.daemon
-    real = d.upstream.observe
+    real = d.upstream.observe_publisher
     calls = {"pose": 0}
 
-    def flaky(role: str, att: bytes | None) -> int:
+    def flaky(role: str, att: bytes | None, now_s: float | None = None) -> tuple[int, bytes | None]:
         if role == "pose":
             calls["pose"] += 1
             if calls["pose"] == 1:
                 raise RuntimeError("tracker bug")
-        return real(role, att)
+        return real(role, att, now_s)
 
-    monkeypatch.setattr(d.upstream, "observe", flaky)
+    monkeypatch.setattr(d.upstream, "observe_publisher", flaky)
     try:
         src.put("pose", codec.encode_pose_with_covariance(10**9, pose_at(0.0), COV))  # lost
         wait_for(lambda: d.bridge_errors.get("pose") == 1, 5.0, "the lost sample counted")
