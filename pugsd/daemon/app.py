@@ -361,6 +361,9 @@ class Daemon:
                 t0 = time.monotonic()
                 await asyncio.to_thread(self._locked, warm_up)
                 log.info("pipeline warmed up in %.1f s", time.monotonic() - t0)
+            if stop.is_set():  # SIGTERM during the start (the warm-up takes seconds): never READY
+                log.info("stop requested while starting: not serving")
+                return
             svgp = getattr(self.pipeline, "svgp", None)
             if svgp is not None:  # the automatic M depends on the device (svgp.num_inducing = 0)
                 log.info("SVGP on %s with M = %d inducing points", svgp.device, svgp.num_inducing)

@@ -423,3 +423,32 @@ def test_a_second_pose_publisher_is_refused_through_zenoh(
     assert up["active_publishers"]["pose"] == 2
     assert up["pose_publisher"] == src.pubs["pose"].gid.hex()[:12]
     src.close()
+
+
+class SlowWarmUp(FakePipeline):
+    """A pipeline whose warm-up takes a while (the real one: about 2.5 s of torch imports)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.warming = threading.Event()
+
+    def warm_up(self) -> None:
+        self.warming.set()
+        time.sleep(0.5)
+
+
+def test_a_stop_during_the_warm_up_never_serves(port: int, client: zenoh.Session) -> None:
+    """SIGTERM while the pipeline warms up (systemctl stop during the start): the daemon closes
+    once the warm-up returns, without subscribing to its inputs or sending READY=1 (before, it
+    declared its inputs and told systemd READY, then stopped at once)."""
+    pipe = SlowWarmUp()
+    notifier = RecordingNotifier()
+    dt = DaemonThread(Daemon(load_config_dict(daemon_config_dict(port)), pipe, notifier=notifier)).start()
+    assert pipe.warming.wait(10.0)
+    src = Source(client)
+    took = dt.stop()
+    assert took < 5.0
+    assert "READY=1" not in notifier.sent and notifier.sent[-1] == "STOPPING=1", notifier.sent
+    assert not src.pubs["left_image"].matching  # no subscriber was ever declared
+    assert dt.daemon.status()["counts"].get("received.pose", 0) == 0
+    src.close()
