@@ -458,10 +458,11 @@ class ExecutionReport:
     # what the jaw holds (``ok`` says only that the motion ran to its end): True when the close
     # phase stopped the jaw short of closed (an object between the fingers) and it still stood
     # short of closed after the lift; False when it closed fully at the close ("empty") or during
-    # the lift ("dropped"); None when the close phase did not finish or the jaw reports nothing
+    # the lift ("dropped"); None when the motion did not run to its end or the jaw reports nothing
     holding: bool | None = None
-    grip: str = ""  # "held", "empty", "dropped", "unknown", or "" (the close phase did not finish)
-    grip_mm: float | None = None  # the jaw position where the close phase ended (mm)
+    # "held", "empty", "dropped", "unknown", or "" (the motion did not run to its end: ok is False)
+    grip: str = ""
+    grip_mm: float | None = None  # the jaw position where the close phase ended (mm; None: it did not)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

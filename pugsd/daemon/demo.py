@@ -239,8 +239,16 @@ async def _demo_main(
         loop.add_signal_handler(sig, stop.set)
     serve = asyncio.create_task(daemon.run(stop), name="daemon")
     while not daemon.serving:
-        if serve.done():
-            await serve  # raises the start-up error
+        if serve.done():  # it failed to start (raised here), or a signal stopped it while starting
+            try:
+                await serve
+            finally:
+                for sig in (signal.SIGTERM, signal.SIGINT):
+                    loop.remove_signal_handler(sig)
+            rendering.cancel()
+            write("interrupted while the daemon started; shutting down")
+            none_sent = {"frames_sent": 0, "max_put_s": 0.0, "recorder": None}
+            return daemon, GraspPrinter(write, t_start), [], none_sent
         await asyncio.sleep(0.01)
     peer = open_session(loopback_config(None, [port]), require_loopback=True)
     printer = GraspPrinter(write, t_start)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -426,15 +426,19 @@ def test_a_second_pose_publisher_is_refused_through_zenoh(
 
 
 class SlowWarmUp(FakePipeline):
-    """A pipeline whose warm-up takes a while (the real one: about 2.5 s of torch imports)."""
+    """A pipeline whose warm-up takes a while (the real one: about 2.5 s of torch imports): until
+    ``done()`` says so (at most 10 s), so that a stop lands inside it however loaded the machine."""
 
     def __init__(self) -> None:
         super().__init__()
         self.warming = threading.Event()
+        self.done: Callable[[], bool] = lambda: False
 
     def warm_up(self) -> None:
         self.warming.set()
-        time.sleep(0.5)
+        t0 = time.monotonic()
+        while not self.done() and time.monotonic() - t0 < 10.0:
+            time.sleep(0.01)
 
 
 def test_a_stop_during_the_warm_up_never_serves(port: int, client: zenoh.Session) -> None:
@@ -443,7 +447,9 @@ def test_a_stop_during_the_warm_up_never_serves(port: int, client: zenoh.Session
     declared its inputs and told systemd READY, then stopped at once)."""
     pipe = SlowWarmUp()
     notifier = RecordingNotifier()
-    dt = DaemonThread(Daemon(load_config_dict(daemon_config_dict(port)), pipe, notifier=notifier)).start()
+    dt = DaemonThread(Daemon(load_config_dict(daemon_config_dict(port)), pipe, notifier=notifier))
+    pipe.done = dt.stop_event.is_set  # the warm-up lasts until the stop
+    dt.start()
     assert pipe.warming.wait(10.0)
     src = Source(client)
     took = dt.stop()
