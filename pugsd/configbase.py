@@ -10,8 +10,10 @@ the dotted path of the offending key. :func:`to_toml` writes the documented refe
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import json
 import math
+import re
 from collections.abc import Mapping
 from typing import Any, TypeVar, get_args, get_origin, get_type_hints
 
@@ -117,7 +119,9 @@ def build(cls: type[T], data: Mapping[str, Any], path: str = "") -> T:
     for key, value in data.items():
         dotted = f"{path}.{key}" if path else key
         if key not in fields:
-            raise ConfigError(f"{dotted}: unknown key (known: {', '.join(sorted(fields))})")
+            close = difflib.get_close_matches(key, list(fields), n=1)
+            hint = f"; did you mean {close[0]}?" if close else ""
+            raise ConfigError(f"{dotted}: unknown key{hint} (known: {', '.join(sorted(fields))})")
         coerced = _coerce(value, hints[key], dotted)
         default_factory = fields[key].default_factory
         if isinstance(coerced, dict) and default_factory is not dataclasses.MISSING:
@@ -129,7 +133,13 @@ def build(cls: type[T], data: Mapping[str, Any], path: str = "") -> T:
     try:
         obj = cls(**kwargs)
     except ConfigError as exc:
-        raise ConfigError(f"{path}: {exc}" if path else str(exc)) from None
+        # a check across keys names the key it refuses first ("T_B_C_quat_xyzw: ..."): give it
+        # the dotted path like every other error ("daemon.T_B_C_quat_xyzw: ...")
+        msg = str(exc)
+        head = re.match(r"[A-Za-z_][A-Za-z0-9_]*", msg)
+        names_key = head is not None and head.group(0) in fields and msg[head.end() :][:1] in (":", "[")
+        sep = "." if names_key else ": "
+        raise ConfigError(f"{path}{sep}{msg}" if path else msg) from None
     return obj
 
 

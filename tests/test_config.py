@@ -62,6 +62,18 @@ def test_every_key_is_documented() -> None:
         ({"zenoh": []}, "zenoh: expected a table, got list"),
         ({"svgp": {"device": 1}}, "svgp.device: expected a string, got int"),
         ({"daemon": {"log_json": "yes"}}, "daemon.log_json: expected true or false, got str"),
+        # checks across keys name the dotted path too (they said "daemon: T_B_C_quat_xyzw: ...")
+        ({"stereo": {"block_size": 4}}, "stereo.block_size: must be odd"),
+        (
+            {"daemon": {"T_B_C_quat_xyzw": [0.0, 0.0, 0.0, 2.0]}},
+            "daemon.T_B_C_quat_xyzw: [0.0, 0.0, 0.0, 2.0] is not a unit quaternion",
+        ),
+        ({"daemon": {"T_B_C_xyz_m": [0.1, 0.0]}}, "daemon.T_B_C_xyz_m: expected 3 finite values"),
+        # an unknown key near a known one suggests it
+        (
+            {"daemon": {"T_B_C_xyz": [0.1, 0.0, 0.2]}},
+            "daemon.T_B_C_xyz: unknown key; did you mean T_B_C_xyz_m?",
+        ),
     ],
 )
 def test_bad_values_name_the_dotted_path(data: dict, message: str) -> None:  # type: ignore[type-arg]

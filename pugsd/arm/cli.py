@@ -133,7 +133,13 @@ async def _sim_main(
         tr = UdpTransport(None, (cfg.sim.udp_host, cfg.sim.udp_port if port is None else port))
         await tr.open()
         host, p = tr.local_address
-        where = f"udp {host}:{p}  (use --set arm.udp.host={host} --set arm.udp.port={p})"
+        # everything a client needs: the default arm.transport is serial, and the default
+        # arm.udp.local_host binds every interface, which a simulator on loopback does not need
+        local = " --set arm.udp.local_host=127.0.0.1" if host == "127.0.0.1" else ""
+        where = (
+            f"udp {host}:{p}  (use --set arm.transport=udp --set arm.udp.host={host} "
+            f"--set arm.udp.port={p}{local})"
+        )
     else:
         c = cfg.can
         if c.interface == "virtual":

@@ -146,7 +146,12 @@ def _reset(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     def common(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--config", default=None, help="the daemon's TOML config ([zenoh], [daemon] prefix)")
+        p.add_argument(
+            "--config",
+            default=None,
+            help="the daemon's TOML config ([daemon] prefix; the client connects to its "
+            "[zenoh] listen endpoints, default tcp/127.0.0.1:7447)",
+        )
         p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key")
         p.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the reply (default 3)")
 

@@ -104,6 +104,17 @@ def parse_loopback_port(endpoint: str) -> int:
     return int(m.group(1))
 
 
+def no_figure_reason(grasps_published: int, resets: int) -> str:
+    """Why the demo wrote no ``grasps.png``: the model never got ready, or a reset (``pugsd
+    reset`` from another shell) cleared the map after its grasps and no frame came since."""
+    if grasps_published and resets:
+        return (
+            f"no PNG written: the map was reset after {grasps_published} grasp update(s) "
+            "(pugsd reset) and no frame came since, so there are no grasps to draw"
+        )
+    return "no grasps were computed (model not ready); no PNG written"
+
+
 @dataclass
 class GraspPrinter:
     """Prints the top grasps whenever the ranking improves or changes."""
@@ -388,5 +399,5 @@ def run_demo(
         save_figure(daemon.latest_result, png, gripper_depth_m=cfg.grasp.gripper.depth_m)
         write(f"PNG:  {png}")
     else:
-        write("no grasps were computed (model not ready); no PNG written")
+        write(no_figure_reason(daemon.grasps_published, c.get("resets", 0)))
     return 0 if printer.first_s is not None else 1

@@ -256,6 +256,32 @@ def test_cli_sim_over_pty(capsys: pytest.CaptureFixture[str]) -> None:
             proc.wait(5)
 
 
+def test_cli_sim_over_udp_prints_the_settings_a_client_needs(capsys: pytest.CaptureFixture[str]) -> None:
+    """The ``(use --set ...)`` hint of ``pugsd arm sim --transport udp`` is enough on its own:
+    passed verbatim to ``pugsd arm status``, which defaults to ``arm.transport = "serial"``, it
+    reaches the simulator (the hint named the UDP host and port but not the transport)."""
+    cmd = [sys.executable, "-m", "pugsd", "arm", "sim", "--transport", "udp", "--port", "0", "--duration"]
+    proc = subprocess.Popen([*cmd, "20"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+        m = re.search(r"\(use ([^)]*)\)", line)
+        assert m, line
+        hint = m.group(1).split()
+        assert "arm.udp.local_host=127.0.0.1" in hint  # a loopback simulator: bind loopback only
+        rc, out = _cli(capsys, "arm", "status", "--json", *hint)
+        assert rc == 0, out
+        st = json.loads(out)
+        assert st["transport"] == "udp" and st["joints"][1]["position"] == pytest.approx(1.2)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+
+
 def test_fetch_latest_grasps_over_loopback_zenoh() -> None:
     """``--grasp-id`` path: query ``<prefix>/grasps/latest`` from a stand-in daemon session
     (loopback-only zenoh, checked before any session is opened)."""

@@ -64,3 +64,16 @@ def test_the_synthetic_camera_waits_for_a_route_on_every_topic_it_publishes() ->
         cam.pubs[role].matching = False
         assert not cam.wait_matching(0.05), role
         cam.pubs[role].matching = True
+
+
+def test_demo_says_why_there_is_no_figure_after_a_reset() -> None:
+    """README invites `pugsd reset` against a running demo; when it cleared the map after the
+    camera's sweep, the end summary said "no grasps were computed (model not ready)" although
+    grasps had been printed all along."""
+    from pugsd.daemon.demo import no_figure_reason
+
+    assert "model not ready" in no_figure_reason(0, 0)
+    assert "model not ready" in no_figure_reason(0, 1)  # a reset before any grasps
+    after_reset = no_figure_reason(19, 1)
+    assert "reset" in after_reset and "19 grasp update" in after_reset
+    assert "no grasps were computed" not in after_reset
