@@ -1,9 +1,9 @@
 # SPDX-License-Identifier: Apache-2.0
 """Clients of a running daemon: ``pugsd status``, ``pugsd grasps``, ``pugsd reset``.
 
-Each opens a zenoh peer that connects to the daemon's listen endpoints (the config's ``[zenoh]``,
-multicast scouting and gossip off, under the daemon's own loopback policy), asks one query on
-``<prefix>/...`` and prints the answer.
+Each opens a zenoh peer that connects to the daemon's listen endpoints (the config's ``[zenoh]``;
+with no fixed listen port, its connect endpoints: a router; multicast scouting and gossip off,
+under the daemon's own loopback policy), asks one query on ``<prefix>/...`` and prints the answer.
 """
 
 from __future__ import annotations
@@ -150,7 +150,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
             "--config",
             default=None,
             help="the daemon's TOML config ([daemon] prefix; the client connects to its "
-            "[zenoh] listen endpoints, default tcp/127.0.0.1:7447)",
+            "[zenoh] listen endpoints, default tcp/127.0.0.1:7447, or with none to its connect "
+            "endpoints, e.g. a router)",
         )
         p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key")
         p.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the reply (default 3)")

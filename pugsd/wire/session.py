@@ -130,18 +130,27 @@ def tool_config(
 ) -> dict[str, Any]:
     """The session config of a tool next to a running daemon: the ``[zenoh]`` table, changed to a
     peer that connects to the daemon's listen endpoints and listens on none (so it does not fight
-    the daemon for its port), unless ``connect``/``listen`` are given. Multicast scouting and
-    gossip are forced off. Open it with ``open_session(cfg, require_loopback=True)``."""
+    the daemon for its port), unless ``connect``/``listen`` are given. A daemon that listens on
+    no fixed port (none, or port 0: a client of a router, say) is reached where it connects (the
+    router routes the tool's queries to it). Multicast scouting and gossip are forced off. Open it
+    with ``open_session(cfg, require_loopback=True)``."""
     d = json.loads(json.dumps(dict(zenoh_cfg)))
     own = _get(d, "listen/endpoints")
-    own_listen = [str(e) for e in own] if isinstance(own, list) else []
+    own_listen = [str(e) for e in own if not _ephemeral(str(e))] if isinstance(own, list) else []
+    theirs = _get(d, "connect/endpoints")
+    own_connect = [str(e) for e in theirs] if isinstance(theirs, list) else []
     d["mode"] = "peer" if d.get("mode", "peer") == "router" else d.get("mode", "peer")
-    d["connect"] = {**(d.get("connect") or {}), "endpoints": list(connect or own_listen)}
+    d["connect"] = {**(d.get("connect") or {}), "endpoints": list(connect or own_listen or own_connect)}
     d["listen"] = {**(d.get("listen") or {}), "endpoints": list(listen or [])}
     sc = d.setdefault("scouting", {})
     sc.setdefault("multicast", {})["enabled"] = False
     sc.setdefault("gossip", {})["enabled"] = False
     return d
+
+
+def _ephemeral(endpoint: str) -> bool:
+    """``tcp/127.0.0.1:0``: a port the OS picks, which no other process can know to connect to."""
+    return endpoint.split("#", 1)[0].rsplit(":", 1)[-1] == "0"
 
 
 def free_tcp_port() -> int:

@@ -138,3 +138,23 @@ def test_tool_config_connects_to_the_daemon_and_stays_safe() -> None:
     check_loopback_safe(c)
     with pytest.raises(ConfigError):
         check_loopback_safe(tool_config(lan))  # would connect to 0.0.0.0
+
+
+def test_tool_config_reaches_a_daemon_without_a_fixed_listen_port_where_it_connects() -> None:
+    """A daemon that is a client of a router (no listen endpoint) or listens on port 0 cannot be
+    connected to directly: the tool goes where the daemon connects, the router, which routes its
+    queries. A fixed listen endpoint still wins (the daemon itself, not a router with others)."""
+    from pugsd.wire.session import tool_config
+
+    router = "tcp/127.0.0.1:7447"
+    sc = {"multicast": {"enabled": False}, "gossip": {"enabled": False}}
+    as_client = {"mode": "client", "listen": {"endpoints": []}, "connect": {"endpoints": [router]},
+                 "scouting": sc}  # fmt: skip
+    c = tool_config(as_client)
+    assert c["connect"]["endpoints"] == [router] and c["mode"] == "client" and c["listen"]["endpoints"] == []
+    check_loopback_safe(c)
+    ephemeral = {**as_client, "mode": "peer", "listen": {"endpoints": ["tcp/127.0.0.1:0"]}}
+    assert tool_config(ephemeral)["connect"]["endpoints"] == [router]
+    fixed = {**ephemeral, "listen": {"endpoints": ["tcp/127.0.0.1:0", "tcp/127.0.0.1:7448"]}}
+    assert tool_config(fixed)["connect"]["endpoints"] == ["tcp/127.0.0.1:7448"]
+    assert tool_config(as_client, connect=["tcp/127.0.0.1:9"])["connect"]["endpoints"] == ["tcp/127.0.0.1:9"]
