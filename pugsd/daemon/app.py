@@ -840,16 +840,17 @@ class Daemon:
             )  # fmt: skip
         self._pose_publisher, self._pose_publisher_s = gid, max(self._pose_publisher_s, item.recv_s)
 
-    def _report_publishers(self, active: dict[str, int]) -> None:
-        """Log an input once when several publishers send on it (and again when the count grows)."""
-        for role, n in sorted(active.items()):
+    def _report_publishers(self, concurrent: dict[str, int]) -> None:
+        """Log an input once when several publishers send on it at the same time (and again when
+        their number grows)."""
+        for role, n in sorted(concurrent.items()):
             if n > 1 and n > self._publishers_reported.get(role, 1):
                 log.warning(
-                    "%s: %d publishers sent within the last %.1f s (a node launched twice? two "
-                    "drivers on one topic?)", role, n, _PUBLISHERS_WINDOW_S,
+                    "%s: %d publishers sending at the same time within the last %.1f s (a node "
+                    "launched twice? two drivers on one topic?)", role, n, _PUBLISHERS_WINDOW_S,
                 )  # fmt: skip
             self._publishers_reported[role] = n
-        for role in set(self._publishers_reported) - set(active):
+        for role in set(self._publishers_reported) - set(concurrent):
             del self._publishers_reported[role]
 
     def _drop(self, stage: str, reason: str, n: int = 1) -> None:
@@ -1671,6 +1672,7 @@ class Daemon:
             "upstream": {
                 **self.upstream.snapshot(),
                 "active_publishers": self.upstream.active(_PUBLISHERS_WINDOW_S),
+                "concurrent_publishers": self.upstream.concurrent(_PUBLISHERS_WINDOW_S),
                 "pose_publisher": None if self._pose_publisher is None else self._pose_publisher.hex()[:12],
             },
             "waiting": {
@@ -1695,7 +1697,7 @@ class Daemon:
             c = st["counts"]
             stale = st["inputs"]["stale"]
             self._report_stale(stale)
-            self._report_publishers(st["upstream"]["active_publishers"])
+            self._report_publishers(st["upstream"]["concurrent_publishers"])
             self.notifier.send(
                 f"STATUS=frames {c.get('frames.stereo', 0) + c.get('frames.depth', 0)}, "
                 f"integrated {c.get('integrated', 0)}, ready {self.ready}, "

@@ -77,10 +77,10 @@ def status_lines(st: dict[str, Any]) -> list[str]:
     lines.append(f"inputs (time since last): {ages}")
     if inputs.get("stale"):
         lines.append(f"stale inputs: {' '.join(inputs['stale'])}")
-    crowded = {k: n for k, n in st.get("upstream", {}).get("active_publishers", {}).items() if n > 1}
+    crowded = st.get("upstream", {}).get("concurrent_publishers", {})
     if crowded:
         lines.append(
-            "several publishers on one input (a node launched twice?): "
+            "several publishers sending on one input at the same time (a node launched twice?): "
             + ", ".join(f"{k} {n}" for k, n in sorted(crowded.items()))
         )
     skew = inputs.get("frame_minus_newest_pose_s", {})

@@ -86,7 +86,8 @@ class SequenceTracker:
     def __init__(self, max_publishers: int = 32) -> None:
         self.max_publishers = max_publishers
         self._last: dict[str, OrderedDict[bytes, int]] = {}
-        self._heard_s: dict[str, dict[bytes, float]] = {}  # time.monotonic() of each GID's latest
+        # per GID, time.monotonic() of its first and its latest sample
+        self._heard_s: dict[str, dict[bytes, list[float]]] = {}
         self.lost: Counter[str] = Counter()
         self.late: Counter[str] = Counter()
         self.restarts: Counter[str] = Counter()
@@ -114,7 +115,11 @@ class SequenceTracker:
         t = time.monotonic() if now_s is None else now_s
         with self._lock:
             heard = self._heard_s.setdefault(source, {})
-            heard[att.gid] = t
+            span = heard.get(att.gid)
+            if span is None:
+                heard[att.gid] = [t, t]
+            else:
+                span[1] = max(span[1], t)
             seen = self._last.setdefault(source, OrderedDict())
             last = seen.get(att.gid)
             if last is not None and seq == 1 and last > 1:  # restarted: resync
@@ -140,8 +145,26 @@ class SequenceTracker:
         """Per source, the publishers (GIDs) heard within the last ``within_s`` seconds."""
         t = time.monotonic() if now_s is None else now_s
         with self._lock:
-            out = {src: sum(t - h <= within_s for h in hs.values()) for src, hs in self._heard_s.items()}
+            out = {src: sum(t - h[1] <= within_s for h in hs.values()) for src, hs in self._heard_s.items()}
         return {src: n for src, n in out.items() if n}
+
+    def concurrent(self, within_s: float, now_s: float | None = None) -> dict[str, int]:
+        """Per source with two or more, the publishers heard within the last ``within_s`` seconds
+        that sent while another of them sent too (their first-to-latest spans overlap): a node
+        launched twice. A restarted node (the old GID silent before the new one's first sample)
+        is not counted."""
+        t = time.monotonic() if now_s is None else now_s
+        out: dict[str, int] = {}
+        with self._lock:
+            for src, hs in self._heard_s.items():
+                spans = [(a, b) for a, b in hs.values() if t - b <= within_s]
+                n = sum(
+                    any(i != j and a <= d and c <= b for j, (c, d) in enumerate(spans))
+                    for i, (a, b) in enumerate(spans)
+                )
+                if n >= 2:
+                    out[src] = n
+        return out
 
     def snapshot(self) -> dict[str, Any]:
         with self._lock:

@@ -420,7 +420,7 @@ def test_a_second_pose_publisher_is_refused_through_zenoh(
     assert st["counts"]["poses"] == 6 and st["rejected"] == {"pose: second_publisher": 5}
     assert st["waiting"]["poses"] == 6 and st["waiting"]["pose_clock_jumps_back"] == 0
     up = st["upstream"]
-    assert up["active_publishers"]["pose"] == 2
+    assert up["active_publishers"]["pose"] == 2 and up["concurrent_publishers"] == {"pose": 2}
     assert up["pose_publisher"] == src.pubs["pose"].gid.hex()[:12]
     src.close()
 

@@ -76,10 +76,15 @@ def test_a_second_localiser_is_refused_while_the_first_is_heard(
     assert st["waiting"]["pose_strays"] == 0
     assert d.health.rejected["pose: second_publisher"] == 50
     assert st["upstream"]["pose_publisher"] == GID_A.hex()[:12]
-    # the bridge's tracker saw both, at the test's receive times (100.0 .. 104.95 s)
+    # the bridge's tracker saw both, at the test's receive times (100.0 .. 104.95 s), sending at
+    # the same time
     assert d.upstream.active(5.0, now_s=105.0) == {"pose": 2}
-    st["upstream"]["active_publishers"] = d.upstream.active(5.0, now_s=105.0)
-    assert "several publishers on one input (a node launched twice?): pose 2" in status_lines(st)
+    assert d.upstream.concurrent(5.0, now_s=105.0) == {"pose": 2}
+    st["upstream"]["concurrent_publishers"] = d.upstream.concurrent(5.0, now_s=105.0)
+    assert (
+        "several publishers sending on one input at the same time (a node launched twice?): pose 2"
+        in status_lines(st)
+    )
     # the buffer holds the first localiser's estimate only
     s = d.poses.lookup(T0 + 25 * 10**8 + 5 * 10**7)
     assert s.state == "ready" and s.T_W_C is not None
@@ -143,19 +148,24 @@ def test_status_counts_the_publishers_heard_lately_and_logs_a_second_one(
     caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
     d = _daemon(port)
     t = d.upstream
-    t.observe_publisher("left_image", encode_attachment(1, T0, GID_A), 100.0)
-    t.observe_publisher("left_image", encode_attachment(1, T0, GID_B), 103.0)
-    t.observe_publisher("pose", encode_attachment(1, T0, GID_A), 103.0)
-    assert t.active(5.0, now_s=104.0) == {"left_image": 2, "pose": 1}
-    assert t.active(5.0, now_s=105.5) == {"left_image": 1, "pose": 1}  # A's image 5.5 s ago
+    for k in range(4):  # two camera drivers, each at 1 Hz, half a second apart
+        t.observe_publisher("left_image", encode_attachment(1 + k, T0, GID_A), 100.0 + k)
+        t.observe_publisher("left_image", encode_attachment(1 + k, T0, GID_B), 100.5 + k)
+    for k in range(3):  # a localiser restarted: the new GID's first pose after the old one's last
+        t.observe_publisher("pose", encode_attachment(1 + k, T0, GID_A), 100.0 + 0.1 * k)
+        t.observe_publisher("pose", encode_attachment(1 + k, T0, GID_B), 100.5 + 0.1 * k)
+    assert t.active(5.0, now_s=104.0) == {"left_image": 2, "pose": 2}
+    assert t.concurrent(5.0, now_s=104.0) == {"left_image": 2}  # the restart is not two at once
+    assert t.active(5.0, now_s=108.2) == {"left_image": 1}  # A's last image 5.2 s ago
+    assert t.concurrent(5.0, now_s=108.2) == {}
     assert t.active(5.0, now_s=109.0) == {}
-    d._report_publishers({"left_image": 2, "pose": 1})
-    d._report_publishers({"left_image": 2, "pose": 1})  # unchanged: not logged again
-    d._report_publishers({"left_image": 1})
-    d._report_publishers({"left_image": 2})  # a second one again: logged again
-    msgs = [r.getMessage() for r in caplog.records if "publishers sent within" in r.getMessage()]
-    assert msgs == ["left_image: 2 publishers sent within the last 5.0 s (a node launched twice? two "
-                    "drivers on one topic?)"] * 2  # fmt: skip
+    d._report_publishers({"left_image": 2})
+    d._report_publishers({"left_image": 2})  # unchanged: not logged again
+    d._report_publishers({})
+    d._report_publishers({"left_image": 2})  # two at once again: logged again
+    msgs = [r.getMessage() for r in caplog.records if "at the same time" in r.getMessage()]
+    assert msgs == ["left_image: 2 publishers sending at the same time within the last 5.0 s (a node "
+                    "launched twice? two drivers on one topic?)"] * 2  # fmt: skip
 
 
 def test_active_publishers_stay_within_the_remembered_ones() -> None:
