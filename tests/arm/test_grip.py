@@ -9,6 +9,7 @@ import asyncio
 import dataclasses
 import json
 
+import numpy as np
 import pytest
 
 from pugsd.arm import cli as arm_cli
@@ -170,3 +171,20 @@ def test_execute_exit_code_says_whether_the_jaw_holds_something(
 def test_sim_object_outside_the_jaw_range_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["arm", "sim", "--transport", "udp", "--port", "0", "--object-mm", "45"]) == 1
     assert "outside the jaw's range [0.0, 30.0] mm" in capsys.readouterr().err
+
+
+def test_the_example_pose_in_the_docs_plans_from_the_simulators_start() -> None:
+    """docs/arm.md gives one pose to try the link with: it must pass every check and the IK from
+    the simulator's initial joints (a guessed pose is usually refused: joint margins, singularity)."""
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "arm.md").read_text()
+    m = re.search(r"pugsd arm execute --pose ((?:-?\d+\.\d+ ){6}-?\d+\.\d+) \\\s+--width (\S+)", text)
+    assert m, "no example pose in docs/arm.md"
+    vals = [float(v) for v in m.group(1).split()]
+    ctl = ArmController(fast_config())
+    T_W_G = arm_cli._pose_matrix(vals)
+    q0 = np.asarray(ctl.cfg.sim.initial_q_rad)
+    plan = ctl.plan_grasp(ctl.T_B_W @ T_W_G, float(m.group(2)), q0)
+    assert len(plan.approach) > 1 and len(plan.lift) > 1
