@@ -240,10 +240,11 @@ def test_flush_failure_counts_the_open_chunk_as_dropped(tmp_path: Path) -> None:
     with rec:
         for i in range(10):
             rec.put("/img", IMAGE, _img(i))
+        # the writer thread pops a message, then adds it to the chunk: wait for the chunk, not for
+        # the queue to empty (a fixed sleep after that raced a descheduled writer)
         deadline = time.monotonic() + 10
-        while (rec.queued or not rec.stats.current_file) and time.monotonic() < deadline:
+        while rec.stats.buffered < 10 and time.monotonic() < deadline:
             time.sleep(0.01)
-        time.sleep(0.1)  # the last message popped from the queue is in the chunk by now
         assert rec.stats.written == 0 and rec.stats.buffered == 10  # nothing in the file yet
         full.set()  # the final chunk write (finish) fails
     s = rec.stats
