@@ -137,8 +137,8 @@ def tool_config(
     d = json.loads(json.dumps(dict(zenoh_cfg)))
     own = _get(d, "listen/endpoints")
     own_listen = [str(e) for e in own if not _ephemeral(str(e))] if isinstance(own, list) else []
-    theirs = _get(d, "connect/endpoints")
-    own_connect = [str(e) for e in theirs] if isinstance(theirs, list) else []
+    conn = _get(d, "connect/endpoints")
+    own_connect = [str(e) for e in conn] if isinstance(conn, list) else []
     d["mode"] = "peer" if d.get("mode", "peer") == "router" else d.get("mode", "peer")
     d["connect"] = {**(d.get("connect") or {}), "endpoints": list(connect or own_listen or own_connect)}
     d["listen"] = {**(d.get("listen") or {}), "endpoints": list(listen or [])}

@@ -119,35 +119,15 @@ def test_execute_refused_when_disabled(capsys: pytest.CaptureFixture[str]) -> No
     assert "disabled" in capsys.readouterr().err
 
 
-@pytest.fixture
-def sim_process() -> Iterator[int]:
-    """``pugsd arm sim`` over UDP on 127.0.0.1 in a subprocess (killed by pid)."""
-    cmd = [
-        sys.executable,
-        "-m",
-        "pugsd",
-        "arm",
-        "sim",
-        "--transport",
-        "udp",
-        "--port",
-        "0",
-        "--duration",
-        "40",
-        "--set",
-        "arm.sim.joint_speed_rad_s=4.0",
-        "--set",
-        "arm.sim.jaw_speed_mm_s=300.0",
-        "--object-mm",  # something to grip: an empty grasp exits 3
-        "6",
-    ]
+@contextlib.contextmanager
+def _sim(*args: str) -> Iterator[str]:
+    """``pugsd arm sim ARGS`` in a subprocess: yields the line it prints first (where it
+    listens); ended by its pid."""
+    cmd = [sys.executable, "-m", "pugsd", "arm", "sim", *args]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=os.getcwd())
     try:
         assert proc.stdout is not None
-        line = proc.stdout.readline()
-        m = re.search(r"udp 127\.0\.0\.1:(\d+)", line)
-        assert m, line
-        yield int(m.group(1))
+        yield proc.stdout.readline()
     finally:
         proc.send_signal(signal.SIGTERM)
         try:
@@ -155,6 +135,17 @@ def sim_process() -> Iterator[int]:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait(5)
+
+
+@pytest.fixture
+def sim_process() -> Iterator[int]:
+    """``pugsd arm sim`` over UDP on 127.0.0.1 in a subprocess (killed by pid)."""
+    speeds = ["--set", "arm.sim.joint_speed_rad_s=4.0", "--set", "arm.sim.jaw_speed_mm_s=300.0"]
+    # --object-mm: something to grip (an empty grasp exits 3)
+    with _sim("--transport", "udp", "--port", "0", "--duration", "40", *speeds, "--object-mm", "6") as line:
+        m = re.search(r"udp 127\.0\.0\.1:(\d+)", line)
+        assert m, line
+        yield int(m.group(1))
 
 
 def _link_args(port: int) -> list[str]:
@@ -236,35 +227,20 @@ def test_cli_sim_status_execute_stop(
 
 def test_cli_sim_over_pty(capsys: pytest.CaptureFixture[str]) -> None:
     """``pugsd arm sim --transport serial`` creates a pty; ``arm status`` reads it via pyserial."""
-    cmd = [sys.executable, "-m", "pugsd", "arm", "sim", "--transport", "serial", "--duration", "20"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        assert proc.stdout is not None
-        line = proc.stdout.readline()
+    with _sim("--transport", "serial", "--duration", "20") as line:
         m = re.search(r"serial pty (\S+)", line)
         assert m, line
         rc, out = _cli(capsys, "arm", "status", "--json", "--set", f"arm.serial.port={m.group(1)}")
         assert rc == 0
         st = json.loads(out)
         assert st["transport"] == "serial" and st["joints"][1]["position"] == pytest.approx(1.2)
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
 
 
 def test_cli_sim_over_udp_prints_the_settings_a_client_needs(capsys: pytest.CaptureFixture[str]) -> None:
     """The ``(use --set ...)`` hint of ``pugsd arm sim --transport udp`` is enough on its own:
     passed verbatim to ``pugsd arm status``, which defaults to ``arm.transport = "serial"``, it
     reaches the simulator (the hint named the UDP host and port but not the transport)."""
-    cmd = [sys.executable, "-m", "pugsd", "arm", "sim", "--transport", "udp", "--port", "0", "--duration"]
-    proc = subprocess.Popen([*cmd, "20"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        assert proc.stdout is not None
-        line = proc.stdout.readline()
+    with _sim("--transport", "udp", "--port", "0", "--duration", "20") as line:
         m = re.search(r"\(use ([^)]*)\)", line)
         assert m, line
         hint = m.group(1).split()
@@ -273,13 +249,6 @@ def test_cli_sim_over_udp_prints_the_settings_a_client_needs(capsys: pytest.Capt
         assert rc == 0, out
         st = json.loads(out)
         assert st["transport"] == "udp" and st["joints"][1]["position"] == pytest.approx(1.2)
-    finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
 
 
 def test_fetch_latest_grasps_over_loopback_zenoh() -> None:
