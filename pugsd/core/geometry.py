@@ -40,18 +40,6 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray | None = None) -
     return make_T(np.stack([x, y, z], axis=1), np.asarray(eye, float))
 
 
-def quat_xyzw_to_R(q_xyzw: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit quaternion in ROS order (x, y, z, w)."""
-    x, y, z, w = np.asarray(q_xyzw, dtype=np.float64)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def compose_pose_cov(
     T_W_B: np.ndarray, cov_B: np.ndarray | None, T_B_C: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray | None]:

@@ -9,8 +9,9 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from pugsd.configbase import opt
-from pugsd.core.geometry import make_T, quat_xyzw_to_R
+from pugsd.core.geometry import make_T
 from pugsd.errors import ConfigError
+from pugsd.wire.codec import quat_to_matrix
 from pugsd.wire.topics import graph_token_problems
 
 
@@ -195,8 +196,7 @@ class DaemonConfig:
         """The camera's mount in the pose input's frame (4x4), None when it is the identity."""
         if tuple(self.T_B_C_xyz_m) == (0.0, 0.0, 0.0) and tuple(self.T_B_C_quat_xyzw) == (0.0, 0.0, 0.0, 1.0):
             return None
-        q = np.asarray(self.T_B_C_quat_xyzw, dtype=np.float64)
-        return make_T(quat_xyzw_to_R(q / np.linalg.norm(q)), np.asarray(self.T_B_C_xyz_m, dtype=np.float64))
+        return make_T(quat_to_matrix(*self.T_B_C_quat_xyzw), np.asarray(self.T_B_C_xyz_m, dtype=np.float64))
 
 
 _NOT_TOPICS = ("key_style", "hash_mode", "pose_type", "ros_graph_tokens")

@@ -8,17 +8,18 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation as Rot
 
-from pugsd.core.geometry import compose_pose_cov, make_T, quat_xyzw_to_R, skew
+from pugsd.core.geometry import compose_pose_cov, make_T, skew
+from pugsd.wire.codec import quat_to_matrix
 
 
 def test_quaternion_in_ros_order() -> None:
     q = np.array([0.0, 0.0, np.sin(np.pi / 4), np.cos(np.pi / 4)])  # 90 deg about z
-    np.testing.assert_allclose(quat_xyzw_to_R(q), [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-15)
+    np.testing.assert_allclose(quat_to_matrix(*q), [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-15)
     rng = np.random.default_rng(0)
     for _ in range(5):
         q = rng.normal(size=4)
         q /= np.linalg.norm(q)
-        np.testing.assert_allclose(quat_xyzw_to_R(q), Rot.from_quat(q).as_matrix(), atol=1e-12)
+        np.testing.assert_allclose(quat_to_matrix(*q), Rot.from_quat(q).as_matrix(), atol=1e-12)
 
 
 def test_mount_closed_form() -> None:
