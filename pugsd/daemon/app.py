@@ -269,6 +269,10 @@ class Daemon:
         self._side_undecided = {"mask": True, "depth_std": True}
         self._frame_id = d.world_frame
         self.ingress = IngressGate(d.ingress_limit)
+        # receive times of the poses handed to the loop and not yet handled (appended by the zenoh
+        # thread, popped by the loop): while one that came before a frame's deadline is still
+        # queued behind a stall of the loop, that frame is not dropped for want of a pose
+        self._pose_backlog_s: deque[float] = deque()
         # queries and control puts waiting for the loop: bounded like the samples (a flood of
         # status queries must not pile up callbacks without limit); stops have their own bound,
         # so that such a flood never turns a stop away
@@ -670,6 +674,8 @@ class Daemon:
                 gate.leave()
                 self._bridge_error(role, exc)
                 return
+            if role == "pose":
+                self._pose_backlog_s.append(now_s)
             try:
                 loop.call_soon_threadsafe(self._on_inbound, item)
             except RuntimeError:  # loop closed during shutdown
@@ -886,6 +892,8 @@ class Daemon:
 
     def _on_inbound(self, item: Inbound) -> None:
         self.ingress.leave()
+        if item.role == "pose" and self._pose_backlog_s:
+            self._pose_backlog_s.popleft()
         self.health.count(f"received.{item.role}")
         if item.role in _STREAM_ROLES:
             now = time.monotonic()
@@ -1068,7 +1076,12 @@ class Daemon:
     def _poll_gate(self) -> None:
         """Release the frames whose pose is ready; a frame that fails is counted (a rejection,
         charged to the input at fault, or an internal error) and the others still go on."""
-        ready, dropped = self.gate.poll(time.monotonic(), self._pending)
+        now_s = time.monotonic()
+        # a frame's deadline counts as passed only before the oldest pose still queued for the
+        # loop came in: after a stall of the loop that pose is handled next and may be the frame's
+        backlog = self._pose_backlog_s
+        expire_s = min(now_s, backlog[0]) if backlog else now_s
+        ready, dropped = self.gate.poll(now_s, self._pending, expire_s)
         for _, reason in dropped:
             self._drop("pose_wait", reason)
         for (kind, payload, recv_s), stamp_ns, T, cov in ready:

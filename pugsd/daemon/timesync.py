@@ -356,12 +356,17 @@ class PoseGate(Generic[T]):
         return out
 
     def poll(
-        self, now_s: float, pending: Callable[[T, float], str | None] | None = None
+        self,
+        now_s: float,
+        pending: Callable[[T, float], str | None] | None = None,
+        expire_s: float | None = None,
     ) -> tuple[list[tuple[T, int, np.ndarray, np.ndarray]], list[tuple[T, str]]]:
         """(released: item, stamp, T_W_C, cov), (dropped: item, reason).
 
         ``pending(item, now_s)`` may hold an item back for another reason (e.g. its CameraInfo
-        has not arrived): it returns that reason, or None when the item may go.
+        has not arrived): it returns that reason, or None when the item may go. Items whose
+        deadline is before ``expire_s`` (default ``now_s``) are dropped: an earlier ``expire_s``
+        spares those whose pose may still be on its way (received, not yet handled).
         """
         ready: list[tuple[T, int, np.ndarray, np.ndarray]] = []
         dropped: list[tuple[T, str]] = []
@@ -378,7 +383,7 @@ class PoseGate(Generic[T]):
             elif res.state == "fail":
                 dropped.append((w.item, res.reason))
                 continue
-            if now_s >= w.deadline_s:
+            if (now_s if expire_s is None else expire_s) >= w.deadline_s:
                 what = "usable pose" if res.state != "ready" else "complete inputs"
                 dropped.append((w.item, f"no {what} within {self.wait_s:g} s ({why})"))
             else:
