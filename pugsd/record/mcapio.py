@@ -267,6 +267,18 @@ class FileInfo:
         }
 
 
+def _channel_infos(
+    channels: Mapping[int, Channel], schemas: Mapping[int, Schema], counts: Mapping[int, int]
+) -> list[ChannelInfo]:
+    """One ChannelInfo per channel, by channel id: topic, schema name, key, message count."""
+    out = []
+    for cid, ch in sorted(channels.items()):
+        sch = schemas.get(ch.schema_id)
+        name = sch.name if sch else ""
+        out.append(ChannelInfo(ch.topic, name, ch.metadata.get(KEY_METADATA, ""), counts.get(cid, 0)))
+    return out
+
+
 def scan(path: str | Path) -> FileInfo:
     """Topics, counts, duration and schemas of one file: from the summary when the file is
     complete, otherwise by streaming through it (``complete`` False, ``error`` says why)."""
@@ -292,16 +304,7 @@ def scan(path: str | Path) -> FileInfo:
             info.start_ns, info.end_ns = st.message_start_time, st.message_end_time
             info.chunk_count = st.chunk_count
             info.schemas = {s.name: s.encoding for s in summary.schemas.values()}
-            for cid, ch in sorted(summary.channels.items()):
-                sch = summary.schemas.get(ch.schema_id)
-                info.channels.append(
-                    ChannelInfo(
-                        ch.topic,
-                        sch.name if sch else "",
-                        ch.metadata.get(KEY_METADATA, ""),
-                        st.channel_message_counts.get(cid, 0),
-                    )
-                )
+            info.channels = _channel_infos(summary.channels, summary.schemas, st.channel_message_counts)
             with contextlib.suppress(Exception):
                 for md in reader.iter_metadata():
                     info.metadata[md.name] = dict(md.metadata)
@@ -315,16 +318,7 @@ def scan(path: str | Path) -> FileInfo:
     info.start_ns, info.end_ns = res.start_ns, res.end_ns
     info.profile, info.library = res.profile, res.library
     info.schemas = {s.name: s.encoding for s in res.schemas.values()}
-    for cid, ch in sorted(res.channels.items()):
-        sch = res.schemas.get(ch.schema_id)
-        info.channels.append(
-            ChannelInfo(
-                ch.topic,
-                sch.name if sch else "",
-                ch.metadata.get(KEY_METADATA, ""),
-                res.channel_counts.get(cid, 0),
-            )
-        )
+    info.channels = _channel_infos(res.channels, res.schemas, res.channel_counts)
     info.metadata = {m.name: dict(m.metadata) for m in res.metadata}
     return info
 
