@@ -24,7 +24,12 @@ class RecordConfig:
         unit="s",
         gt=0.0,
     )
-    rotate_size_bytes: int = opt(1073741824, "start a new file beyond this size", unit="B", ge=1048576)
+    rotate_size_bytes: int = opt(
+        1073741824,
+        "start a new file once the current one holds this much (on disk: the chunks written so far)",
+        unit="B",
+        ge=1048576,
+    )
     rotate_duration_s: float = opt(600.0, "start a new file after this long", unit="s", gt=0.0)
     max_total_bytes: int = opt(
         0,
