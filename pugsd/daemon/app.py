@@ -251,6 +251,7 @@ class Daemon:
         self._T_B_C = d.T_B_C  # the camera's mount on the body whose pose comes in (None: none)
         self._pose_publisher: bytes | None = None  # the GID poses are taken from (pose_publisher_hold_s)
         self._pose_publisher_s = 0.0  # time.monotonic() it was last heard
+        self._slow_pose_source_warned = False  # its poses came further apart than the hold
         self._publishers_reported: dict[str, int] = {}  # inputs logged with several publishers
         self.poses = PoseBuffer(q.poses, int(d.pose_max_gap_s * 1e9), default_cov)
         self.gate: PoseGate[tuple[str, Any, float]] = PoseGate(self.poses, d.pose_wait_s, q.pose_wait)
@@ -838,6 +839,14 @@ class Daemon:
                 f"are taken, was heard {max(silent_s, 0.0):.2f} s ago: ignored (two nodes publish on "
                 f"{item.key}? daemon.pose_publisher_hold_s = 0 takes every publisher's poses)",
             )
+        if gid == cur and silent_s > hold_s and not self._slow_pose_source_warned:
+            self._slow_pose_source_warned = True  # once: a second publisher would take turns
+            log.warning(
+                "pose: %.1f s between two poses of the followed publisher, more than "
+                "daemon.pose_publisher_hold_s = %g s: a second publisher on %s would be followed in "
+                "its gaps (raise the hold above the pose source's period)",
+                silent_s, hold_s, item.key,
+            )  # fmt: skip
         if cur is not None and gid != cur:
             self.health.count("pose_publisher_switches")
             log.warning(

@@ -114,7 +114,8 @@ class DaemonConfig:
         "was heard within this long, poses of any other are ignored and counted (a localiser "
         "launched twice, two nodes on one topic); after that much silence the next publisher is "
         "followed (a restarted localiser). Poses without an rmw_zenoh attachment are always "
-        "taken. 0: take poses from every publisher",
+        "taken. Keep it above the pose source's period (a slower source is warned of once). 0: "
+        "take poses from every publisher",
         unit="s",
         ge=0.0,
     )

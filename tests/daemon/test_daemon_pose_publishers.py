@@ -179,3 +179,23 @@ def test_active_publishers_stay_within_the_remembered_ones() -> None:
     assert t.snapshot()["publishers"] == {"pose": 2}
     assert t.observe_publisher("pose", b"short", 13.0) == (0, None)
     assert t.snapshot()["untracked"] == {"pose": 1}
+
+
+def test_a_pose_source_slower_than_the_hold_is_warned_of_once(
+    port: int, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A 0.5 Hz pose source with the 1 s hold: in each of its gaps a second publisher would be
+    followed, so the daemon says once that the hold is shorter than the source's period. A source
+    faster than the hold gets no warning."""
+    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    d = _daemon(port, pose_publisher_hold_s=1.0)
+    f = Feed(d)
+    for i in range(10):  # 10 Hz: no warning
+        f.pose(GID_A, T0 + i * 10**8, 0.0, 100.0 + 0.1 * i)
+    assert "pose_publisher_hold_s" not in caplog.text
+    for i in range(4):  # then 0.5 Hz
+        f.pose(GID_A, T0 + 10**9 * (2 + 2 * i), 0.0, 102.0 + 2.0 * i)
+    warned = [r for r in caplog.records if "more than daemon.pose_publisher_hold_s = 1 s" in r.getMessage()]
+    assert len(warned) == 1, caplog.text
+    assert "1.1 s between two poses" in warned[0].getMessage()
+    assert not d.health.rejected and d.health.counts.get("pose_publisher_switches", 0) == 0
