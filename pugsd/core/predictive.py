@@ -39,7 +39,21 @@ log = logging.getLogger(__name__)
 
 
 NUM_INDUCING_AUTO_CPU = 250
+ORIGIN_GRID_M = 1.0  # the model's local origin: the data's centre rounded to this grid
 NUM_INDUCING_AUTO_CUDA = 500
+
+
+def local_origin(x: np.ndarray) -> np.ndarray:
+    """The origin the SVGP's inputs are taken relative to: the centre of ``x`` (N, 3), rounded to
+    ``ORIGIN_GRID_M`` (a map within half a metre of the world origin keeps world coordinates).
+
+    The model runs in float32 by default, whose spacing is 1 mm at 10 km: world coordinates of a
+    map far from its frame's origin (a UTM-like frame, which the point store keys relative to its
+    first observation for the same reason) would put its inputs, inducing points and Algorithm 1's
+    sub-millimetre sigma points on that grid (variances off by 21 % at 10 km, 175 % at 100 km).
+    The shift is made in float64, before the cast."""
+    c = 0.5 * (np.min(x, axis=0) + np.max(x, axis=0))
+    return np.asarray(np.round(c / ORIGIN_GRID_M) * ORIGIN_GRID_M, dtype=np.float64)
 
 
 def resolve_num_inducing(num_inducing: int, device_type: str) -> int:
@@ -164,6 +178,9 @@ class OccupancySVGP:
         self._rng = np.random.default_rng(cfg.seed)
         self.model: _SVGP | None = None
         self.likelihood: gpytorch.likelihoods.GaussianLikelihood | None = None
+        # inputs are modelled relative to this point (``local_origin``), set when a model is created;
+        # inducing points are stored in these local coordinates
+        self.origin = np.zeros(3)
         self.total_steps = 0
         self.steps_since_init = 0
         self._moves: collections.deque[tuple[int, int]] = collections.deque()  # (step, points moved)
@@ -180,6 +197,10 @@ class OccupancySVGP:
     # ------------------------------------------------------------------ set-up
     def _t(self, a: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(a, dtype=self.dtype, device=self.device)
+
+    def _local(self, x: np.ndarray) -> np.ndarray:
+        """World points (N, 3) in the model's local coordinates (float64 subtraction)."""
+        return np.asarray(x, dtype=np.float64) - self.origin
 
     def _init_model(self, x: np.ndarray, y: np.ndarray, num_inducing: int | None = None) -> None:
         m = self.num_inducing if num_inducing is None else num_inducing
@@ -239,8 +260,9 @@ class OccupancySVGP:
         )
 
     def load_state(self, state: tuple[dict[str, Any], dict[str, Any]]) -> None:
-        """Restore parameters taken by ``state`` (same inducing count), dropping gpytorch's
-        memoised factorisations of the old ones."""
+        """Restore parameters taken by ``state`` (same inducing count; inducing points are in
+        the local coordinates of ``origin``, so from this model or one with the same origin),
+        dropping gpytorch's memoised factorisations of the old ones."""
         assert self.model is not None and self.likelihood is not None
         self.model.load_state_dict(state[0])
         self.likelihood.load_state_dict(state[1])
@@ -311,6 +333,8 @@ class OccupancySVGP:
             raise EmptyCloudError("no training points")
         self.natural = False
         self.reset()
+        self.origin = local_origin(x)
+        x = self._local(x)
         self._init_model(x, y, self.cfg.paper_num_inducing)
         xt, yt = self._t(x), self._t(y)
         n = len(x)
@@ -332,6 +356,9 @@ class OccupancySVGP:
         n = len(x)
         if n == 0:
             raise EmptyCloudError("no training points")
+        if self.model is None:
+            self.origin = local_origin(x)
+        x = self._local(x)
         moved = 0
         if self.model is None:
             self.natural = self.cfg.natural_gradient
@@ -632,6 +659,7 @@ class OccupancySVGP:
             raise ModelNotReadyError("the SVGP has not been trained")
         if len(x) == 0:
             raise EmptyCloudError("no training points")
+        x_W, x = x, self._local(x)
         model = self.model
         vs = model.variational_strategy
         f64 = torch.float64
@@ -656,7 +684,7 @@ class OccupancySVGP:
             S = 0.5 * (S + S.mT)
             self._write_whitened_q(S @ Ay / noise, S, prec)
         self.version += 1
-        return self.elbo_per_point(x, y, chunk)
+        return self.elbo_per_point(x_W, y, chunk)
 
     def elbo_per_point(self, x: np.ndarray, y: np.ndarray, chunk: int = 4096) -> float:
         """The ELBO of the current model on all of ``(x, y)``, per point (full data, no minibatch
@@ -664,6 +692,7 @@ class OccupancySVGP:
         if self.model is None or self.likelihood is None:
             raise ModelNotReadyError("the SVGP has not been trained")
         n = len(x)
+        x = self._local(x)
         mll = gpytorch.mlls.VariationalELBO(self.likelihood, self.model, num_data=n)
         self.model.train()
         self.likelihood.train()
@@ -684,7 +713,7 @@ class OccupancySVGP:
         Eq. 8 (``output_units = density``; pass 1 for the normalised units)."""
         if self.model is None or self.likelihood is None:
             raise ModelNotReadyError("the SVGP has not been trained")
-        return _predict(self.model, self.likelihood, self.cfg, self._t, x, scale)
+        return _predict(self.model, self.likelihood, self.cfg, self._t, self._local(x), scale)
 
     def snapshot(self) -> SvgpSnapshot:
         """A frozen copy of the current model for prediction on another thread while this one
@@ -701,7 +730,7 @@ class OccupancySVGP:
         lik = gpytorch.likelihoods.GaussianLikelihood().to(device=self.device, dtype=self.dtype)
         lik.load_state_dict(self.likelihood.state_dict())
         _acyclic(model, lik)  # freed when the grasp thread drops it (one a second), not by a full gc
-        return SvgpSnapshot(model, lik, self.cfg, self._t)
+        return SvgpSnapshot(model, lik, self.cfg, self._t, self.origin.copy())
 
 
 class SvgpSnapshot:
@@ -713,12 +742,16 @@ class SvgpSnapshot:
         likelihood: gpytorch.likelihoods.GaussianLikelihood,
         cfg: SvgpConfig,
         to_tensor: Any,
+        origin: np.ndarray | None = None,
     ) -> None:
         self._model, self._likelihood, self._cfg, self._t = model, likelihood, cfg, to_tensor
+        self._origin = None if origin is None else np.asarray(origin, dtype=np.float64)
 
     def predict(self, x: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Eq. 7-8, as ``OccupancySVGP.predict``."""
-        return _predict(self._model, self._likelihood, self._cfg, self._t, x, scale)
+        """Eq. 7-8, as ``OccupancySVGP.predict`` (world points, taken relative to the model's
+        local origin; None: the model's inputs are taken as they are)."""
+        x_local = x if self._origin is None else np.asarray(x, dtype=np.float64) - self._origin
+        return _predict(self._model, self._likelihood, self._cfg, self._t, x_local, scale)
 
 
 def _predict(
