@@ -36,6 +36,8 @@ def _close_all() -> None:
         r.close()
 
 
+# the grid's local origin (``Reconstruction.origin_W``) is snapped to multiples of this many voxels
+ORIGIN_GRID_VOXELS = 8 * 4096
 VIEW_MERGE_M = 0.01  # camera centres closer than this to a kept one are not kept again
 MAX_VIEWS = 2048
 
@@ -59,6 +61,11 @@ class Reconstruction:
             device=o3d.core.Device("CPU:0"),
         )
         self.frames = 0
+        # open3d keeps the grid's points in float32 (1 mm spacing at 10 km, 8 mm at 100 km): the
+        # grid works relative to this origin, set by the first frame (its camera centre snapped to
+        # ORIGIN_GRID_VOXELS voxels, about 98 m at 3 mm: a map near the world origin keeps world
+        # coordinates, and the voxel lattice stays aligned with the world's)
+        self.origin_W: np.ndarray | None = None
         self.camera_centers_W: list[np.ndarray] = []
         # the frame (1-based) that last touched each buffer slot of the grid's block hash map
         self._last_seen = np.zeros(self._vbg.hashmap().capacity(), dtype=np.int64)
@@ -85,7 +92,12 @@ class Reconstruction:
             return
         cam = frame.camera
         K = o3d.core.Tensor(cam.K, o3d.core.float64)
-        T_C_W = np.linalg.inv(frame.T_W_C)
+        if self.origin_W is None:
+            g = ORIGIN_GRID_VOXELS * self.cfg.tsdf_voxel_m
+            self.origin_W = np.round(frame.T_W_C[:3, 3] / g) * g
+        T_L_C = np.array(frame.T_W_C, dtype=np.float64)
+        T_L_C[:3, 3] -= self.origin_W  # camera -> the grid's local frame (float64)
+        T_C_W = np.linalg.inv(T_L_C)
         ext = o3d.core.Tensor(T_C_W, o3d.core.float64)
         depth_img = o3d.t.geometry.Image(o3d.core.Tensor(depth))
         if frame.color is not None:
@@ -158,6 +170,8 @@ class Reconstruction:
             raise EmptyCloudError("no depth frames integrated")
         pcd = self._vbg.extract_point_cloud(weight_threshold=1.0)
         pts = pcd.point.positions.numpy().astype(np.float64)
+        if self.origin_W is not None:
+            pts = pts + self.origin_W
         if len(pts) == 0:
             raise EmptyCloudError("the TSDF holds no surface")
         # the voxel hash map returns blocks in a run-dependent order: sort so that the seeded
