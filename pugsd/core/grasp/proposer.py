@@ -149,8 +149,12 @@ class AntipodalProposer:
         if len(points_W) < 10:
             raise EmptyCloudError(f"grasp proposal needs a cloud, got {len(points_W)} points")
         cfg, g = self.cfg, self.g
-        pts = np.asarray(points_W, dtype=np.float64)
-        views = np.atleast_2d(view_origins_W)
+        # the search runs relative to the cloud's centre (rounded to 1 m: a cloud near the world
+        # origin keeps world coordinates): open3d's PCA normals take the covariance from raw sums,
+        # which in a UTM-like frame (coordinates in the millions of metres) cancel to noise
+        origin_W = np.round(0.5 * (np.min(points_W, axis=0) + np.max(points_W, axis=0)))
+        pts = np.asarray(points_W, dtype=np.float64) - origin_W
+        views = np.atleast_2d(view_origins_W) - origin_W
         normals = estimate_normals(pts, cfg.normal_radius_m, views) if normals_W is None else normals_W
         tree = cKDTree(pts)
         # the cloud's bounding sphere: when a search ball holds it whole, the ball query (which
@@ -208,6 +212,7 @@ class AntipodalProposer:
             out_conf[i] = cos_p * cos_q * (1.0 - np.exp(-support / 20.0)) * pref
             out_valid[i] = True
         out_a[~out_valid] = _orthonormal(out_b[~out_valid])[0] if (~out_valid).any() else out_a[~out_valid]
+        out_contact += origin_W  # back in the world frame
         poses = grasp_poses(out_contact, out_b, out_a, out_w, g.depth_m)
         return GraspSet(
             contact=out_contact,
