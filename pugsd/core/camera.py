@@ -69,6 +69,14 @@ class PinholeCamera:
     def rays(self) -> np.ndarray:
         """Eq. 1 ray ``r(u, v) = K^-1 [u, v, 1]^T`` for every pixel: (H, W, 3), unit z component."""
         v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
+        return self.rays_at(v, u)
+
+    def rays_at(self, v: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The rays of ``rays()`` at pixel rows ``v`` and columns ``u`` only: (..., 3). For a few
+        pixels of a large image (a back-projection keeps at most ``max_points_per_frame``) this
+        costs what those pixels cost, not what the image does."""
+        v = np.asarray(v, dtype=np.float64)
+        u = np.asarray(u, dtype=np.float64)
         y = (v - self.cy) / self.fy
         x = (u - self.cx - self.skew * y) / self.fx
         return np.stack([x, y, np.ones_like(x)], axis=-1)

@@ -101,7 +101,10 @@ class Observation:
         cap = self.cfg.max_points_per_frame
         if cap and idx.size > cap:
             idx = np.sort(self._rng.choice(idx, size=cap, replace=False))
-        rays = frame.camera.rays().reshape(-1, 3)[idx]
+        # the rays of the kept pixels only: the whole image's (H x W x 3 float64, with its index
+        # grids) cost 140 MiB and 40-90 ms per 1920 x 1200 depth frame for 20000 kept points
+        rows, cols = np.divmod(idx, depth.shape[1])
+        rays = frame.camera.rays_at(rows, cols)
         d = depth.reshape(-1)[idx].astype(np.float64)
         if frame.sigma_m is not None:
             s2 = frame.sigma_m.reshape(-1)[idx].astype(np.float64) ** 2
