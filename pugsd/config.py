@@ -39,8 +39,9 @@ class StereoConfig:
     num_disparities: int = opt(
         0,
         "disparity search range at full resolution (scaled by downsample); 0: sized from the rig "
-        "in CameraInfo to reach min_depth_m (a nearer surface is matched at a wrong disparity, "
-        "not rejected)",
+        "in CameraInfo to reach min_depth_m, at most half the image width (nearer than f_x B / "
+        "(W / 2), 1.9 B at 56 deg HFOV, no setting measures the image centre; a nearer surface is "
+        "matched at a wrong disparity, not rejected, and the log says so)",
         unit="px",
         ge=0,
         le=65520,  # the SGBM parameters are C ints; no image is wider (a multiple of 16)

@@ -13,6 +13,9 @@ largest disparity invalid, it matches it at a wrong (aliased) disparity, i.e. a 
 
 from __future__ import annotations
 
+import dataclasses
+import logging
+
 import cv2
 import numpy as np
 
@@ -20,6 +23,8 @@ from pugsd.config import StereoConfig
 from pugsd.core.camera import StereoRig
 from pugsd.core.types import DepthFrame, StereoFrame
 from pugsd.errors import ImageSizeError
+
+log = logging.getLogger(__name__)
 
 _MODES = {
     "sgbm": cv2.STEREO_SGBM_MODE_SGBM,
@@ -76,11 +81,43 @@ def reach_m(cfg: StereoConfig, rig: StereoRig) -> float:
     return float(cam.fx * rig.baseline_m / max(d_max, 1))
 
 
+def search_shortfall(cfg: StereoConfig, rig: StereoRig) -> str | None:
+    """Why the disparity search cannot measure down to ``min_depth_m`` on ``rig``, with what to do
+    about it; None when it can. A surface nearer than the search reaches is matched at a wrong
+    disparity, not rejected. The search sized from the rig (``num_disparities = 0``) stops at half
+    the matched width, about ``f_x B / (W / 2)`` whatever the downsampling (1.9 B for the
+    simulated 56 deg camera: 0.47 m for a 25 cm baseline): nearer than that, a surface in the
+    middle of the left image is out of the right camera's view, and no setting measures it."""
+    near = reach_m(cfg, rig)
+    if near <= cfg.min_depth_m * 1.001:
+        return None
+    cam = rig.left
+    head = (
+        f"on this rig (fx {cam.fx:.1f} px, baseline {rig.baseline_m:.3f} m, {cam.width} px wide) the "
+        f"disparity search reaches only {near:.3f} m, not stereo.min_depth_m = {cfg.min_depth_m:.3f} m: "
+        "a nearer surface gets a wrong depth (SGBM matches it at an aliased disparity, it is not "
+        "rejected)"
+    )
+    auto = reach_m(dataclasses.replace(cfg, num_disparities=0), rig)
+    if cfg.num_disparities > 0 and auto < 0.999 * near:
+        return head + (
+            f"; set stereo.num_disparities = 0 (sized from the rig: it reaches {auto:.3f} m) or raise it"
+        )
+    return head + (
+        "; the search is capped at half the matched image width: nearer, a surface in the middle "
+        "of the left image is out of the right camera's view, at any stereo.downsample. Keep the "
+        f"object farther than {near:.3f} m (a shorter baseline or a wider lens measures nearer), "
+        f"and set stereo.min_depth_m to about {near:.3f} m to say so"
+    )
+
+
 class StereoDepth:
-    """Rectified pair -> ``DepthFrame`` (stateless; safe to call from any thread)."""
+    """Rectified pair -> ``DepthFrame`` (safe to call from any thread: its one piece of state is
+    the rig last checked by ``search_shortfall``; a race between threads warns twice at worst)."""
 
     def __init__(self, cfg: StereoConfig) -> None:
         self.cfg = cfg
+        self._checked_rig: tuple[float, float, int] | None = None  # (fx, baseline, width)
 
     def _matcher(self, channels: int, rig: StereoRig) -> cv2.StereoSGBM:
         c = self.cfg
@@ -107,6 +144,12 @@ class StereoDepth:
         cam = frame.rig.left.scaled(f)
         left = _down(_gray(frame.left), f)
         right = _down(_gray(frame.right), f)
+        key = (frame.rig.left.fx, frame.rig.baseline_m, frame.rig.left.width)
+        if key != self._checked_rig:  # once per rig (the latest: a bounded memory, however many)
+            self._checked_rig = key
+            problem = search_shortfall(c, frame.rig)
+            if problem is not None:
+                log.warning("stereo: %s", problem)
         # SGBM's own precondition (stereosgbm.cpp), checked here: OpenCV raises a bare cv2.error
         min_d, levels = c.min_disparity // f, disparity_levels(c, frame.rig)
         if left.shape[1] - (min_d + levels) <= c.block_size // 2:

@@ -43,7 +43,6 @@ import zenoh
 from pugsd.config import config_warnings
 from pugsd.core.camera import StereoRig
 from pugsd.core.geometry import compose_pose_cov
-from pugsd.core.stereo import reach_m as stereo_reach_m
 from pugsd.core.types import DepthFrame, ScoredGrasps, StereoFrame
 from pugsd.daemon.health import Health
 from pugsd.daemon.mailbox import Mailbox, Overflow
@@ -330,7 +329,6 @@ class Daemon:
         # clock offset between camera and pose source (frames then drop waiting for a pose)
         self._stamp_skew_s: deque[float] = deque(maxlen=200)
         self._stale_reported: set[str] = set()  # streams logged as stale and not yet resumed
-        self._short_search_rig: tuple[float, float, int] | None = None  # rig warned of, see _stereo_rig
         # the outputs' stamp: written and read under _model_lock (with the map it labels)
         self._newest_stamp_ns = 0
         self.grasps_published = 0
@@ -1109,19 +1107,8 @@ class Daemon:
             left, right = self._infos.get("left_info"), self._infos.get("right_info")
             if left is None or right is None:
                 raise DecodeError("stereo: no CameraInfo for both cameras yet")
+            # (a disparity search short of min_depth_m is logged by the stereo stage, once per rig)
             self._rig = codec.stereo_rig_from_infos(left, right)
-            scfg = self.cfg.stereo
-            near_m = stereo_reach_m(scfg, self._rig)
-            rig_key = (self._rig.left.fx, self._rig.baseline_m, self._rig.left.width)
-            # CameraInfo usually comes with every image and resets _rig: warn once per rig
-            if near_m > scfg.min_depth_m * 1.001 and rig_key != self._short_search_rig:
-                self._short_search_rig = rig_key
-                log.warning(
-                    "stereo: on this rig (fx %.1f px, baseline %.3f m) the disparity search reaches "
-                    "only %.3f m, not stereo.min_depth_m = %.3f m: a nearer surface gets a wrong "
-                    "depth; set stereo.num_disparities = 0 (sized from the rig) or raise it",
-                    self._rig.left.fx, self._rig.baseline_m, near_m, scfg.min_depth_m,
-                )  # fmt: skip
         return self._rig
 
     def _emit_stereo(

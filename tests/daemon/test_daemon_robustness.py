@@ -516,15 +516,29 @@ def test_a_disparity_search_short_of_min_depth_is_logged_once_per_rig(
     port: int, client: zenoh.Session, caplog: pytest.LogCaptureFixture
 ) -> None:
     """On the tests' 64 x 48 rig (f B = 0.75 px m at 1/4) a search for 1 cm would need 76 levels;
-    it is capped at half the 16-px matched width (16 levels: 5 cm). The daemon says so once."""
-    from pugsd.core.stereo import disparity_levels, reach_m
+    it is capped at half the 16-px matched width (16 levels: 5 cm). The daemon's stereo stage
+    says so once, though CameraInfo comes with every frame (the fake pipeline hands each pair to
+    the real StereoDepth first, which then refuses these 16-px-wide images as too small)."""
+    from pugsd.core.stereo import StereoDepth, disparity_levels, reach_m
+    from pugsd.errors import ImageSizeError
 
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd.core.stereo")
     cfg = daemon_config_dict(port)
     cfg["stereo"] = {"min_depth_m": 0.01}
     config = load_config_dict(cfg)
     assert disparity_levels(config.stereo, RIG) == 16 and reach_m(config.stereo, RIG) == pytest.approx(0.05)
-    pipe = FakePipeline()
+    stereo = StereoDepth(config.stereo)
+    refused: list[int] = []
+
+    class _Pipe(FakePipeline):
+        def depth_from_stereo(self, frame: StereoFrame) -> DepthFrame:
+            try:
+                stereo.estimate(frame)
+            except ImageSizeError:
+                refused.append(frame.stamp_ns)
+            return super().depth_from_stereo(frame)
+
+    pipe = _Pipe()
     dt, src = start_with_source(config, client, pipe)
     d = dt.daemon
     try:
@@ -533,6 +547,7 @@ def test_a_disparity_search_short_of_min_depth_is_logged_once_per_rig(
             src.stereo(10**9 + i * 10**8, pose_at(0.01 * i), seed=i)
             time.sleep(0.05)
         wait_for(lambda: _passed_on(d, pipe) == 3, 10.0, "three frames passed on")
+        assert len(refused) == 3
         msgs = [r.getMessage() for r in caplog.records if "disparity search reaches" in r.getMessage()]
         assert len(msgs) == 1 and "only 0.050 m" in msgs[0] and "0.010 m" in msgs[0], msgs
     finally:
