@@ -9,13 +9,16 @@ fixed budget and cleaned by statistical outlier removal (paper: std ratio 0.01).
 from __future__ import annotations
 
 import atexit
+import dataclasses
 import weakref
 from typing import Any
 
+import cv2
 import numpy as np
 import open3d as _o3d
 
 from pugsd.config import ReconstructionConfig
+from pugsd.core.camera import PinholeCamera
 from pugsd.core.types import DepthFrame
 from pugsd.errors import EmptyCloudError
 
@@ -40,6 +43,26 @@ def _close_all() -> None:
 ORIGIN_GRID_VOXELS = 8 * 4096
 VIEW_MERGE_M = 0.01  # camera centres closer than this to a kept one are not kept again
 MAX_VIEWS = 2048
+
+
+def _unskew(
+    depth: np.ndarray, color: np.ndarray | None, cam: PinholeCamera
+) -> tuple[np.ndarray, np.ndarray | None, PinholeCamera]:
+    """The depth (and colour) image as the same camera without skew sees it: open3d's TSDF
+    projects with fx, fy, cx, cy only and ignores ``K[0, 1]``, which put a skewed camera's
+    surface up to centimetres off (a sphere 0.5 m away at skew = 0.2 fx: median 3.5 mm, p95
+    13 mm). Pixel (u0, v) of the skew-free camera looks along the ray that the skewed camera
+    sees at ``u = u0 + s (v - cy) / fy``; the z-depth along a ray does not change. Nearest
+    neighbour: depth is not blended across edges."""
+    h, w = depth.shape
+    v, u0 = np.mgrid[0:h, 0:w].astype(np.float32)
+    map_u = (u0 + np.float32(cam.skew) * (v - np.float32(cam.cy)) / np.float32(cam.fy)).astype(np.float32)
+    out = cv2.remap(depth, map_u, v, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    col = None
+    if color is not None:
+        col = cv2.remap(np.ascontiguousarray(color), map_u, v, cv2.INTER_NEAREST,
+                        borderMode=cv2.BORDER_CONSTANT, borderValue=0)  # fmt: skip
+    return out, col, dataclasses.replace(cam, skew=0.0)
 
 
 class Reconstruction:
@@ -91,6 +114,9 @@ class Reconstruction:
         if not np.any(depth > 0):
             return
         cam = frame.camera
+        color_in = frame.color
+        if cam.skew != 0.0:
+            depth, color_in, cam = _unskew(depth, color_in, cam)
         K = o3d.core.Tensor(cam.K, o3d.core.float64)
         if self.origin_W is None:
             g = ORIGIN_GRID_VOXELS * self.cfg.tsdf_voxel_m
@@ -100,8 +126,8 @@ class Reconstruction:
         T_C_W = np.linalg.inv(T_L_C)
         ext = o3d.core.Tensor(T_C_W, o3d.core.float64)
         depth_img = o3d.t.geometry.Image(o3d.core.Tensor(depth))
-        if frame.color is not None:
-            color = frame.color.astype(np.float32) / 255.0
+        if color_in is not None:
+            color = color_in.astype(np.float32) / 255.0
         else:
             color = np.full((*depth.shape, 3), 0.5, np.float32)
         color_img = o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(color)))
