@@ -91,3 +91,35 @@ def test_observed_variance_is_the_latent_one_plus_the_scaled_noise() -> None:
     mu, var, pred = out["observed"]
     np.testing.assert_allclose(pred, var / (1.0 + np.abs(mu)), rtol=1e-12)
     assert noise * s2 > 1e-2 * out["latent"][1].max()  # far above the rtol: the check sees it
+
+
+def test_the_streaming_origin_follows_a_map_that_moves() -> None:
+    """A long transect: the point store forgets the oldest voxels, so the streaming model's data
+    can end up kilometres from where its origin was set (float32 at 2-4 km changed variances by
+    5-6 %). Once the data's centre is RECENTRE_M away, the origin follows and the inducing points
+    are shifted with it: in float64 the model is then the same function of world coordinates to
+    rounding (a sign error in the shift would move the whole field), and after the map has moved
+    3 km the origin is where the data are."""
+    x, y, q = _scene()
+    m = OccupancySVGP(SvgpConfig(num_inducing=48, batch_size=256, seed=3, dtype="float64"))
+    m.update(x, y, np.arange(len(x)), steps=10)
+    np.testing.assert_array_equal(m.origin, np.zeros(3))
+    before = m.predict(q)
+    m._recentre(np.array([30.0, 0.0, 0.0]))  # under RECENTRE_M: nothing moves
+    np.testing.assert_array_equal(m.origin, np.zeros(3))
+    m._recentre(np.array([60.0, -70.0, 5.0]))
+    np.testing.assert_array_equal(m.origin, [60.0, -70.0, 5.0])
+    after = m.predict(q)
+    for a, b in zip(after, before, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=0)
+    assert m._good_state is not None  # a failure now restores inducing points in these coordinates
+    np.testing.assert_allclose(
+        m._good_state[0]["variational_strategy.inducing_points"].numpy(),
+        m.model.variational_strategy.inducing_points.detach().numpy(),  # type: ignore[union-attr]
+    )
+
+    far = np.array([3000.0, 1000.0, 0.0])
+    m32 = OccupancySVGP(SvgpConfig(num_inducing=48, batch_size=256, seed=3))
+    m32.update(x, y, np.arange(len(x)), steps=5)
+    m32.update(x + far, y, np.arange(len(x)), steps=5)  # the map has moved on
+    np.testing.assert_allclose(m32.origin, far)  # the new data sit near zero in its coordinates
