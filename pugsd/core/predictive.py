@@ -43,6 +43,10 @@ ORIGIN_GRID_M = 1.0  # the model's local origin: the data's centre rounded to th
 # the streaming model's origin follows its data once their centre is this far from it (a long
 # transect: float32 at 2-4 km from the origin changed predictive variances by 5-6 %)
 RECENTRE_M = 50.0
+# an inducing point this many lengthscales outside the store's bounding box along some axis no
+# longer describes any data (kernel with every point below 1.1 % for the RBF, 2.8 % for Matern 5/2)
+ORPHAN_LENGTHSCALES = 3.0
+ORPHAN_FPS_POINTS = 16384  # orphaned inducing points are re-placed by FPS over at most this many points
 NUM_INDUCING_AUTO_CUDA = 500
 
 
@@ -103,11 +107,12 @@ def _acyclic(model: torch.nn.Module, likelihood: torch.nn.Module) -> None:
 
 
 def farthest_point_sample(
-    points: np.ndarray, m: int, seed: int = 0, chosen: np.ndarray | None = None
+    points: np.ndarray, m: int, seed: int = 0, chosen: np.ndarray | None = None, kdtree: bool = False
 ) -> np.ndarray:
     """Indices of ``m`` farthest-point samples (greedy, O(N m)). With ``chosen`` (K, 3) points
     already in the sample, the greedy sample continues from them (the first pick is the point
-    farthest from them, not a random one)."""
+    farthest from them, not a random one). ``kdtree``: the distances to ``chosen`` from a KD-tree
+    (O(N log K) instead of O(N K); equal up to rounding, so ties may break differently)."""
     n = len(points)
     if n == 0:
         return np.zeros(0, dtype=np.int64)
@@ -115,7 +120,10 @@ def farthest_point_sample(
     idx = np.empty(m, dtype=np.int64)
     if m == 0:
         return idx
-    if chosen is not None and len(chosen):
+    if chosen is not None and len(chosen) and kdtree:
+        d2 = cKDTree(np.asarray(chosen, dtype=np.float64)).query(points)[0] ** 2
+        start = 0
+    elif chosen is not None and len(chosen):
         d2 = np.full(n, np.inf)
         for c in np.asarray(chosen, dtype=np.float64):
             d2 = np.minimum(d2, ((points - c) ** 2).sum(1))
@@ -545,27 +553,52 @@ class OccupancySVGP:
         self._moves.append((self.total_steps, k))
         return k
 
+    def _orphans(self, x: np.ndarray, Z: np.ndarray) -> np.ndarray:
+        """Inducing points (M,) that no longer describe any stored point: farther than
+        ``ORPHAN_LENGTHSCALES`` (ARD) lengthscales outside the bounding box of ``x`` along some axis.
+
+        The point store forgets its oldest voxels (``fof.max_voxels``), so on a transect the
+        inducing points placed on the first metres end up with no data near them. Kept, they hold
+        the model's capacity (7 of 250 inducing points on the last 2 m of a 100 m transect) and
+        stretch the inducing set over the whole transect, where float32 kernel distances (gpytorch
+        expands |a - b|^2 about the set's mean) lose their precision. The bounding box keeps this
+        exact and cheap: an inducing point placed on a stored point stays inside it while the
+        store keeps its points, so a scene whose store is not full moves nothing differently."""
+        assert self.model is not None
+        ls = self.model.covar_module.base_kernel.lengthscale.detach().double().cpu().numpy().reshape(3)
+        margin = ORPHAN_LENGTHSCALES * ls
+        lo, hi = np.min(x, axis=0) - margin, np.max(x, axis=0) + margin
+        return np.asarray((np.less(Z, lo) | np.greater(Z, hi)).any(axis=1))
+
     def _spread_inducing(self, x: np.ndarray, new_idx: np.ndarray) -> int:
         """Keep the inducing points spread like a farthest-point sample of everything observed
         (what the paper's batch fit starts from), incrementally (Sec. 5.1).
 
-        The spacing is the median nearest-neighbour distance among the inducing points. New points
+        Inducing points that no longer describe any stored point (``_orphans``: the store forgot
+        their data) are placed first, continuing the farthest-point sample of the store (a strided
+        subsample of at most ``ORPHAN_FPS_POINTS``) from the other inducing points. Then the
+        spacing is the median nearest-neighbour distance among the inducing points; new points
         farther than ``spread_factor`` spacings from every inducing point are covered greedily
         (farthest first, at most 30 % of M per update); each one takes the place of the most
-        crowded inducing point (the smallest nearest-neighbour distance). q(u) is re-projected."""
+        crowded inducing point (the smallest nearest-neighbour distance). q(u) is re-projected
+        once for all the moves."""
         assert self.model is not None
         vs = self.model.variational_strategy
         Z = vs.inducing_points.detach().double().cpu().numpy()
         m = len(Z)
+        fresh = self._orphans(x, Z)  # placed in this update: not removed again
+        k = int(fresh.sum())
+        if k:
+            sub = x[:: max(1, -(-len(x) // ORPHAN_FPS_POINTS))]
+            Z[fresh] = sub[farthest_point_sample(sub, k, self.cfg.seed, chosen=Z[~fresh], kdtree=True)]
+            log.info("SVGP: %d inducing points without data near them (the store forgot it) re-placed", k)
         D = np.sqrt(((Z[:, None, :] - Z[None, :, :]) ** 2).sum(-1))
         np.fill_diagonal(D, np.inf)
         thresh = self.cfg.spread_factor * float(np.median(D.min(1)))
         cand = x[new_idx]
         dc = cKDTree(Z).query(cand)[0]  # distance to the nearest inducing point (no (n, M, 3) temporary)
-        kmax = max(1, int(0.3 * m))
-        fresh = np.zeros(m, dtype=bool)  # placed in this update: not removed again
-        k = 0
-        while k < kmax:
+        budget = max(1, int(0.3 * m))
+        while budget > 0 and not fresh.all():
             j = int(np.argmax(dc))
             if dc[j] <= thresh:
                 break
@@ -579,6 +612,7 @@ class OccupancySVGP:
             D[:, r] = d_r
             dc = np.minimum(dc, np.sqrt(((cand - cand[j]) ** 2).sum(1)))
             k += 1
+            budget -= 1
         if k == 0:
             return 0
         with torch.no_grad():

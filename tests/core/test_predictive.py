@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from pugsd.config import SvgpConfig
-from pugsd.core.predictive import OccupancySVGP, farthest_point_sample
+from pugsd.core.predictive import ORPHAN_LENGTHSCALES, OccupancySVGP, farthest_point_sample
 from pugsd.errors import ModelNotReadyError
 
 
@@ -223,6 +223,34 @@ def test_spread_policy_keeps_inducing_points_like_a_farthest_point_sample() -> N
     assert per_strip.max() < 1.5 * fair, per_strip
 
 
+def test_inducing_points_follow_a_store_that_forgets() -> None:
+    """A transect: the store keeps the last five strips (``fof.max_voxels`` evicts the oldest).
+    Inducing points whose data were forgotten are re-placed over what the store holds, so after
+    the window has moved three times its own length the model's capacity is where its data are
+    (none more than ``ORPHAN_LENGTHSCALES`` lengthscales behind them, 73 % inside), covering them
+    about as well as a farthest-point sample (radius 1.15x). Before, the spread policy kept them
+    where they were placed (an old point is never the most crowded one): 35 % were inside, the
+    last 0.58 m behind, and the covering radius was 1.83x."""
+    rng = np.random.default_rng(4)
+    strip_m = 0.04
+
+    def strip(i: int) -> np.ndarray:
+        return np.c_[rng.uniform(strip_m * i, strip_m * (i + 1), (400, 1)), rng.uniform(0, 0.04, (400, 2))]
+
+    m = OccupancySVGP(SvgpConfig(num_inducing=60, seed=0, inducing_policy="spread"))
+    X = np.vstack([strip(i) for i in range(5)])
+    m.update(X, np.ones(len(X)), np.arange(len(X)), steps=2)
+    for i in range(5, 20):
+        X = np.vstack([X[X[:, 0] >= strip_m * (i - 4)], strip(i)])  # the oldest strip forgotten
+        m.update(X, np.ones(len(X)), np.arange(len(X) - 400, len(X)), steps=2)
+    Z = m.model.variational_strategy.inducing_points.detach().double().numpy() + m.origin  # type: ignore[union-attr]
+    ls = m.model.covar_module.base_kernel.lengthscale.detach().numpy().ravel()  # type: ignore[union-attr]
+    assert (Z[:, 0] > X[:, 0].min() - ORPHAN_LENGTHSCALES * ls[0]).all(), np.sort(Z[:, 0])[:5]
+    assert (Z[:, 0] >= X[:, 0].min()).mean() > 0.6
+    fps = X[farthest_point_sample(X, 60, 0)]
+    assert _covering_radius(Z, X) < 1.3 * _covering_radius(fps, X)
+
+
 def test_the_seed_fixes_the_streaming_fit() -> None:
     """Same seed, same data: the same fit, whatever the global torch RNG holds (gpytorch would
     otherwise re-draw q(u) from the global RNG at the first training call)."""
@@ -301,6 +329,16 @@ def test_fps_spreads_points() -> None:
     pts = np.r_[np.zeros((100, 3)), np.ones((1, 3))]
     idx = farthest_point_sample(pts, 2, seed=0)
     assert 100 in idx
+
+
+def test_fps_continuation_from_a_kdtree_is_the_same_sample() -> None:
+    rng = np.random.default_rng(5)
+    pts, chosen = rng.uniform(0, 1, (3000, 3)), rng.uniform(0, 1, (40, 3))
+    exact = farthest_point_sample(pts, 25, chosen=chosen)
+    np.testing.assert_array_equal(farthest_point_sample(pts, 25, chosen=chosen, kdtree=True), exact)
+    # the first pick is the point farthest from the chosen ones
+    d = np.sqrt(((pts[:, None, :] - chosen[None, :, :]) ** 2).sum(-1)).min(1)
+    assert exact[0] == int(np.argmax(d))
 
 
 def _cpu_and_cuda_models(
