@@ -103,6 +103,14 @@ def search_shortfall(cfg: StereoConfig, rig: StereoRig) -> str | None:
         return head + (
             f"; set stereo.num_disparities = 0 (sized from the rig: it reaches {auto:.3f} m) or raise it"
         )
+    if cfg.num_disparities > 0:
+        # an explicit range is used as given, beyond half the matched width too: not capped
+        return head + (
+            f"; stereo.num_disparities = {cfg.num_disparities} already searches half the matched image "
+            "width or more (the range sized from the rig stops at half): a larger one measures nearer only "
+            "in the right part of the left image, the rest is out of the right camera's view. Keep the "
+            f"object farther than {near:.3f} m, and set stereo.min_depth_m to about {near:.3f} m to say so"
+        )
     return head + (
         "; the search is capped at half the matched image width: nearer, a surface in the middle "
         "of the left image is out of the right camera's view, at any stereo.downsample. Keep the "

@@ -103,3 +103,20 @@ def test_the_tsdf_places_a_skewed_camera_s_surface_where_it_is(skew: float) -> N
     assert len(p) > 1000
     assert np.median(err_mm) < 1.0 and np.percentile(err_mm, 95) < 2.5, (
         np.median(err_mm), np.percentile(err_mm, 95))  # fmt: skip
+
+
+def test_an_explicit_range_beyond_half_the_width_is_not_reported_as_capped() -> None:
+    """num_disparities = 480 px on the 25 cm rig searches 128 levels of the 160-px matched width
+    (more than the 80 the range sized from the rig stops at) and reaches 0.295 m: the report must
+    not say the search is capped at half the width, nor advise num_disparities = 0 (which reaches
+    only 0.475 m)."""
+    from pugsd.core.camera import StereoRig
+    from pugsd.core.stereo import disparity_levels, search_shortfall
+
+    rig = StereoRig(PinholeCamera(600.0, 600.0, 319.5, 239.5, 640, 480), 0.25)
+    cfg = StereoConfig(num_disparities=480, min_depth_m=0.2)
+    assert disparity_levels(cfg, rig) == 128
+    msg = search_shortfall(cfg, rig)
+    assert msg is not None and "reaches only 0.295 m" in msg
+    assert "capped" not in msg and "num_disparities = 0" not in msg
+    assert "searches half the matched image width or more" in msg
