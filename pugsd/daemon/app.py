@@ -842,7 +842,8 @@ class Daemon:
             log.warning(
                 "pose: %.1f s between two poses of the followed publisher, more than "
                 "daemon.pose_publisher_hold_s = %g s: a second publisher on %s would be followed in "
-                "its gaps (raise the hold above the pose source's period)",
+                "such gaps (an outage of the source, or its period: if the source publishes this "
+                "slowly, raise the hold above its period; logged once)",
                 silent_s, hold_s, item.key,
             )  # fmt: skip
         if cur is not None and gid != cur:

@@ -348,7 +348,9 @@ class PoseGate(Generic[T]):
         ``pending(item, now_s)`` may hold an item back for another reason (e.g. its CameraInfo
         has not arrived): it returns that reason, or None when the item may go. Items whose
         deadline is before ``expire_s`` (default ``now_s``) are dropped: an earlier ``expire_s``
-        spares those whose pose may still be on its way (received, not yet handled).
+        spares those whose pose may still be on its way (received, not yet handled); it spares
+        every waiting item alike, those held back by ``pending`` too, for as long as that backlog
+        lasts.
         """
         ready: list[tuple[T, int, np.ndarray, np.ndarray]] = []
         dropped: list[tuple[T, str]] = []
