@@ -166,6 +166,38 @@ def test_store_cap_evicts_oldest() -> None:
     assert np.all(np.isfinite(store.raw_density()))
 
 
+def test_incremental_targets_match_full_on_a_transect_that_evicts() -> None:
+    """A full store on a transect: every batch evicts the oldest voxels. The incremental refresh
+    (the kept voxels' state carried over, the neighbours of evicted voxels marked dirty) must give
+    what a store refreshed in full gives, batch after batch, also with two batches between
+    refreshes, and refresh a neighbourhood of the changes rather than the store."""
+    rng = np.random.default_rng(12)
+    cfg = FofConfig(voxel_size_m=0.004, k_neighbours=10, max_voxels=6000)
+    inc, ref = FofStore(cfg), FofStore(cfg)
+    evicted_before = 0
+    for b in range(36):
+        x0 = 0.02 * b
+        n = 400
+        pts = np.c_[rng.uniform(x0, x0 + 0.08, n), rng.uniform(0, 0.12, n), rng.normal(0, 0.002, n)]
+        pts = np.concatenate([pts, rng.uniform([x0 - 0.1, -0.05, -0.05], [x0 + 0.1, 0.15, 0.05], (10, 3))])
+        cov = np.broadcast_to(np.diag([1e-6, 2e-6, 4e-6]), (len(pts), 3, 3)).copy()
+        for st in (inc, ref):
+            st.insert(pts, cov)
+        if b % 4 == 1:
+            continue  # two batches (two evictions) before the next refresh
+        changed = inc.update_targets()
+        ref.update_targets(full=True)
+        assert len(inc) == len(ref)
+        np.testing.assert_allclose(inc.mu_W, ref.mu_W, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(inc.cov_W, ref.cov_W, rtol=1e-12, atol=0)
+        np.testing.assert_allclose(inc.raw_density(), ref.raw_density(), rtol=1e-9, atol=0, err_msg=f"{b}")
+        np.testing.assert_allclose(inc._fused[: len(inc)], ref._fused[: len(ref)], rtol=1e-9, atol=1e-15)
+        if inc.evicted > evicted_before:
+            assert 0 < changed < 0.5 * len(inc), (b, changed)  # local, not the whole store
+        evicted_before = inc.evicted
+    assert inc.evicted > 2000
+
+
 def test_a_voxel_placed_in_an_evicted_slot_starts_from_nothing() -> None:
     """Eviction compacts the arrays; the freed slots must be cleared, or a new voxel placed there
     adds onto an evicted voxel's count and information sums."""
