@@ -130,7 +130,12 @@ def test_overload_real_pipeline(tmp_path: Path, port: int, client: zenoh.Session
     lat = st["latency"]
     mid = [m for t, m in rss if 20 < t <= 40]
     late = [m for t, m in rss if t > 40]
-    growth = max(late) - max(mid) if mid and late else 0.0
+    # the resident floor (lowest sample of a window): single samples swing by a few hundred MiB
+    # with the transient buffers of a grasp computation, whose cloud grows during the run. The
+    # windows' peaks grew by 45-347 MiB in runs of unchanged code (the test compared them and
+    # failed 4 of 11 runs, on this code and on the previous submission's); the floors grew by
+    # 8-39 MiB in three runs, and by 772 MiB with a leak of every emitted left image (~10 MB/s)
+    growth = min(late) - min(mid) if mid and late else 0.0
     summary = (
         f"offered {offered:.1f} frames/s, sustained {sustainable:.2f}/s "
         f"({offered / max(sustainable, 1e-9):.0f}x), paired {c.get('paired', 0)}, integrated "
@@ -138,7 +143,8 @@ def test_overload_real_pipeline(tmp_path: Path, port: int, client: zenoh.Session
         f"{mb['depth']['dropped']}, ingress {st['ingress']['dropped']}), frame age at "
         f"integrate {lat.get('frame_age_at_integrate')}, newest frame->grasps "
         f"{lat.get('newest_frame_to_grasps')}, RSS {rss[0][1]:.0f}->{rss[-1][1]:.0f} MiB "
-        f"(max at 20-40 s {max(mid):.0f}, after 40 s {max(late):.0f}), publisher put p50 "
+        f"(floor / max at 20-40 s {min(mid):.0f} / {max(mid):.0f}, after 40 s {min(late):.0f} / "
+        f"{max(late):.0f}), publisher put p50 "
         f"{pub['put_ms_p50']:.2f} ms max {pub['put_ms_max']:.1f} ms"
     )
     print("\noverload: " + summary)
@@ -152,7 +158,7 @@ def test_overload_real_pipeline(tmp_path: Path, port: int, client: zenoh.Session
     if "newest_frame_to_grasps" in lat:
         assert lat["newest_frame_to_grasps"]["max_ms"] < 20_000, summary
     # bounded: no further growth once warmed up (model, TSDF, allocator pools), and a sane total
-    assert growth < 150 and rss[-1][1] < 4096, summary
+    assert growth < 100 and max(m for _, m in rss) < 4096, summary
     assert pub["put_ms_p50"] < 5.0 and pub["put_ms_max"] < 500, summary
 
 
