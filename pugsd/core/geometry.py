@@ -20,6 +20,14 @@ def skew(v: np.ndarray) -> np.ndarray:
     )
 
 
+def grid_centre(points: np.ndarray, grid_m: float) -> np.ndarray:
+    """The centre of the bounding box of ``points`` (N, 3), rounded to multiples of ``grid_m``
+    (float64): a local origin that the core's float32 stages (SVGP, grasp search) work
+    relative to, so that a map far from its world frame's origin keeps its precision."""
+    c = 0.5 * (np.min(points, axis=0) + np.max(points, axis=0))
+    return np.asarray(np.round(c / grid_m) * grid_m, dtype=np.float64)
+
+
 def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = R

@@ -33,6 +33,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from pugsd.config import SvgpConfig
+from pugsd.core.geometry import grid_centre
 from pugsd.errors import ConfigError, EmptyCloudError, ModelNotReadyError
 
 log = logging.getLogger(__name__)
@@ -59,8 +60,7 @@ def local_origin(x: np.ndarray) -> np.ndarray:
     first observation for the same reason) would put its inputs, inducing points and Algorithm 1's
     sub-millimetre sigma points on that grid (variances off by 21 % at 10 km, 175 % at 100 km).
     The shift is made in float64, before the cast."""
-    c = 0.5 * (np.min(x, axis=0) + np.max(x, axis=0))
-    return np.asarray(np.round(c / ORIGIN_GRID_M) * ORIGIN_GRID_M, dtype=np.float64)
+    return grid_centre(x, ORIGIN_GRID_M)
 
 
 def resolve_num_inducing(num_inducing: int, device_type: str) -> int:

@@ -23,6 +23,7 @@ import open3d as _o3d
 from scipy.spatial import cKDTree
 
 from pugsd.config import GraspConfig, GripperConfig
+from pugsd.core.geometry import grid_centre
 from pugsd.errors import ConfigError, EmptyCloudError, PugsdError
 
 # open3d's bundled stubs reject valid numpy arguments (Tensor overloads): use it untyped
@@ -152,7 +153,7 @@ class AntipodalProposer:
         # the search runs relative to the cloud's centre (rounded to 1 m: a cloud near the world
         # origin keeps world coordinates): open3d's PCA normals take the covariance from raw sums,
         # which in a UTM-like frame (coordinates in the millions of metres) cancel to noise
-        origin_W = np.round(0.5 * (np.min(points_W, axis=0) + np.max(points_W, axis=0)))
+        origin_W = grid_centre(points_W, 1.0)
         pts = np.asarray(points_W, dtype=np.float64) - origin_W
         views = np.atleast_2d(view_origins_W) - origin_W
         normals = estimate_normals(pts, cfg.normal_radius_m, views) if normals_W is None else normals_W
