@@ -8,9 +8,10 @@ import copy
 import numpy as np
 import pytest
 import torch
+from scipy.spatial import cKDTree
 
 from pugsd.config import SvgpConfig
-from pugsd.core.predictive import ORPHAN_LENGTHSCALES, OccupancySVGP, farthest_point_sample
+from pugsd.core.predictive import ORPHAN_FPS_POINTS, ORPHAN_LENGTHSCALES, OccupancySVGP, farthest_point_sample
 from pugsd.errors import ModelNotReadyError
 
 
@@ -600,3 +601,58 @@ def test_num_inducing_auto_on_cuda_is_the_papers_m() -> None:
     assert s.num_inducing == 500
     assert len(s.model.variational_strategy.inducing_points) == 500  # type: ignore[union-attr]
     assert s.model.variational_strategy.inducing_points.device.type == "cuda"  # type: ignore[union-attr]
+
+
+def test_inducing_points_leave_ground_forgotten_inside_what_the_store_spans() -> None:
+    """A survey that turns back: the store forgets the middle of what it saw (ground inside the
+    bounding box of what it keeps). The inducing points on the forgotten middle are re-placed
+    over the data; before, only points outside the bounding box were (10 of the 11 on the middle
+    stayed, 6-8 lengthscales from any stored point)."""
+    rng = np.random.default_rng(5)
+
+    def patch(x0: float, n: int = 600) -> np.ndarray:
+        return np.c_[rng.uniform(x0, x0 + 0.04, (n, 1)), rng.uniform(0, 0.04, (n, 2))]
+
+    m = OccupancySVGP(SvgpConfig(num_inducing=36, seed=0, inducing_policy="spread"))
+    ends, middle = np.vstack([patch(0.0), patch(0.4)]), patch(0.2)
+    X = np.vstack([ends, middle])
+    m.update(X, np.ones(len(X)), np.arange(len(X)), steps=2)
+    Z0 = m.model.variational_strategy.inducing_points.detach().double().numpy() + m.origin  # type: ignore[union-attr]
+    on_middle = int(((Z0[:, 0] > 0.15) & (Z0[:, 0] < 0.3)).sum())
+    assert on_middle >= 6  # a third of the data: about a third of the points
+    X = np.vstack([ends, patch(0.04, 200)])  # the middle forgotten; a little new ground at one end
+    m.update(X, np.ones(len(X)), np.arange(len(ends), len(X)), steps=2)
+    Z = m.model.variational_strategy.inducing_points.detach().double().numpy() + m.origin  # type: ignore[union-attr]
+    ls = m.model.covar_module.base_kernel.lengthscale.detach().double().numpy().ravel()  # type: ignore[union-attr]
+    d_data = cKDTree(X / ls).query(Z / ls)[0]  # in the ARD metric, as the test is made
+    assert d_data.max() <= ORPHAN_LENGTHSCALES, np.sort(d_data)[-5:]
+    assert not ((Z[:, 0] > 0.15) & (Z[:, 0] < 0.3)).any()
+
+
+def test_orphan_test_is_the_exact_distance_to_the_nearest_stored_point() -> None:
+    """``_orphans`` filters with a strided subsample, then measures the rest against every point:
+    its answer equals a KD-tree over all stored points, including for an inducing point on a
+    patch of 5 points that the stride never samples (and one just outside the distance)."""
+    rng = np.random.default_rng(6)
+    m = OccupancySVGP(SvgpConfig(num_inducing=20, seed=0))
+    x0 = rng.uniform(0.0, 0.05, (500, 3))
+    m.update(x0, np.ones(len(x0)), np.arange(len(x0)), steps=1)
+    ls = m.model.covar_module.base_kernel.lengthscale.detach().double().numpy().ravel()  # type: ignore[union-attr]
+    x = rng.uniform(-1.0, 1.0, (100_000, 3)) * [1.0, 1.0, 0.02]
+    x[x[:, 0] > 0.5] *= [1.0, 1.0, 0.0]  # a big cluster and a hole...
+    x = x[~((np.abs(x[:, 0]) < 0.3) & (np.abs(x[:, 1]) < 0.3))]
+    stride = -(-len(x) // ORPHAN_FPS_POINTS)
+    assert stride > 5
+    x[1:6] = rng.normal(0.0, 1e-4, (5, 3))  # ...holding 5 points the stride skips
+    Z = np.vstack(
+        [
+            rng.uniform(-1.2, 1.2, (300, 3)) * [1.0, 1.0, 0.1],
+            x[3] + [2.0 * ls[0], 0.0, 0.0],  # near the small patch: kept
+            x[3] + [(ORPHAN_LENGTHSCALES + 0.5) * ls[0], 0.0, 0.0],  # beyond it: an orphan
+        ]
+    )
+    got = m._orphans(x, Z)
+    want = cKDTree(x / ls).query(Z / ls)[0] > ORPHAN_LENGTHSCALES
+    np.testing.assert_array_equal(got, want)
+    assert not got[-2] and got[-1]
+    assert 10 < got.sum() < len(Z) - 10  # both answers occur among the random points
