@@ -2,8 +2,9 @@
 """Pinhole camera with skew and the rectified stereo rig.
 
 Intrinsics ``K = [[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` (pixels). Rectified stereo: both cameras
-share K, the right camera sits ``baseline_m`` along +x of the left one, and disparity
-``disp = fx * B / z``.
+share fx, fy, cy and skew, the right camera sits ``baseline_m`` along +x of the left one, and
+disparity ``disp = fx * B / z + (cx_left - cx_right)``; the principal points are usually equal
+(``principal_offset_px`` 0: ``disp = fx * B / z``).
 """
 
 from __future__ import annotations
@@ -84,11 +85,30 @@ class PinholeCamera:
 
 @dataclass(frozen=True, slots=True)
 class StereoRig:
-    """A rectified stereo pair: the left camera's intrinsics and the baseline to the right camera."""
+    """A rectified stereo pair: the left camera's intrinsics, the baseline to the right camera and
+    ``principal_offset_px = cx_left - cx_right``.
+
+    The offset is 0 for a rig rectified with zero disparity at infinity (ROS camera_calibration,
+    OpenCV ``stereoRectify`` with its default ``CALIB_ZERO_DISPARITY``); without that flag, or
+    for Middlebury-style data (its ``doffs``), the principal points differ along the row and a
+    point at depth z has disparity ``fx * B / z + principal_offset_px`` (as image_geometry's
+    ``StereoCameraModel.getZ`` reads it)."""
 
     left: PinholeCamera
     baseline_m: float
+    principal_offset_px: float = 0.0
 
     def __post_init__(self) -> None:
         if not np.isfinite(self.baseline_m) or self.baseline_m <= 0:
             raise InputError(f"invalid stereo baseline {self.baseline_m} m")
+        if not np.isfinite(self.principal_offset_px) or abs(self.principal_offset_px) >= self.left.width:
+            raise InputError(
+                f"invalid principal point offset {self.principal_offset_px} px between the stereo "
+                f"cameras ({self.left.width} px wide)"
+            )
+
+    @property
+    def right(self) -> PinholeCamera:
+        """The right camera's intrinsics (the left's, with cx moved by the offset)."""
+        c = self.left
+        return PinholeCamera(c.fx, c.fy, c.cx - self.principal_offset_px, c.cy, c.width, c.height, c.skew)

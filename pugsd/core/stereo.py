@@ -73,11 +73,25 @@ def disparity_levels(cfg: StereoConfig, rig: StereoRig) -> int:
     return int(min(max(16, int(np.ceil(need / 16.0)) * 16), cap))
 
 
+def search_start(cfg: StereoConfig, rig: StereoRig) -> tuple[int, float]:
+    """SGBM's ``minDisparity`` at the matching resolution, and the rig's principal point offset
+    there (``principal_offset_px / downsample``).
+
+    A rig whose principal points differ (``StereoRig.principal_offset_px``) measures disparities
+    ``f_x B / z + offset``: the search starts ``min_disparity // downsample`` plus the rounded
+    offset, so it covers the same depths as on a rig without one, and the offset is taken off each
+    measured disparity (``StereoDepth.estimate``)."""
+    f = cfg.downsample
+    offset = rig.principal_offset_px / f
+    return cfg.min_disparity // f + round(offset), offset
+
+
 def reach_m(cfg: StereoConfig, rig: StereoRig) -> float:
     """The nearest z-depth (m) the configured search can measure on ``rig``: ``f_x B / d_max``
     with ``d_max`` the largest disparity searched, at the matching resolution."""
     cam = rig.left.scaled(cfg.downsample)
-    d_max = cfg.min_disparity // cfg.downsample + disparity_levels(cfg, rig) - 1
+    start, offset = search_start(cfg, rig)
+    d_max = start + disparity_levels(cfg, rig) - 1 - offset
     return float(cam.fx * rig.baseline_m / max(d_max, 1))
 
 
@@ -125,15 +139,14 @@ class StereoDepth:
 
     def __init__(self, cfg: StereoConfig) -> None:
         self.cfg = cfg
-        self._checked_rig: tuple[float, float, int] | None = None  # (fx, baseline, width)
+        self._checked_rig: tuple[float, float, int, float] | None = None  # (fx, B, width, offset)
 
     def _matcher(self, channels: int, rig: StereoRig) -> cv2.StereoSGBM:
         c = self.cfg
-        f = c.downsample
         num_disp = disparity_levels(c, rig)
         bs = c.block_size
         return cv2.StereoSGBM.create(
-            minDisparity=c.min_disparity // f,
+            minDisparity=search_start(c, rig)[0],
             numDisparities=num_disp,
             blockSize=bs,
             P1=8 * channels * bs * bs,
@@ -152,14 +165,14 @@ class StereoDepth:
         cam = frame.rig.left.scaled(f)
         left = _down(_gray(frame.left), f)
         right = _down(_gray(frame.right), f)
-        key = (frame.rig.left.fx, frame.rig.baseline_m, frame.rig.left.width)
+        key = (frame.rig.left.fx, frame.rig.baseline_m, frame.rig.left.width, frame.rig.principal_offset_px)
         if key != self._checked_rig:  # once per rig (the latest: a bounded memory, however many)
             self._checked_rig = key
             problem = search_shortfall(c, frame.rig)
             if problem is not None:
                 log.warning("stereo: %s", problem)
         # SGBM's own precondition (stereosgbm.cpp), checked here: OpenCV raises a bare cv2.error
-        min_d, levels = c.min_disparity // f, disparity_levels(c, frame.rig)
+        (min_d, offset), levels = search_start(c, frame.rig), disparity_levels(c, frame.rig)
         if left.shape[1] - (min_d + levels) <= c.block_size // 2:
             raise ImageSizeError(
                 f"image too small for the disparity search: {left.shape[1]} x {left.shape[0]} px "
@@ -168,7 +181,9 @@ class StereoDepth:
                 f"{min_d + levels + c.block_size // 2} px: lower stereo.downsample or "
                 "stereo.num_disparities"
             )
-        disp = self._matcher(1, frame.rig).compute(left, right).astype(np.float32) / 16.0
+        raw = self._matcher(1, frame.rig).compute(left, right).astype(np.float32) / 16.0
+        # SGBM marks a pixel it could not match min_d - 1; the rest: f_x B / z + offset
+        disp = np.where(raw > min_d - 0.5, raw - np.float32(offset), np.float32(np.nan))
         fb = cam.fx * frame.rig.baseline_m
         with np.errstate(divide="ignore", invalid="ignore"):
             depth = np.where(disp > 0.5, fb / disp, np.nan).astype(np.float32)

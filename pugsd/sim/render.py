@@ -207,7 +207,7 @@ def render_stereo(
     """(left uint8 RGB, right uint8 RGB, left z-depth (NaN = miss), left object mask)."""
     uw = underwater or Underwater()
     left = world.render(rig.left, T_W_C, None, supersample)
-    right = world.render(rig.left, T_W_C, np.array([rig.baseline_m, 0.0, 0.0]), supersample)
+    right = world.render(rig.right, T_W_C, np.array([rig.baseline_m, 0.0, 0.0]), supersample)
     li = degrade(left, rng, noise_std, uw)
     ri = degrade(right, rng, noise_std, uw)
     return li, ri, left.depth_m, left.geometry == OBJECT_ID

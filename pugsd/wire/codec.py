@@ -342,7 +342,7 @@ def encode_stereo_infos(
     """(left, right) CameraInfo of a rectified rig."""
     return (
         encode_camera_info(rig.left, stamp_ns, left_frame, 0.0),
-        encode_camera_info(rig.left, stamp_ns, right_frame, rig.baseline_m),
+        encode_camera_info(rig.right, stamp_ns, right_frame, rig.baseline_m),
     )
 
 
@@ -393,18 +393,28 @@ def decode_camera_info(data: bytes) -> CameraInfoMsg:
 def stereo_rig_from_infos(
     left: CameraInfoMsg, right: CameraInfoMsg, *, tol: float = 1e-6
 ) -> StereoRig:
-    """The rectified rig of a left/right CameraInfo pair (baseline from the right P)."""
+    """The rectified rig of a left/right CameraInfo pair (baseline from the right P).
+
+    fx, fy, cy and skew must agree (rows aligned, one focal length); cx may differ: a pair
+    rectified without zero disparity at infinity (``principal_offset_px = cx_left - cx_right``,
+    as image_geometry's ``StereoCameraModel`` reads it)."""
     a, b = left.camera, right.camera
     if (a.width, a.height) != (b.width, b.height):
         raise DecodeError("stereo CameraInfo: left and right image sizes differ")
-    for name in ("fx", "fy", "cx", "cy"):
+    for name in ("fx", "fy", "cy", "skew"):
         va, vb = getattr(a, name), getattr(b, name)
         if abs(va - vb) > tol * max(1.0, abs(va)):
             raise DecodeError(f"stereo CameraInfo: {name} differs ({va} vs {vb}); not rectified")
     B = right.baseline_m - left.baseline_m
     if not (math.isfinite(B) and B > 0):
         raise DecodeError(f"stereo CameraInfo: baseline {B} m from the right P matrix is not > 0")
-    return StereoRig(a, B)
+    offset = a.cx - b.cx
+    if abs(offset) <= tol * max(1.0, abs(a.cx)):
+        offset = 0.0
+    try:
+        return StereoRig(a, B, offset)
+    except PugsdError as exc:
+        raise DecodeError(f"stereo CameraInfo: {exc}") from None
 
 
 # ---------------------------------------------------------------------------------------------

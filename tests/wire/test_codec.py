@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import math
 import struct
@@ -18,7 +19,7 @@ from mcap_ros2.decoder import DecoderFactory
 
 from pugsd.core.camera import PinholeCamera, StereoRig
 from pugsd.core.types import ScoredGrasps
-from pugsd.errors import DecodeError
+from pugsd.errors import DecodeError, InputError
 from pugsd.wire import codec
 from pugsd.wire.types import (
     CAMERA_INFO,
@@ -175,8 +176,6 @@ def test_camera_info_round_trip_baseline_and_golden() -> None:
 
 def _info_with(data: bytes, binning: tuple[int, int], roi: tuple[int, int, int, int]) -> bytes:
     """``data`` (a CameraInfo) with binning (x, y) and ROI (x_offset, y_offset, width, height)."""
-    import dataclasses
-
     m = codec.deserialize(data, CAMERA_INFO)
     r = dataclasses.replace(m.roi, x_offset=roi[0], y_offset=roi[1], width=roi[2], height=roi[3])
     m = dataclasses.replace(m, binning_x=binning[0], binning_y=binning[1], roi=r)
@@ -235,6 +234,32 @@ def test_stereo_rig_rejects_unrectified() -> None:
         codec.stereo_rig_from_infos(li, ri)
     with pytest.raises(DecodeError, match="baseline"):
         codec.stereo_rig_from_infos(li, li)
+
+
+def test_stereo_rig_with_principal_points_apart_as_image_geometry() -> None:
+    """A pair rectified without zero disparity at infinity (OpenCV ``stereoRectify`` without
+    ``CALIB_ZERO_DISPARITY``): the right P has its own cx. The rig keeps ``cx_left - cx_right``,
+    and a point's disparity less that offset is ``f B / z`` (image_geometry's
+    ``StereoCameraModel.getZ``: ``z = -Tx / (d - (cx_l - cx_r))``). Before, such a pair was refused
+    as "not rectified". Rows that differ (cy) or a skew that differs are still refused."""
+    a = PinholeCamera(500.0, 500.0, 319.5, 239.5, 640, 480)
+    rig = StereoRig(a, 0.12, 19.25)
+    left_b, right_b = codec.encode_stereo_infos(rig, STAMP)
+    g = golden(CAMERA_INFO, right_b)
+    assert (g.p[2], g.p[3], g.k[2]) == pytest.approx((300.25, -500.0 * 0.12, 300.25))
+    left, right = codec.decode_camera_info(left_b), codec.decode_camera_info(right_b)
+    rig2 = codec.stereo_rig_from_infos(left, right)
+    assert rig2.principal_offset_px == pytest.approx(19.25) and rig2.baseline_m == pytest.approx(0.12)
+    X_L = np.array([0.2, -0.1, 1.5])  # a point in the left camera; the right one sits at +B along x
+    d = _project(rig2.left, X_L)[0] - _project(rig2.right, X_L - [0.12, 0.0, 0.0])[0]
+    assert d - rig2.principal_offset_px == pytest.approx(500.0 * 0.12 / 1.5)
+    for changed in ({"cy": 241.0}, {"skew": 0.5}):
+        b = dataclasses.replace(rig.right, **changed)
+        ri = codec.decode_camera_info(codec.encode_camera_info(b, 1, baseline_m=0.12))
+        with pytest.raises(DecodeError, match=next(iter(changed))):
+            codec.stereo_rig_from_infos(left, ri)
+    with pytest.raises(InputError, match="principal point offset"):
+        StereoRig(a, 0.12, 640.0)
 
 
 # --------------------------------------------------------------------------- poses
