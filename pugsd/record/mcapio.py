@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
+from mcap.exceptions import EndOfFile
 from mcap.opcode import Opcode
 from mcap.reader import make_reader
 from mcap.records import Channel, Message, Metadata, Schema
@@ -395,6 +396,8 @@ def _stream(path: Path, on_record: Any, *, fh: IO[bytes] | None = None) -> Strea
                 on_record(rec, res)
             if data_end:  # the records ended with the footer and the closing magic
                 return res
+            res.error = "end of file before the footer"
+        except EndOfFile:  # mcap raises it for a file cut inside a record and at a record's end alike
             res.error = "end of file before the footer"
         except _Abort:
             raise
