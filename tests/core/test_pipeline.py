@@ -261,8 +261,8 @@ def test_pending_training_indices_follow_an_eviction() -> None:
     pipe = PugsPipeline(CoreConfig(fof=FofConfig(max_voxels=cap)))
 
     def voxel_keys(slots: np.ndarray) -> set[int]:
-        wanted = set(slots.tolist())
-        return {k for k, s in pipe.store._index.items() if s in wanted}
+        store = pipe.store
+        return set(store._hash_keys[np.isin(store._hash_slots, slots)].tolist())
 
     pipe.integrate(frames[0])
     keys0 = voxel_keys(pipe._pending[0])
