@@ -616,6 +616,12 @@ class FofStore:
         s = float(d.max() if self.cfg.target_scale == "max" else np.percentile(d, 99))
         return s if s > 0 else 1.0
 
+    def training_data(self, scale: float) -> tuple[np.ndarray, np.ndarray]:
+        """The SVGP's inputs and targets (Eq. 7): copies of the stored means (N, 3) and the Eq. 4
+        targets over ``scale``; what ``snapshot`` holds of them, without copying the covariances
+        (35 MB at 200 000 voxels) for every training call."""
+        return self._mu.copy(), self._density[: self._n] / scale
+
     def snapshot(self, scale: float | None = None) -> FofSnapshot:
         n = self._n
         s = self.compute_scale() if scale is None else scale

@@ -202,8 +202,7 @@ class PugsPipeline:
         s = self.store.compute_scale()
         if self._scale is None or abs(s / self._scale - 1.0) > 0.25:
             self._scale = s
-        snap = self.store.snapshot(self._scale)
-        return snap.mu_W, snap.target
+        return self.store.training_data(self._scale)
 
     def train_steps(self, steps: int | None = None) -> TrainStats:
         """Streaming SVGP update (warm start, NGD + Adam, replay) on what changed since last call."""

@@ -206,3 +206,22 @@ def test_voxel_hash_gives_the_slots_a_dict_gave() -> None:
         np.testing.assert_array_equal(order, np.arange(n))  # sorted
         assert dict(zip(store._hash_keys.tolist(), store._hash_slots.tolist(), strict=True)) == index
     assert store.evicted > 10000
+
+
+def test_training_data_is_what_the_snapshot_holds_of_it() -> None:
+    """The SVGP's inputs and targets come from ``training_data`` (no copy of the covariances):
+    the snapshot's means and targets, as copies the caller may change."""
+    store = FofStore(FofConfig())
+    for pts, cov in _survey_batches(3):
+        store.insert(pts, cov)
+        store.update_targets()
+    s = store.compute_scale()
+    x, y = store.training_data(s)
+    snap = store.snapshot(s)
+    np.testing.assert_array_equal(x, snap.mu_W)
+    np.testing.assert_array_equal(y, snap.target)
+    assert len(x) == len(y) == len(store)
+    x[:] = 0.0
+    y[:] = 0.0
+    np.testing.assert_array_equal(store.training_data(s)[0], snap.mu_W)
+    np.testing.assert_array_equal(store.training_data(s)[1], snap.target)
