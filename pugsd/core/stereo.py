@@ -63,12 +63,16 @@ def disparity_levels(cfg: StereoConfig, rig: StereoRig) -> int:
 
     ``num_disparities > 0``: that full-resolution range scaled by ``downsample``. ``0`` (auto):
     enough levels for the largest disparity ``f_x B / min_depth_m`` (disparities searched are
-    ``min_disparity .. min_disparity + levels - 1``), capped at half the matched image width."""
+    ``start .. start + levels - 1`` with ``start`` from ``search_start``, less the rig's principal
+    point offset), capped at half the matched image width."""
     f = cfg.downsample
     if cfg.num_disparities > 0:
         return max(16, int(np.ceil(cfg.num_disparities / f / 16.0)) * 16)
     cam = rig.left.scaled(f)
-    need = cam.fx * rig.baseline_m / cfg.min_depth_m - cfg.min_disparity // f + 1.0
+    # the smallest disparity searched, with a principal point offset taken off (``search_start``:
+    # the search starts at the rounded offset, up to half a pixel from the offset itself)
+    start, offset = search_start(cfg, rig)
+    need = cam.fx * rig.baseline_m / cfg.min_depth_m - (start - offset) + 1.0
     cap = max(16, (cam.width // 2) // 16 * 16)
     return int(min(max(16, int(np.ceil(need / 16.0)) * 16), cap))
 
