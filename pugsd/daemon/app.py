@@ -47,7 +47,15 @@ from pugsd.core.types import DepthFrame, ScoredGrasps, StereoFrame
 from pugsd.daemon.health import Health
 from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier, watchdog_interval_s
-from pugsd.daemon.timesync import ExactPairer, PoseBuffer, PoseGate, PoseSample, carried_cov, default_pose_cov
+from pugsd.daemon.timesync import (
+    ExactPairer,
+    FrameRateLimit,
+    PoseBuffer,
+    PoseGate,
+    PoseSample,
+    carried_cov,
+    default_pose_cov,
+)
 from pugsd.errors import DecodeError, EmptyCloudError, PugsdError
 from pugsd.wire import codec
 from pugsd.wire.attachment import SequenceTracker
@@ -255,6 +263,11 @@ class Daemon:
         self.poses = PoseBuffer(q.poses, int(d.pose_max_gap_s * 1e9), default_cov)
         self.gate: PoseGate[tuple[str, Any, float]] = PoseGate(self.poses, d.pose_wait_s, q.pose_wait)
         self.pairer: ExactPairer[codec.ImageMsg, codec.ImageMsg] = ExactPairer(q.unpaired)
+        self.frame_rate = FrameRateLimit(d.max_frame_rate_hz)  # frames thinned before the pose gate
+        # (time, frames pushed out of the stereo and depth queues, frames emitted, integrated) at
+        # the start of the overload warning's window, and when it was last logged
+        self._overload_mark: tuple[float, int, int, int] | None = None
+        self._overload_logged_s = -math.inf
         self._masks: OrderedDict[int, np.ndarray] = OrderedDict()
         self._stds: OrderedDict[int, np.ndarray] = OrderedDict()
         self._infos: dict[str, codec.CameraInfoMsg] = {}
@@ -1032,6 +1045,11 @@ class Daemon:
             raise InputRejected("wrong_type", msg)
 
     def _admit(self, stamp_ns: int, entry: tuple[str, Any, float], now_s: float) -> None:
+        if not self.frame_rate.accept(stamp_ns):  # daemon.max_frame_rate_hz: skipped, not dropped
+            self.health.count("frames.skipped_rate")
+            self._masks.pop(stamp_ns, None)
+            self._stds.pop(stamp_ns, None)
+            return
         newest = self.poses.newest_ns
         if newest is not None:
             self._stamp_skew_s.append((stamp_ns - newest) / 1e9)
@@ -1708,12 +1726,46 @@ class Daemon:
             stale = st["inputs"]["stale"]
             self._report_stale(stale)
             self._report_publishers(st["upstream"]["concurrent_publishers"])
+            self._report_overload(time.monotonic())
             self.notifier.send(
                 f"STATUS=frames {c.get('frames.stereo', 0) + c.get('frames.depth', 0)}, "
                 f"integrated {c.get('integrated', 0)}, ready {self.ready}, "
                 f"grasps {self.grasps_published}, dropped {self.dropped_total()}, "
                 f"rejected {c.get('rejected', 0)}" + (f", stale input: {' '.join(stale)}" if stale else "")
             )
+
+    def _report_overload(self, now_s: float) -> None:
+        """Warn when newer frames pushed older ones out of the stereo or depth queue (not a reset's
+        clearing) within a window of ``_OVERLOAD_WINDOW_S``: the input comes faster than the
+        daemon integrates, so frames are lost and the ones integrated have waited in the queue.
+        At most once per ``_OVERLOAD_LOG_S``; the status message has the counts all along."""
+        c = self.health.counts
+        mark = (
+            now_s,
+            self.stereo_box.overflowed + self.depth_box.overflowed,
+            c.get("frames.stereo", 0) + c.get("frames.depth", 0),
+            c.get("integrated", 0),
+        )
+        prev = self._overload_mark
+        if prev is None or now_s - prev[0] >= _OVERLOAD_WINDOW_S:
+            self._overload_mark = mark
+        if prev is None or now_s - prev[0] < _OVERLOAD_WINDOW_S:
+            return
+        dropped = mark[1] - prev[1]
+        if dropped <= 0 or now_s - self._overload_logged_s < _OVERLOAD_LOG_S:
+            return
+        self._overload_logged_s = now_s
+        dt = now_s - prev[0]
+        age = self.health.latency.get("frame_age_at_integrate")
+        age_p50 = age.summary().get("p50_ms") if age is not None else None
+        log.warning(
+            "input faster than the daemon integrates: %d frames dropped at the stereo and depth "
+            "queues in the last %.0f s (%.1f frames/s in, %.1f integrated; frames waited %s before "
+            "fusion). Set daemon.max_frame_rate_hz below the integrated rate to keep the output "
+            "fresh (docs/deploy.md, Tuning)",
+            dropped, dt, (mark[2] - prev[2]) / dt, (mark[3] - prev[3]) / dt,
+            "?" if age_p50 is None else f"{age_p50 / 1e3:.2f} s (median)",
+        )  # fmt: skip
 
     async def _watchdog_worker(self) -> None:
         interval = watchdog_interval_s()
@@ -1763,6 +1815,8 @@ def _log_nth(n: int, first: int = 5) -> bool:
 
 
 _GRASPS_LOG_S = 60.0  # published grasps are logged at most this often (the first ones at once)
+_OVERLOAD_WINDOW_S = 10.0  # the overload warning looks at queue overflows over this long
+_OVERLOAD_LOG_S = 60.0  # and is logged at most this often
 _NUMBER = re.compile(r"\d+(?:\.\d+)?")
 
 # the stages (``_busy`` keys, health stages) each worker task runs its calls under

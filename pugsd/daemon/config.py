@@ -87,6 +87,16 @@ class DaemonConfig:
         "an overloaded, CPU-starved daemon's RSS grew by 200-300 MiB in 20 s",
         ge=0,
     )
+    max_frame_rate_hz: float = opt(
+        0.0,
+        "keep at most this many frames (stereo pairs or depth images) a second, chosen by their "
+        "stamps before depth estimation; the others are skipped and counted (frames.skipped_rate), "
+        "not dropped. 0: every frame. For a camera faster than the daemon integrates (the status' "
+        "overload warning), so that frames do not wait in the depth queue (about 1 s at 30 Hz on two "
+        "cores, docs/deploy.md)",
+        unit="Hz",
+        ge=0.0,
+    )
     train_steps_per_frame: int = opt(4, "SVGP steps (NGD + Adam) after each integrated frame", ge=0)
     idle_train_steps: int = opt(4, "SVGP steps per round while no frame is waiting", ge=0)
     min_train_interval_s: float = opt(
@@ -262,8 +272,8 @@ class QueuesConfig:
     depth: int = opt(
         32,
         "depth frames waiting for fusion (drop oldest); 32 downsampled frames (depth + sigma) are "
-        "about 5 MB and bridge 3 s at 10 Hz: a grasp computation holds the model for up to ~1.2 s "
-        "with the cloud, back to back with queued work",
+        "about 5 MB and bridge 3 s of a busy model thread at 10 Hz. A camera faster than the daemon "
+        "integrates keeps it full, and frames wait in it (daemon.max_frame_rate_hz)",
         ge=1,
     )
     commands: int = opt(8, "commands waiting (reject when full)", ge=1)

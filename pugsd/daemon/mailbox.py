@@ -37,6 +37,7 @@ class Mailbox(Generic[T]):
         self.offered = 0
         self.accepted = 0
         self.dropped = 0
+        self.overflowed = 0  # the part of ``dropped`` pushed out by a newer item (not ``clear``)
         self.rejected = 0
         self.taken = 0
         self.high_water = 0
@@ -57,6 +58,7 @@ class Mailbox(Generic[T]):
                 return False
             self._items.popleft()
             self.dropped += 1
+            self.overflowed += 1
         self._items.append(item)
         self.accepted += 1
         self.high_water = max(self.high_water, len(self._items))
@@ -118,6 +120,7 @@ class Mailbox(Generic[T]):
             "offered": self.offered,
             "accepted": self.accepted,
             "dropped": self.dropped,
+            "overflowed": self.overflowed,
             "rejected": self.rejected,
             "taken": self.taken,
             "high_water": self.high_water,

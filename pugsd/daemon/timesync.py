@@ -8,6 +8,7 @@ Pure buffers (no asyncio, no zenoh): the daemon feeds them on the loop thread an
 from __future__ import annotations
 
 import bisect
+import math
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -259,6 +260,51 @@ class PoseBuffer:
 
 
 # --- stereo pairing and pose gating ---
+
+
+class FrameRateLimit:
+    """Thins frames to at most ``rate_hz`` by their stamps (``daemon.max_frame_rate_hz``; 0 keeps
+    every frame), like a ROS ``throttle`` node but on the sensor's clock, so that a recording
+    replayed faster than real time keeps the same frames.
+
+    A frame is kept when its stamp reaches the next slot, ``period`` after the previous slot, less
+    ``tolerance`` of a period for jitter: a 30 Hz camera thinned to 10 Hz keeps every third frame,
+    a 25 Hz one 10 frames a second on average (gaps of 120 and 80 ms). A stamp that went back
+    (a restarted source, a looping recording) or a gap of more than a period starts the slots
+    afresh from that frame."""
+
+    def __init__(self, rate_hz: float, tolerance: float = 0.1) -> None:
+        if not (rate_hz >= 0.0 and math.isfinite(rate_hz)):
+            raise ValueError(f"rate_hz must be finite and >= 0, got {rate_hz}")
+        if not 0.0 <= tolerance < 1.0:
+            raise ValueError(f"tolerance must be in [0, 1), got {tolerance}")
+        self.period_ns = round(1e9 / rate_hz) if rate_hz > 0 else 0
+        self._tolerance_ns = round(tolerance * self.period_ns)
+        self._due_ns = 0  # the next slot (once a frame was kept)
+        self._kept_ns: int | None = None  # the stamp of the last frame kept
+        self.kept = 0
+        self.skipped = 0
+
+    def accept(self, stamp_ns: int) -> bool:
+        """Whether to keep the frame stamped ``stamp_ns`` (counted in ``kept`` or ``skipped``)."""
+        if self.period_ns == 0:
+            self.kept += 1
+            return True
+        afresh = (
+            self._kept_ns is None
+            or stamp_ns < self._kept_ns  # stamps went back
+            or stamp_ns - self._due_ns >= self.period_ns  # a gap of more than a period
+        )
+        if afresh:
+            self._due_ns = stamp_ns + self.period_ns
+        elif stamp_ns >= self._due_ns - self._tolerance_ns:
+            self._due_ns += self.period_ns
+        else:
+            self.skipped += 1
+            return False
+        self._kept_ns = stamp_ns
+        self.kept += 1
+        return True
 
 
 class ExactPairer(Generic[L, R]):
