@@ -1687,6 +1687,7 @@ class Daemon:
             "elbo": self.elbo,
             "grasps_published": self.grasps_published,
             **snap,
+            "dropped_total": self.dropped_total(),  # counts.dropped and the queues' own, below
             "mailboxes": {b.name: b.stats() for b in (self.stereo_box, self.depth_box, self.commands)},
             "ingress": {"pending": self.ingress.pending, "dropped": self.ingress.dropped},
             "query_ingress": {"pending": self.query_ingress.pending, "dropped": self.query_ingress.dropped},

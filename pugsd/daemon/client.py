@@ -66,11 +66,15 @@ def status_lines(st: dict[str, Any]) -> list[str]:
     c = st.get("counts", {})
     frames = c.get("frames.stereo", 0) + c.get("frames.depth", 0)
     verdict = "healthy" if st.get("healthy", True) else "UNHEALTHY: " + "; ".join(st.get("problems", []))
+    # every drop: the counted reasons (counts.dropped) and the queues' own counters
+    dropped = st.get("dropped_total", c.get("dropped", 0))
+    skipped = c.get("frames.skipped_rate", 0)
     lines = [
         f"{st.get('node', '?')}: {verdict}; up {st.get('uptime_s', 0):.0f} s; "
         f"ready {st.get('ready')}; model version {st.get('model_version')}",
         f"frames {frames}, integrated {c.get('integrated', 0)}, grasps published "
-        f"{st.get('grasps_published', 0)}, rejected {c.get('rejected', 0)}, dropped {c.get('dropped', 0)}",
+        f"{st.get('grasps_published', 0)}, rejected {c.get('rejected', 0)}, dropped {dropped}"
+        + (f", skipped {skipped} (daemon.max_frame_rate_hz)" if skipped else ""),
     ]
     inputs = st.get("inputs", {})
     ages = ", ".join(f"{k} {v:.1f} s" for k, v in inputs.get("age_s", {}).items()) or "none yet"
@@ -89,8 +93,23 @@ def status_lines(st: dict[str, Any]) -> list[str]:
             f"frame stamp - newest pose stamp: median {skew['p50']:+.3f} s (min {skew['min']:+.3f}, "
             f"max {skew['max']:+.3f}, last {skew['n']} frames)"
         )
-    for title, key in (("rejected", "rejected"), ("dropped", "dropped")):
-        for reason, n in sorted(st.get(key, {}).items(), key=lambda kv: -kv[1])[:10]:
+    drops = dict(st.get("dropped", {}))
+    for name in ("stereo", "depth"):  # the frame queues (what dropped_total counts)
+        box = st.get("mailboxes", {}).get(name, {})
+        pushed = int(box.get("overflowed", 0))
+        cleared = int(box.get("dropped", 0)) - pushed
+        if pushed > 0:
+            drops[f"{name} queue: pushed out by newer frames (input faster than the daemon)"] = pushed
+        if cleared > 0:
+            drops[f"{name} queue: cleared (reset)"] = cleared
+    for what, n in (
+        ("ingress bound: messages faster than the loop took them", st.get("ingress", {}).get("dropped")),
+        ("unpaired stereo halves", st.get("waiting", {}).get("unpaired_dropped")),
+    ):
+        if n:
+            drops[what] = int(n)
+    for title, reasons in (("rejected", st.get("rejected", {})), ("dropped", drops)):
+        for reason, n in sorted(reasons.items(), key=lambda kv: -kv[1])[:10]:
             lines.append(f"  {title} {n:>8}  {reason}")
     lat = st.get("latency", {})
     if lat:

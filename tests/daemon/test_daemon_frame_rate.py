@@ -15,6 +15,7 @@ import pytest
 
 from pugsd.config import load_config_dict
 from pugsd.daemon.app import Daemon, Inbound
+from pugsd.daemon.client import status_lines
 from pugsd.daemon.timesync import FrameRateLimit
 from pugsd.wire import codec
 from pugsd.wire.topics import key_for
@@ -216,3 +217,50 @@ def test_a_reset_clearing_the_queues_is_not_an_overload(port: int, caplog: pytes
     d.depth_box.clear()
     d._report_overload(100.0)  # nothing pushed out since: no second line
     assert len(_overload_lines(caplog)) == 1
+
+
+# --- what `pugsd status` shows of it --------------------------------------------------------------
+
+
+def test_status_lines_count_every_drop_and_the_skipped_frames() -> None:
+    """The operator's summary counted only the drops with a reason (pose wait, duplicates): 327
+    frames pushed out of the depth queue under overload read as "dropped 0"."""
+    st = {
+        "node": "pugsd", "healthy": True, "uptime_s": 40.0, "ready": True, "model_version": 3,
+        "grasps_published": 23,
+        "counts": {"frames.stereo": 1200, "integrated": 870, "dropped": 2, "frames.skipped_rate": 15},
+        "dropped": {"pose_wait: no pose": 2},
+        "dropped_total": 2 + 300 + 27 + 5 + 4 + 1,
+        "mailboxes": {
+            "stereo": {"dropped": 27, "overflowed": 27},
+            "depth": {"dropped": 305, "overflowed": 300},
+            "commands": {"dropped": 1, "overflowed": 0},  # not a frame queue
+        },
+        "ingress": {"dropped": 4},
+        "waiting": {"unpaired_dropped": 1},
+    }  # fmt: skip
+    lines = status_lines(st)
+    assert lines[1] == (
+        "frames 1200, integrated 870, grasps published 23, rejected 0, dropped 339, "
+        "skipped 15 (daemon.max_frame_rate_hz)"
+    )
+    assert [ln for ln in lines if ln.startswith("  dropped")] == [
+        "  dropped      300  depth queue: pushed out by newer frames (input faster than the daemon)",
+        "  dropped       27  stereo queue: pushed out by newer frames (input faster than the daemon)",
+        "  dropped        5  depth queue: cleared (reset)",
+        "  dropped        4  ingress bound: messages faster than the loop took them",
+        "  dropped        2  pose_wait: no pose",
+        "  dropped        1  unpaired stereo halves",
+    ]
+
+
+def test_the_daemons_status_carries_the_total_of_its_drops(port: int) -> None:
+    cfg = daemon_config_dict(port)
+    cfg["queues"] = {"depth": 2}
+    d = Daemon(load_config_dict(cfg), FakePipeline())
+    for _ in range(5):
+        d.depth_box.offer((None, 0.0))  # type: ignore[arg-type]
+    d._drop("pose_wait", "no pose for the frame")
+    st = d.status()
+    assert st["dropped_total"] == d.dropped_total() == 4
+    assert status_lines(st)[1].endswith("dropped 4")
