@@ -110,8 +110,9 @@ def object_pose(obj: ObjectSpec, pose: str = "upright", yaw_deg: float = 0.0) ->
     """T_W_O placing the object in a paper pose, resting on z = 0, bounding box centred at x=y=0.
 
     ``upright``: as modelled; ``lying``: on its side (90 deg about x); ``tilted``: leaning 30 deg
-    about x (towards a camera on the -y side; it rests on an edge, held in place in the physics
-    trial until lifted); ``sideways``: turned 90 deg about z. ``yaw_deg`` turns it about z.
+    about x (its top towards +y, so its -y face turns upwards; it rests on an edge, held in
+    place in the physics trial until lifted); ``sideways``: turned 90 deg about z. ``yaw_deg``
+    turns it about z.
     """
     if pose not in POSES:
         raise InputError(f"unknown pose {pose!r}; known: {', '.join(POSES)}")

@@ -50,7 +50,7 @@ def value_noise(points: np.ndarray, cell_m: float, seed: int = 0) -> np.ndarray:
 def fractal_texture(
     points: np.ndarray, base_cell_m: float = 0.03, octaves: int = 4, seed: int = 0
 ) -> np.ndarray:
-    """Multi-octave value noise in [0, 1]: cells ``base_cell_m``, /2, /4, ... (weights 1, 1/2, ...)."""
+    """Multi-octave value noise in [0, 1]: cells ``base_cell_m``, /2, /4, ... (weights 1, 0.6, 0.36, ...)."""
     total = np.zeros(np.asarray(points).shape[0])
     norm = 0.0
     for o in range(octaves):
