@@ -1737,9 +1737,10 @@ class Daemon:
 
     def _report_overload(self, now_s: float) -> None:
         """Warn when newer frames pushed older ones out of the stereo or depth queue (not a reset's
-        clearing) within a window of ``_OVERLOAD_WINDOW_S``: the input comes faster than the
-        daemon integrates, so frames are lost and the ones integrated have waited in the queue.
-        At most once per ``_OVERLOAD_LOG_S``; the status message has the counts all along."""
+        clearing) within a window of ``_OVERLOAD_WINDOW_S``, at least ``_OVERLOAD_MIN_DROPS`` and
+        ``_OVERLOAD_MIN_FRAC`` of the frames: the input comes faster than the daemon integrates,
+        so frames are lost and the ones integrated have waited in the queue. At most once per
+        ``_OVERLOAD_LOG_S``; the status message has the counts all along."""
         c = self.health.counts
         mark = (
             now_s,
@@ -1752,8 +1753,11 @@ class Daemon:
             self._overload_mark = mark
         if prev is None or now_s - prev[0] < _OVERLOAD_WINDOW_S:
             return
-        dropped = mark[1] - prev[1]
-        if dropped <= 0 or now_s - self._overload_logged_s < _OVERLOAD_LOG_S:
+        dropped, emitted = mark[1] - prev[1], mark[2] - prev[2]
+        # a frame or two pushed out now and then is a hiccup (counted in the status), not a rate
+        if dropped < max(_OVERLOAD_MIN_DROPS, _OVERLOAD_MIN_FRAC * emitted):
+            return
+        if now_s - self._overload_logged_s < _OVERLOAD_LOG_S:
             return
         self._overload_logged_s = now_s
         dt = now_s - prev[0]
@@ -1764,7 +1768,7 @@ class Daemon:
             "queues in the last %.0f s (%.1f frames/s in, %.1f integrated; frames waited %s before "
             "fusion). Set daemon.max_frame_rate_hz below the integrated rate to keep the output "
             "fresh (docs/deploy.md, Tuning)",
-            dropped, dt, (mark[2] - prev[2]) / dt, (mark[3] - prev[3]) / dt,
+            dropped, dt, emitted / dt, (mark[3] - prev[3]) / dt,
             "?" if age_p50 is None else f"{age_p50 / 1e3:.2f} s (median)",
         )  # fmt: skip
 
@@ -1818,6 +1822,8 @@ def _log_nth(n: int, first: int = 5) -> bool:
 _GRASPS_LOG_S = 60.0  # published grasps are logged at most this often (the first ones at once)
 _OVERLOAD_WINDOW_S = 10.0  # the overload warning looks at queue overflows over this long
 _OVERLOAD_LOG_S = 60.0  # and is logged at most this often
+_OVERLOAD_MIN_DROPS = 5  # when at least this many frames were pushed out in the window
+_OVERLOAD_MIN_FRAC = 0.05  # and at least this share of the frames that came in it
 _NUMBER = re.compile(r"\d+(?:\.\d+)?")
 
 # the stages (``_busy`` keys, health stages) each worker task runs its calls under

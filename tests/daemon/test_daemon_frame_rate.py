@@ -179,7 +179,7 @@ def test_queue_overflow_is_warned_of_with_the_rates_at_most_once_a_minute(
     caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
     t = 1000.0
     d._report_overload(t)  # the window starts
-    for _ in range(5):  # 5 frames into a queue of 2: 3 pushed out
+    for _ in range(22):  # 22 frames into a queue of 2: 20 pushed out
         d.depth_box.offer((None, 0.0))  # type: ignore[arg-type]
     d.health.count("frames.stereo", 300)
     d.health.count("integrated", 100)
@@ -187,33 +187,57 @@ def test_queue_overflow_is_warned_of_with_the_rates_at_most_once_a_minute(
     assert not _overload_lines(caplog)
     d._report_overload(t + 10.0)
     (line,) = _overload_lines(caplog)
-    assert "3 frames dropped at the stereo and depth queues in the last 10 s" in line
+    assert "20 frames dropped at the stereo and depth queues in the last 10 s" in line
     assert "30.0 frames/s in, 10.0 integrated" in line
     assert "daemon.max_frame_rate_hz" in line
-    assert d.depth_box.stats()["overflowed"] == 3
+    assert d.depth_box.stats()["overflowed"] == 20
 
-    d.depth_box.offer((None, 0.0))  # type: ignore[arg-type]
+    for _ in range(20):
+        d.depth_box.offer((None, 0.0))  # type: ignore[arg-type]
     d._report_overload(t + 20.0)  # more overflow, but logged 10 s ago
     assert len(_overload_lines(caplog)) == 1
-    d.depth_box.offer((None, 0.0))  # type: ignore[arg-type]
+    for _ in range(20):
+        d.depth_box.offer((None, 0.0))  # type: ignore[arg-type]
     d._report_overload(t + 80.0)
     assert len(_overload_lines(caplog)) == 2
+
+
+@pytest.mark.parametrize(
+    ("pushed", "came", "warned"), [(4, 10, False), (5, 10, True), (14, 300, False), (15, 300, True)]
+)
+def test_a_hiccup_is_not_an_overload(
+    port: int, caplog: pytest.LogCaptureFixture, pushed: int, came: int, warned: bool
+) -> None:
+    """A frame pushed out of the 2-deep stereo queue while the depth worker was slow once is
+    counted, not warned of: the warning needs at least 5 frames and 5 % of those that came in the
+    window (measured: 1 of 150 at 15 Hz on a loaded machine, with 15 frames/s integrated)."""
+    cfg = daemon_config_dict(port)
+    cfg["queues"] = {"stereo": 1}
+    d = Daemon(load_config_dict(cfg), FakePipeline())
+    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    d._report_overload(0.0)
+    for _ in range(pushed + 1):
+        d.stereo_box.offer((None, 0.0))  # type: ignore[arg-type]
+    d.health.count("frames.stereo", came)
+    d._report_overload(10.0)
+    assert d.stereo_box.overflowed == pushed
+    assert bool(_overload_lines(caplog)) is warned
 
 
 def test_a_reset_clearing_the_queues_is_not_an_overload(port: int, caplog: pytest.LogCaptureFixture) -> None:
     d = Daemon(load_config_dict(daemon_config_dict(port)), FakePipeline())
     caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
     d._report_overload(0.0)
-    for _ in range(3):
+    for _ in range(7):
         d.depth_box.offer((None, 0.0))  # type: ignore[arg-type]
         d.stereo_box.offer((None, 0.0))  # type: ignore[arg-type]
-    assert d.depth_box.clear() == 3
+    assert d.depth_box.clear() == 7
     d.stereo_box.clear()
-    assert d.depth_box.dropped == 3 and d.depth_box.overflowed == 0
-    assert d.stereo_box.overflowed == 1  # 3 into a queue of 2
+    assert d.depth_box.dropped == 7 and d.depth_box.overflowed == 0
+    assert d.stereo_box.overflowed == 5  # 7 into a queue of 2
     d._report_overload(10.0)
     (line,) = _overload_lines(caplog)
-    assert line.startswith("input faster than the daemon integrates: 1 frames dropped")
+    assert line.startswith("input faster than the daemon integrates: 5 frames dropped")
     d.depth_box.clear()
     d._report_overload(100.0)  # nothing pushed out since: no second line
     assert len(_overload_lines(caplog)) == 1
