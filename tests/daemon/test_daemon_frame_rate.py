@@ -139,28 +139,18 @@ def test_the_daemon_thins_a_30_hz_stereo_camera_before_depth_estimation(port: in
     assert d.status()["counts"]["frames.skipped_rate"] == 20
 
 
-def test_the_daemon_thins_depth_images_too(port: int) -> None:
-    d = _daemon(port, 5.0)
+@pytest.mark.parametrize(("rate_in_hz", "limit_hz", "every"), [(20.0, 5.0, 4), (30.0, 0.0, 1)])
+def test_the_daemon_thins_depth_images_too(port: int, rate_in_hz: float, limit_hz: float, every: int) -> None:
+    """Depth input goes through the same limit; without one (0) every frame goes on."""
+    d = _daemon(port, limit_hz)
     _feed(d, "depth_info", codec.encode_camera_info(RIG.left, 0, "depth"))
     h, w = RIG.left.height, RIG.left.width
-    stamps = _stamps(20.0, 1.0)
+    stamps = _stamps(rate_in_hz, 1.0)
     for s in stamps:
         _feed(d, "pose", codec.encode_pose_with_covariance(s, np.eye(4), COV))
         _feed(d, "depth", codec.encode_image(np.full((h, w), 0.5, np.float32), s, "depth"))
-    assert [f.stamp_ns for f, _ in list(d.depth_box._items)] == stamps[::4]
-    assert d.health.counts["frames.skipped_rate"] == 15
-
-
-def test_without_a_limit_the_daemon_keeps_every_frame(port: int) -> None:
-    d = _daemon(port, 0.0)
-    _feed(d, "depth_info", codec.encode_camera_info(RIG.left, 0, "depth"))
-    h, w = RIG.left.height, RIG.left.width
-    stamps = _stamps(30.0, 1.0)
-    for s in stamps:
-        _feed(d, "pose", codec.encode_pose_with_covariance(s, np.eye(4), COV))
-        _feed(d, "depth", codec.encode_image(np.full((h, w), 0.5, np.float32), s, "depth"))
-    assert [f.stamp_ns for f, _ in list(d.depth_box._items)] == stamps
-    assert "frames.skipped_rate" not in d.health.counts
+    assert [f.stamp_ns for f, _ in list(d.depth_box._items)] == stamps[::every]
+    assert d.health.counts.get("frames.skipped_rate", 0) == len(stamps) - len(stamps[::every])
 
 
 # --- the overload warning -------------------------------------------------------------------------
