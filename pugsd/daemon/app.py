@@ -385,6 +385,11 @@ class Daemon:
                 log.info("SVGP on %s with M = %d inducing points", svgp.device, svgp.num_inducing)
             self._declare_inputs()
             self._start_recorder()
+            # "alive" means serving: declared with READY, after the warm-up (seconds on a GPU),
+            # so that a source that waits for it finds the inputs subscribed
+            self._entities.append(
+                self.session.liveliness().declare_token(self.key(f"alive/{self.cfg.daemon.node_name}"))
+            )
             log.info(
                 "pugsd serving: prefix %r, %d input keys, zenoh %s",
                 self.cfg.daemon.prefix,
@@ -650,7 +655,6 @@ class Daemon:
         self._entities.append(s.declare_queryable(self.key("reset"), self._bridge_query("reset")))
         on_reset = self._bridge_control_put(self._on_reset_put, self.query_ingress)
         self._entities.append(s.declare_subscriber(self.key("reset"), on_reset))
-        self._entities.append(s.liveliness().declare_token(self.key(f"alive/{self.cfg.daemon.node_name}")))
 
     def _declare_inputs(self) -> None:
         t = self.cfg.topics

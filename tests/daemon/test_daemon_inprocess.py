@@ -458,3 +458,33 @@ def test_a_stop_during_the_warm_up_never_serves(port: int, client: zenoh.Session
     assert not src.pubs["left_image"].matching  # no subscriber was ever declared
     assert dt.daemon.status()["counts"].get("received.pose", 0) == 0
     src.close()
+
+
+def test_the_alive_token_appears_only_once_the_daemon_serves(port: int, client: zenoh.Session) -> None:
+    """``pugs/alive/<node_name>`` means serving (docs/deploy.md): it is absent while the pipeline
+    warms up, and once it is there the inputs are subscribed and READY=1 was sent. (It used to be
+    declared before the warm-up: on a GPU host, where the warm-up takes seconds, a source or test
+    that waited for it published into no subscriber, and a stop sent then was a stop while starting.)"""
+    pipe = SlowWarmUp()
+    release = threading.Event()
+    pipe.done = release.is_set
+    notifier = RecordingNotifier()
+    dt = DaemonThread(Daemon(load_config_dict(daemon_config_dict(port)), pipe, notifier=notifier)).start()
+    src = Source(client)
+
+    def alive() -> bool:
+        return any(r.ok is not None for r in client.liveliness().get("pugs/alive/**", timeout=0.5))
+
+    try:
+        assert pipe.warming.wait(10.0)
+        time.sleep(0.3)  # the status queryable is already declared: zenoh has routed the session
+        assert not alive()
+        assert "READY=1" not in notifier.sent and not src.pubs["left_image"].matching
+        release.set()
+        wait_for(alive, 10.0, "the alive token")
+        assert "READY=1" in notifier.sent
+        assert all(src.pubs[r].matching for r in ("left_image", "right_image", "pose"))
+    finally:
+        release.set()
+        src.close()
+        dt.stop()
