@@ -15,6 +15,10 @@ _STD_ATTRS = frozenset(vars(logging.LogRecord("", 0, "", 0, "", None, None))) | 
 }
 
 
+# the keys JsonFormatter writes itself
+_OUT_KEYS = frozenset({"ts", "level", "logger", "msg", "exc", "stack"})
+
+
 class JsonFormatter(logging.Formatter):
     """``{"ts", "level", "logger", "msg", ...extra}``; exceptions as ``exc``, ``stack_info=True``
     as ``stack``."""
@@ -28,7 +32,8 @@ class JsonFormatter(logging.Formatter):
         }
         for k, v in vars(record).items():
             if k not in _STD_ATTRS and not k.startswith("_"):
-                out[k] = v
+                # an extra named like a standard field ("level", "ts") must not replace it
+                out[f"extra_{k}" if k in _OUT_KEYS else k] = v
         if record.exc_info:
             out["exc"] = self.formatException(record.exc_info)
         if record.stack_info:
