@@ -7,6 +7,7 @@ import asyncio
 import contextlib
 import dataclasses
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -47,6 +48,19 @@ def client(port: int) -> Iterator[zenoh.Session]:
     s = safe_session(loopback_config(None, [port]))
     yield s
     s.close()
+
+
+@pytest.fixture
+def root_saved() -> Iterator[None]:
+    """The root logger's handlers and level put back afterwards (``pugsd run``/``demo`` and
+    ``setup_logging`` replace them)."""
+    root = logging.getLogger()
+    saved = (list(root.handlers), root.level)
+    try:
+        yield
+    finally:
+        root.handlers[:] = saved[0]
+        root.setLevel(saved[1])
 
 
 def daemon_config_dict(port: int, **daemon: Any) -> dict[str, Any]:

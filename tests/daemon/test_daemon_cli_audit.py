@@ -8,7 +8,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import signal
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -17,18 +16,6 @@ import pytest
 import pugsd.daemon.cli as dcli
 import pugsd.daemon.demo
 from pugsd.cli import main
-
-
-@pytest.fixture
-def root_saved() -> Iterator[None]:
-    """``pugsd run``/``demo`` call setup_logging, which replaces the root logger's handlers."""
-    root = logging.getLogger()
-    saved = (list(root.handlers), root.level)
-    try:
-        yield
-    finally:
-        root.handlers[:] = saved[0]
-        root.setLevel(saved[1])
 
 
 @pytest.fixture

@@ -10,24 +10,11 @@ import json
 import logging
 import re
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from pugsd.daemon.logs import JsonFormatter, setup_logging
-
-
-@pytest.fixture
-def root_saved() -> Iterator[None]:
-    """The root logger's handlers and level put back afterwards."""
-    root = logging.getLogger()
-    saved = (list(root.handlers), root.level)
-    try:
-        yield
-    finally:
-        root.handlers[:] = saved[0]
-        root.setLevel(saved[1])
 
 
 def _record(msg: str = "hello %d", args: tuple[object, ...] = (3,)) -> logging.LogRecord:
