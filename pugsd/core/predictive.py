@@ -112,7 +112,11 @@ def farthest_point_sample(
     """Indices of ``m`` farthest-point samples (greedy, O(N m)). With ``chosen`` (K, 3) points
     already in the sample, the greedy sample continues from them (the first pick is the point
     farthest from them, not a random one). ``kdtree``: the distances to ``chosen`` from a KD-tree
-    (O(N log K) instead of O(N K); equal up to rounding, so ties may break differently)."""
+    (O(N log K) instead of O(N K); equal up to rounding, so ties may break differently).
+
+    Fewer than ``min(m, N)`` indices come back when every remaining point coincides with one in
+    the sample (repeated points, or ``chosen`` already on them): a repeated pick would be a
+    second inducing point on the same spot, which makes K_ZZ singular."""
     n = len(points)
     if n == 0:
         return np.zeros(0, dtype=np.int64)
@@ -133,8 +137,11 @@ def farthest_point_sample(
         d2 = ((points - points[idx[0]]) ** 2).sum(1)
         start = 1
     for i in range(start, m):
-        idx[i] = int(np.argmax(d2))
-        d2 = np.minimum(d2, ((points - points[idx[i]]) ** 2).sum(1))
+        j = int(np.argmax(d2))
+        if d2[j] <= 0.0:  # every point is in the sample already
+            return idx[:i]
+        idx[i] = j
+        d2 = np.minimum(d2, ((points - points[j]) ** 2).sum(1))
     return idx
 
 
@@ -401,6 +408,7 @@ class OccupancySVGP:
                 moved = self._grow_inducing(x) + self._cover_new_region(x, new_idx)
             except (RuntimeError, ValueError) as exc:  # NotPSDError while re-projecting q(u)
                 self._recover(exc, n)
+                self._fresh_after_failures(x, y)
                 return TrainStats(self.total_steps, float("nan"), False, 0, n)
         assert self._mll is not None
         self._mll.num_data = n
@@ -423,10 +431,7 @@ class OccupancySVGP:
                 elbo = self._step(xt[sel], yt[sel])
             except (RuntimeError, ValueError) as exc:  # NotPSDError is a RuntimeError
                 self._recover(exc, n)
-                if self.consecutive_failures >= 3:
-                    log.warning("SVGP failed 3 times in a row: starting a fresh model")
-                    self._init_model(x, y)
-                    self.consecutive_failures = 0
+                self._fresh_after_failures(x, y)
                 return TrainStats(self.total_steps, float("nan"), False, moved, n)
             if not np.isfinite(elbo):
                 self._recover(FloatingPointError("non-finite ELBO"), n)
@@ -435,6 +440,14 @@ class OccupancySVGP:
         self._save_good_state()
         self.version += 1
         return TrainStats(self.total_steps, elbo, self.is_ready(), moved, n)
+
+    def _fresh_after_failures(self, x: np.ndarray, y: np.ndarray) -> None:
+        """After 3 failures in a row (training steps or inducing-point moves) start a fresh model:
+        a failure that the last good state reproduces would otherwise stop training for good."""
+        if self.consecutive_failures >= 3:
+            log.warning("SVGP failed 3 times in a row: starting a fresh model")
+            self._init_model(x, y)
+            self.consecutive_failures = 0
 
     def moved_recently(self) -> int:
         """Inducing points moved within the last ``ready_move_window`` steps."""
@@ -499,6 +512,9 @@ class OccupancySVGP:
         if m_old >= m_target:
             return 0
         add = farthest_point_sample(x, m_target - m_old, chosen=Z.double().cpu().numpy())
+        if len(add) == 0:  # the store's points all hold an inducing point (repeated points)
+            return 0
+        m_target = m_old + len(add)
         with torch.no_grad():
             Z_new = torch.cat([Z, self._t(x[add])])
             m_w, S_w = self._whitened_posterior_at(Z_new)
@@ -543,6 +559,7 @@ class OccupancySVGP:
         cand = x[new_idx][far]
         k = int(min(len(cand), max(1, 0.3 * len(Z)), max(1, math.ceil(len(cand) / 20))))
         pick = cand[farthest_point_sample(cand, k, self.cfg.seed + self.total_steps)]
+        k = len(pick)  # fewer where candidates repeat a point
         with torch.no_grad():
             m_white = self._whitened_mean()
             influence = m_white.abs()
@@ -613,12 +630,22 @@ class OccupancySVGP:
         vs = self.model.variational_strategy
         Z = vs.inducing_points.detach().double().cpu().numpy()
         m = len(Z)
-        fresh = self._orphans(x, Z)  # placed in this update: not removed again
-        k = int(fresh.sum())
-        if k:
+        orphans = np.flatnonzero(self._orphans(x, Z))
+        fresh = np.zeros(m, dtype=bool)  # placed in this update: not removed again
+        k = 0
+        if orphans.size:
             sub = x[:: max(1, -(-len(x) // ORPHAN_FPS_POINTS))]
-            Z[fresh] = sub[farthest_point_sample(sub, k, self.cfg.seed, chosen=Z[~fresh], kdtree=True)]
-            log.info("SVGP: %d inducing points without data near them (the store forgot it) re-placed", k)
+            keep = np.ones(m, dtype=bool)
+            keep[orphans] = False
+            pick = farthest_point_sample(sub, orphans.size, self.cfg.seed, chosen=Z[keep], kdtree=True)
+            # a store with fewer points than orphans (a caller's store that shrank; pugsd's only
+            # grows until fof.max_voxels): the rest stay where they are until points come
+            placed = orphans[: len(pick)]
+            Z[placed] = sub[pick]
+            fresh[placed] = True
+            k = len(placed)
+            if k:
+                log.info("SVGP: %d inducing points without data near them (the store forgot it) re-placed", k)
         D = np.sqrt(((Z[:, None, :] - Z[None, :, :]) ** 2).sum(-1))
         np.fill_diagonal(D, np.inf)
         thresh = self.cfg.spread_factor * float(np.median(D.min(1)))
