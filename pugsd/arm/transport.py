@@ -69,7 +69,12 @@ class LinkStats:
             "rx_echo": self.rx_echo,
             "rx_foreign": self.rx_foreign,
             "rx_age_s": (time.monotonic() - self.last_rx_monotonic) if self.last_rx_monotonic else None,
-            **{f"rx_{k}": v for k, v in self.decoder.as_dict().items()},
+            # the decoder's "packets" would overwrite rx_packets (packets delivered): it counts
+            # frames decoded, RS-485 echoes and packets dropped after a link failure included
+            **{
+                ("rx_decoded_packets" if k == "packets" else f"rx_{k}"): v
+                for k, v in self.decoder.as_dict().items()
+            },
         }
 
 
@@ -889,9 +894,12 @@ class CanTransport(Transport):
     def _send_frame(self, arb_id: int, data: bytes) -> bool:
         import can
 
+        bus = self._bus
+        if bus is None:  # closed while an urgent send was retrying: the frame is lost, no raise
+            return False
         msg = can.Message(arbitration_id=arb_id, data=data, is_extended_id=self.mapping.extended_ids)
         try:
-            self._bus.send(msg, timeout=0.0)
+            bus.send(msg, timeout=0.0)
         except (can.CanError, OSError, ValueError) as exc:
             log.debug("can send: %s", exc)
             return False

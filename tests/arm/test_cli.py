@@ -7,10 +7,13 @@ import contextlib
 import json
 import os
 import re
+import select
 import signal
 import subprocess
 import sys
+import threading
 import time
+import tty
 from collections.abc import Iterator
 from typing import Any
 
@@ -111,6 +114,40 @@ def test_arm_status_says_when_nothing_answers(capsys: pytest.CaptureFixture[str]
     assert rc == 1
     assert "NO REPLY from the arm" in out and "oldest feedback" not in out, out
     assert "arm.enabled = false" in out and "DISABLED" not in out, out
+
+
+def test_arm_status_over_an_echoing_rs485_adapter_with_no_arm(capsys: pytest.CaptureFixture[str]) -> None:
+    """An RS-485 adapter that echoes what the host sends, and no arm on the bus: the echoes are
+    our own frames, not replies. rx_packets counted them (the decoder's count overwrote the
+    delivered one), so the status said "oldest feedback" and exited 0 with nothing listening."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    stop = threading.Event()
+
+    def echo() -> None:
+        while not stop.is_set():
+            if select.select([master], [], [], 0.05)[0]:
+                try:
+                    os.write(master, os.read(master, 4096))
+                except OSError:
+                    return
+
+    t = threading.Thread(target=echo, daemon=True)
+    t.start()
+    try:
+        link = ["--set", "arm.transport=serial", "--set", f"arm.serial.port={os.ttyname(slave)}"]
+        link += ["--set", "arm.serial.rs485=true", "--set", "arm.serial.rs485_echo=true"]
+        link += ["--set", "arm.telemetry.rate_hz=10"]  # 7 devices polled one at a time fit 10 Hz
+        rc, out = _cli(capsys, "arm", "status", "--json", "--wait", "0.3", *link)
+    finally:
+        stop.set()
+        t.join(2.0)
+        os.close(master)
+        os.close(slave)
+    lk = json.loads(out)["link"]
+    assert lk["rx_echo"] > 0 and lk["error"] is None, lk  # the echoes came back and were discarded
+    assert lk["rx_packets"] == 0 and lk["rx_decoded_packets"] == lk["rx_echo"], lk
+    assert rc == 1
 
 
 def test_execute_refused_when_disabled(capsys: pytest.CaptureFixture[str]) -> None:
