@@ -421,10 +421,12 @@ def parse_override(text: str) -> tuple[str, Any]:
     if not all(part.strip() for part in key.split(".")):
         raise ConfigError(f"override {text!r}: expected section.key=VALUE")
     try:
-        value = tomllib.loads(f"v = {raw}")["v"]
+        parsed = tomllib.loads(f"v = {raw}")
     except ValueError:  # TOMLDecodeError, or an integer of more than 4300 digits
-        value = raw
-    return key, value
+        return key, raw
+    if list(parsed) != ["v"]:  # "3\ngrasp.gamma = 9": the second line was dropped without a word
+        raise ConfigError(f"override {text!r}: VALUE must be a single TOML value")
+    return key, parsed["v"]
 
 
 def load_config_dict(data: Mapping[str, Any], overrides: Sequence[str] = ()) -> PugsdConfig:

@@ -1,0 +1,92 @@
+# SPDX-License-Identifier: Apache-2.0
+"""pugsd.models and pugsd.errors (mutation audit): load_torchscript's refusals with their exact
+messages and no chained traceback, the loaded network in eval mode, make_pipeline loading a
+network only for proposer = "torchscript", and the exception hierarchy the CLI maps."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from pugsd import errors
+from pugsd.config import CoreConfig, GraspConfig
+from pugsd.errors import PugsdError
+from pugsd.models import load_torchscript, make_pipeline
+
+
+def _refusal(path: Path | str) -> PugsdError:
+    with pytest.raises(PugsdError) as exc:
+        load_torchscript(path)
+    assert type(exc.value) is PugsdError and exc.value.__cause__ is None
+    return exc.value
+
+
+def test_a_missing_file_or_a_directory_is_no_model(tmp_path: Path) -> None:
+    missing = tmp_path / "nope.pt"
+    assert str(_refusal(missing)) == f"grasp.model_path: no TorchScript model at {missing}"
+    assert str(_refusal(str(tmp_path))) == f"grasp.model_path: no TorchScript model at {tmp_path}"
+
+
+def test_a_file_that_is_no_torchscript_names_the_file(tmp_path: Path) -> None:
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a model")
+    err = _refusal(junk)
+    assert err.__suppress_context__  # one line for the CLI, no chained torch traceback
+    msg = str(err)
+    assert msg.startswith(f"grasp.model_path: cannot load {junk} as TorchScript: "), msg
+    assert len(msg) > len(f"grasp.model_path: cannot load {junk} as TorchScript: ")
+
+
+def test_the_loaded_network_is_in_eval_mode_and_on_the_cpu(tmp_path: Path) -> None:
+    net = torch.jit.script(torch.nn.Sequential(torch.nn.Linear(2, 2), torch.nn.Dropout(0.5)))
+    net.train()
+    path = tmp_path / "net.pt"
+    net.save(str(path))
+    model = load_torchscript(str(path))
+    assert not model.training
+    assert all(not m.training for m in model.modules())
+    assert {p.device.type for p in model.parameters()} == {"cpu"}
+    x = torch.ones(1, 2)
+    assert torch.equal(model(x), model(x))  # dropout off: deterministic
+
+
+def test_make_pipeline_loads_a_network_only_for_the_torchscript_proposer(tmp_path: Path) -> None:
+    missing = tmp_path / "missing.pt"
+    # the antipodal proposer never reads model_path, even when it names no file
+    pipe = make_pipeline(CoreConfig(grasp=GraspConfig(model_path=str(missing))))
+    assert type(pipe.proposer).__name__ == "AntipodalProposer"
+    with pytest.raises(PugsdError, match=f"^grasp.model_path: no TorchScript model at {missing}$"):
+        make_pipeline(CoreConfig(grasp=GraspConfig(proposer="torchscript", model_path=str(missing))))
+
+
+def test_make_pipeline_passes_the_seed() -> None:
+    pipe = make_pipeline(CoreConfig(), seed=17)
+    assert pipe.seed == 17
+
+
+def test_the_exception_hierarchy() -> None:
+    parents = {
+        "ConfigError": "PugsdError",
+        "InputError": "PugsdError",
+        "ImageSizeError": "InputError",
+        "PoseError": "InputError",
+        "CovarianceError": "InputError",
+        "EmptyCloudError": "InputError",
+        "ModelNotReadyError": "PugsdError",
+        "DecodeError": "PugsdError",
+        "ArmError": "PugsdError",
+        "PortInUseError": "ArmError",
+        "SafetyError": "ArmError",
+        "PugsdError": "Exception",
+    }
+    for name, parent in parents.items():
+        cls = getattr(errors, name)
+        assert [b.__name__ for b in cls.__bases__] == [parent], name
+
+
+def test_a_decode_error_carries_its_reason() -> None:
+    e = errors.DecodeError("bad cdr: 'x'", "malformed cdr")
+    assert (str(e), e.reason, e.args) == ("bad cdr: 'x'", "malformed cdr", ("bad cdr: 'x'",))
+    assert errors.DecodeError("short").reason is None
