@@ -340,6 +340,8 @@ class FofStore:
         (InputError) before anything is stored: packed, they would collide with other voxels.
         Points too far from the world origin for an int64 voxel index (a garbage pose such as a
         1e300 m translation) are refused first: cast, they would anchor the map at garbage."""
+        if not np.all(np.isfinite(points_W)):
+            raise InputError("non-finite points (NaN or inf): nothing of the batch was stored")
         with np.errstate(all="ignore"):
             idx = np.floor(points_W / self.cfg.voxel_size_m)
         if not np.all(np.abs(idx) < 2.0**62):
@@ -366,7 +368,10 @@ class FofStore:
         if len(points_W) == 0:
             return np.zeros(0, dtype=np.int64)
         self._tick += 1
-        prec, _ = precision_and_logdet(cov_W)
+        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+            prec, _ = precision_and_logdet(cov_W)
+        if not np.all(np.isfinite(prec)):  # np.linalg.cholesky returns NaN (no error) for NaN input
+            raise InputError("non-finite covariances (or precisions): nothing of the batch was stored")
         keys = self._keys(points_W)
         ukeys, inv = np.unique(keys, return_inverse=True)
         pos = np.searchsorted(self._hash_keys, ukeys)
