@@ -1866,14 +1866,6 @@ def _short(reason: str) -> str:
     return reason.split(" (", 1)[0]
 
 
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return str(o)
-
-
 def _jsonable(obj: Any) -> Any:
     """Plain JSON types: numpy scalars unwrapped, NaN and inf as None (strict JSON)."""
     if isinstance(obj, dict):
