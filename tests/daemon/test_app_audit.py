@@ -414,3 +414,57 @@ def test_a_second_half_of_a_waiting_stamp_is_a_counted_duplicate_drop(port: int)
     _feed(d, "left_image", codec.encode_image(IMG, 10**9, "left"))
     assert dict(d.health.dropped) == {"unpaired: duplicate_stamp": 1}
     assert d.pairer.pending() == 1 and d.dropped_total() == 1
+
+
+@pytest.mark.parametrize("role", ["mask", "depth_std"])
+def test_a_side_image_of_another_size_is_charged_to_its_own_input_and_left_out(port: int, role: str) -> None:
+    d = _daemon(port)
+    same = np.ones((H, W), np.float32)
+    assert d._side_image(role, same, (H, W)) is same
+    assert d._side_image(role, None, (H, W)) is None
+    small = np.ones((H // 2, W), np.float32)
+    assert d._side_image(role, small, (H, W)) is None  # the frame goes on without it
+    assert dict(d.health.rejected) == {f"{role}: wrong_size": 1}
+
+
+def test_the_status_lists_the_inputs_silent_for_longer_than_input_stale_s(port: int) -> None:
+    d = _daemon(port, input_stale_s=5.0)
+    now = time.monotonic()
+    d._last_recv_s.update({"pose": now - 60.0, "left_image": now - 1.0})  # one long silent, one fresh
+    assert d.status()["inputs"]["stale"] == ["pose"]
+
+
+def test_frames_pushed_out_of_the_full_pose_wait_queue_are_counted_oldest_first(port: int) -> None:
+    d = _daemon(port, queues={"pose_wait": 2}, side_image_wait_s=0.0, pose_wait_s=60.0)
+    _feed(d, "depth_info", codec.encode_camera_info(RIG.left, 0, "depth"))
+    for i in range(1, 5):  # no pose comes: four frames for a queue of two
+        _feed(d, "depth", codec.encode_image(np.full((H, W), 0.5, np.float32), i * 10**9, "depth"))
+    assert dict(d.health.dropped) == {"pose_wait: pose wait queue full": 2}
+    assert len(d.gate) == 2
+
+
+@pytest.mark.parametrize("kind", ["stereo", "depth"])
+def test_a_frame_the_core_refuses_for_its_pose_is_charged_to_the_pose(
+    port: int, kind: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The images were checked before the frame is built, so a refusal there is the pose's."""
+
+    def refuse(**_: Any) -> None:
+        raise PugsdError("pose covariance is not positive semi-definite")
+
+    monkeypatch.setattr(f"pugsd.daemon.app.{kind.capitalize()}Frame", refuse)
+    d = _daemon(port, side_image_wait_s=0.0)
+    s = 10**9
+    if kind == "stereo":
+        _infos(d)
+        _feed(d, "pose", _pose(s))
+        _feed(d, "left_image", codec.encode_image(IMG, s, "left"))
+        _feed(d, "right_image", codec.encode_image(IMG, s, "right"))
+    else:
+        _feed(d, "depth_info", codec.encode_camera_info(RIG.left, 0, "depth"))
+        _feed(d, "pose", _pose(s))
+        _feed(d, "depth", codec.encode_image(np.full((H, W), 0.5, np.float32), s, "depth"))
+    cls = reason_class(PugsdError("pose covariance is not positive semi-definite"))
+    assert dict(d.health.rejected) == {f"pose: {cls}": 1}
+    assert d.health.counts.get(f"frames.{kind}", 0) == 0
+
