@@ -10,6 +10,7 @@ import itertools
 from collections.abc import AsyncIterator, Callable, Coroutine
 from typing import Any, TypeVar
 
+import can
 import numpy as np
 
 from pugsd.arm.config import ArmConfig, ArmMotionConfig, ArmSimConfig
@@ -142,3 +143,22 @@ async def wait_until(pred: Callable[[], bool], within_s: float = 2.0, what: str 
         if asyncio.get_running_loop().time() > t_end:
             raise AssertionError(f"timed out waiting for {what or pred}")
         await asyncio.sleep(0.005)
+
+
+class FlakyBus:
+    """A python-can bus stand-in: records frames, fails the send calls listed in ``fail``."""
+
+    def __init__(self, fail: set[int]) -> None:
+        self.fail = fail
+        self.calls = 0
+        self.sent: list[tuple[int, bytes]] = []
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        n = self.calls
+        self.calls += 1
+        if n in self.fail:
+            raise can.CanOperationError("Transmit buffer full")
+        self.sent.append((int(msg.arbitration_id), bytes(msg.data)))
+
+    def shutdown(self) -> None:
+        pass

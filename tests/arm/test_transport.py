@@ -14,7 +14,6 @@ import termios
 import time
 from typing import Any
 
-import can
 import pytest
 
 from pugsd.arm.config import ArmSafetyConfig, ArmSerialConfig, ArmTelemetryConfig
@@ -23,6 +22,7 @@ from pugsd.arm.sim import close_pty, make_pty_pair
 from pugsd.arm.transport import CanReassembler, CanTransport, SerialTransport, UdpTransport
 from pugsd.errors import ArmError
 from tests.arm.helpers import (
+    FlakyBus,
     fast_config,
     reachable_grasp,
     run,
@@ -252,26 +252,7 @@ def test_can_bus_error_fails_the_link_once_and_stops_the_receive_thread() -> Non
     run(main(), 10)
 
 
-class _FlakyBus:
-    """A python-can bus stand-in: records frames, fails the send calls listed in ``fail``."""
-
-    def __init__(self, fail: set[int]) -> None:
-        self.fail = fail
-        self.calls = 0
-        self.sent: list[tuple[int, bytes]] = []
-
-    def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        n = self.calls
-        self.calls += 1
-        if n in self.fail:
-            raise can.CanOperationError("Transmit buffer full")
-        self.sent.append((int(msg.arbitration_id), bytes(msg.data)))
-
-    def shutdown(self) -> None:
-        pass
-
-
-def _received(bus: _FlakyBus) -> list[Packet]:
+def _received(bus: FlakyBus) -> list[Packet]:
     re = CanReassembler()
     out: list[Packet] = []
     for i, (arb, data) in enumerate(bus.sent):
@@ -286,7 +267,7 @@ def test_can_packet_cut_short_does_not_corrupt_the_next(fail: set[int]) -> None:
 
     async def main() -> None:
         tr = CanTransport(interface="virtual", channel="unused")
-        bus = _FlakyBus(fail)
+        bus = FlakyBus(fail)
         tr._bus = bus
         p1 = make_packet(0x02, P.POSITION, [1.0])  # 10 wire bytes: 2 frames
         p2 = make_packet(0x02, P.POSITION, [2.0])
@@ -301,7 +282,7 @@ def test_can_packet_cut_short_does_not_corrupt_the_next(fail: set[int]) -> None:
 def test_can_stop_is_retried_and_its_frames_stay_together() -> None:
     async def main() -> None:
         tr = CanTransport(interface="virtual", channel="unused")
-        bus = _FlakyBus({0, 1, 2})  # the controller's queue is full for a moment
+        bus = FlakyBus({0, 1, 2})  # the controller's queue is full for a moment
         tr._bus = bus
         stop = [make_packet(0xFF, P.VELOCITY, [0.0]), make_packet(0xFF, P.MODE, [1])]
         poll = make_packet(0xFF, P.REQUEST, [P.POSITION])

@@ -19,7 +19,6 @@ import types
 from collections.abc import Iterator
 from typing import Any
 
-import can
 import pytest
 
 import pugsd.arm.transport as tmod
@@ -41,7 +40,7 @@ from pugsd.arm.transport import (
     make_transport,
 )
 from pugsd.errors import ArmError
-from tests.arm.helpers import run, wait_until
+from tests.arm.helpers import FlakyBus, run, wait_until
 
 P = PacketID
 
@@ -609,31 +608,12 @@ def test_can_fixed_ids_do_not_check_the_device() -> None:
     assert tr.rx.get_nowait() == _pos(5, 1.0)
 
 
-class _Bus:
-    """A python-can bus stand-in: records frames; the send calls listed in ``fail`` fail."""
-
-    def __init__(self, fail: set[int]) -> None:
-        self.fail = fail
-        self.calls = 0
-        self.sent: list[tuple[int, bytes]] = []
-
-    def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        n = self.calls
-        self.calls += 1
-        if n in self.fail:
-            raise can.CanOperationError("Transmit buffer full")
-        self.sent.append((int(msg.arbitration_id), bytes(msg.data)))
-
-    def shutdown(self) -> None:
-        pass
-
-
 def test_can_send_counts_and_unopened_bus() -> None:
     async def main() -> None:
         tr = CanTransport(interface="virtual", channel="unused")
         await tr.send_many([_pos(2, 1.0), _pos(3, 1.0), _pos(4, 1.0)])
         assert tr.stats.tx_errors == 3  # not open
-        bus = _Bus(set())
+        bus = FlakyBus(set())
         tr._bus = bus
         pk = [_pos(2, 1.0), _pos(3, 1.0)]
         await tr.send_many(pk)
@@ -646,7 +626,7 @@ def test_can_send_counts_and_unopened_bus() -> None:
 def test_can_plain_send_is_not_retried() -> None:
     async def main() -> None:
         tr = CanTransport(interface="virtual", channel="unused")
-        bus = _Bus({0})
+        bus = FlakyBus({0})
         tr._bus = bus
         await tr.send_many([_pos(2, 1.0)])
         assert bus.sent == [] and tr.stats.tx_errors == 1 and tr.stats.tx_packets == 0
@@ -661,7 +641,7 @@ def test_can_no_second_terminator_after_the_lead_zero() -> None:
 
     async def main() -> None:
         tr = CanTransport(interface="virtual", channel="unused")
-        bus = _Bus({1, 2, 4})
+        bus = FlakyBus({1, 2, 4})
         tr._bus = bus
         p = _pos(2, 1.0)
         await tr.send_many([p])  # frame 0 out, frame 1 and its terminator fail: dirty
@@ -676,7 +656,7 @@ def test_can_no_second_terminator_after_the_lead_zero() -> None:
 def test_can_close_during_an_urgent_retry_does_not_raise() -> None:
     async def main() -> None:
         tr = CanTransport(interface="virtual", channel="unused")
-        tr._bus = _Bus(set(range(10_000)))  # the controller's queue stays full
+        tr._bus = FlakyBus(set(range(10_000)))  # the controller's queue stays full
         task = asyncio.create_task(tr.send_urgent(STOP))
         await asyncio.sleep(0)  # the stop is retrying
         await tr.close()
