@@ -24,6 +24,7 @@ from pugsd.arm.transport import (
     Transport,
     UdpTransport,
 )
+from pugsd.core.types import ScoredGrasps
 
 T = TypeVar("T")
 _can_channels = itertools.count()
@@ -162,3 +163,17 @@ class FlakyBus:
 
     def shutdown(self) -> None:
         pass
+
+
+def two_grasps(T_W_G9: np.ndarray) -> ScoredGrasps:
+    """What a daemon's latest-grasps query might return: grasp 4 at the identity (20 mm) and
+    grasp 9 at ``T_W_G9`` (35 mm)."""
+    return ScoredGrasps(
+        pose_W=np.stack([np.eye(4), T_W_G9]),
+        contact_W=np.zeros((2, 3)),
+        width_m=np.array([0.02, 0.035]),
+        baseline_confidence=np.ones(2),
+        sigma2_occ=np.zeros(2),
+        pugs_confidence=np.ones(2),
+        grasp_id=np.array([4, 9]),
+    )

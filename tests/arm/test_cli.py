@@ -26,7 +26,7 @@ from pugsd.arm.config import ArmConfig
 from pugsd.arm.controller import T_tool_grasp_from_config, model_from_config
 from pugsd.cli import main
 from pugsd.core.types import ScoredGrasps
-from tests.arm.helpers import assert_pose_within_convergence
+from tests.arm.helpers import assert_pose_within_convergence, two_grasps
 
 
 def _cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str]:
@@ -240,15 +240,7 @@ def test_cli_sim_status_execute_stop(
     T2 = _pose_near_start([0.1, 0.15, -0.1, 0.1, 0.1, 0.1])
 
     def fake_fetch(full_cfg: object, timeout: float) -> ScoredGrasps:
-        return ScoredGrasps(
-            pose_W=np.stack([np.eye(4), T2]),
-            contact_W=np.zeros((2, 3)),
-            width_m=np.array([0.02, 0.035]),
-            baseline_confidence=np.ones(2),
-            sigma2_occ=np.zeros(2),
-            pugs_confidence=np.ones(2),
-            grasp_id=np.array([4, 9]),
-        )
+        return two_grasps(T2)
 
     monkeypatch.setattr(arm_cli, "fetch_latest_grasps", fake_fetch)
     rc, out = _cli(capsys, "arm", "execute", "--grasp-id", "9", *link, *fast)
@@ -311,15 +303,7 @@ def test_fetch_latest_grasps_over_loopback_zenoh() -> None:
     check_loopback_safe(tool_config(daemon_cfg))  # what fetch_latest_grasps opens
     T = np.eye(4)
     T[:3, 3] = [0.4, 0.1, -0.2]
-    g = ScoredGrasps(
-        pose_W=np.stack([np.eye(4), T]),
-        contact_W=np.zeros((2, 3)),
-        width_m=np.array([0.02, 0.035]),
-        baseline_confidence=np.ones(2),
-        sigma2_occ=np.zeros(2),
-        pugs_confidence=np.ones(2),
-        grasp_id=np.array([4, 9]),
-    )
+    g = two_grasps(T)
     payload = encode_grasp_array(g)
     daemon = open_session(daemon_cfg, require_loopback=True)
 

@@ -17,6 +17,7 @@ from pugsd.arm.protocol import Packet, encode_frame
 from pugsd.cli import main
 from pugsd.core.types import ScoredGrasps
 from pugsd.errors import PortInUseError
+from tests.arm.helpers import two_grasps
 
 
 def _run_cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
@@ -315,15 +316,7 @@ def test_execute_grasp_id_takes_the_grasps_pose_and_width(
 
     def fake_fetch(full: Any, timeout: float) -> ScoredGrasps:
         asked.append(timeout)
-        return ScoredGrasps(
-            pose_W=np.stack([np.eye(4), T9]),
-            contact_W=np.zeros((2, 3)),
-            width_m=np.array([0.02, 0.035]),
-            baseline_confidence=np.ones(2),
-            sigma2_occ=np.zeros(2),
-            pugs_confidence=np.ones(2),
-            grasp_id=np.array([4, 9]),
-        )
+        return two_grasps(T9)
 
     monkeypatch.setattr(arm_cli, "fetch_latest_grasps", fake_fetch)
     rc, out, _ = _run_cli(capsys, "arm", "execute", "--grasp-id", "9", "--timeout", "0.6", *ENABLED)

@@ -8,8 +8,6 @@ import math
 import numpy as np
 import pytest
 
-from pugsd.arm.config import ArmConfig
-from pugsd.arm.controller import model_from_config
 from pugsd.arm.kinematics import (
     A2,
     THETA_S,
@@ -18,11 +16,6 @@ from pugsd.arm.kinematics import (
     pose_error,
     pose_to_km_end_pos,
 )
-
-
-@pytest.fixture(scope="module")
-def model() -> Bravo7Model:
-    return model_from_config(ArmConfig())
 
 
 def test_dh_constants() -> None:

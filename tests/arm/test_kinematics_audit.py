@@ -13,8 +13,6 @@ import numpy.typing as npt
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pugsd.arm.config import ArmConfig
-from pugsd.arm.controller import model_from_config
 from pugsd.arm.kinematics import (
     Bravo7Model,
     pose_error,
@@ -23,11 +21,6 @@ from pugsd.arm.kinematics import (
     rotation_error,
 )
 from pugsd.errors import ArmError
-
-
-@pytest.fixture(scope="module")
-def model() -> Bravo7Model:
-    return model_from_config(ArmConfig())
 
 
 def _R(axis: str, ang: float) -> np.ndarray:
