@@ -473,7 +473,10 @@ class SerialTransport(FdStreamTransport):
         if not self.rs485:
             await super().send_urgent(packets)
             return
-        self._commands.clear()  # stale setpoints: the stop goes first
+        # stale setpoints and polls: the stop goes first. Counted as not sent (``tx_errors``), as
+        # the plain serial path counts the frames a stop replaces.
+        self.stats.tx_errors += self.backlog()
+        self._commands.clear()
         self._requests.clear()
         self._requests_idle.set()
         await self.send_many(packets)

@@ -339,8 +339,13 @@ def test_rs485_urgent_replaces_queued_commands_and_requests() -> None:
     tr = SerialTransport("unused", rs485=True)
     _now(tr.send_many([_pos(2, 1.0), _pos(3, 1.0), make_packet(0x02, P.REQUEST, [P.POSITION])]))
     assert not tr._requests_idle.is_set()
+    assert tr.stats.tx_errors == 0
     _now(tr.send_urgent(STOP))
     assert list(tr._commands) == STOP and tr.pending_requests() == 0 and tr._requests_idle.is_set()
+    # the two stale setpoints and the poll are not sent: counted, as on the plain serial path
+    assert tr.stats.tx_errors == 3
+    _now(tr.send_urgent(STOP))  # the first stop, not yet written, is replaced by the second
+    assert list(tr._commands) == STOP and tr.stats.tx_errors == 3 + len(STOP)
 
 
 def test_rs485_writer_sends_commands_in_batches_of_32() -> None:
