@@ -221,11 +221,11 @@ class OccupancySVGP:
         return np.asarray(x, dtype=np.float64) - self.origin
 
     def _recentre(self, centre: np.ndarray) -> None:
-        """Move the model's origin to ``centre`` when the data has moved more than ``RECENTRE_M``
-        from it (the point store forgets the oldest voxels, so a vehicle on a long transect keeps
-        a map far from where it began). The inducing points are shifted by the same amount in
-        float64; the kernel is stationary and q(u) is whitened, so the model is the same function
-        of world coordinates, kept in float32 near zero."""
+        """Move the model's origin to ``centre`` when the data has moved ``RECENTRE_M`` or more
+        from it along some axis (the point store forgets the oldest voxels, so a vehicle on a long
+        transect keeps a map far from where it began). The inducing points are shifted by the same
+        amount in float64; the kernel is stationary and q(u) is whitened, so the model is the same
+        function of world coordinates, kept in float32 near zero."""
         d = np.asarray(centre, dtype=np.float64) - self.origin
         if self.model is None or float(np.abs(d).max()) < RECENTRE_M:
             return

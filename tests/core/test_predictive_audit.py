@@ -729,6 +729,8 @@ def test_recentring_measures_the_largest_axis_offset() -> None:
     m._recentre(np.array([40.0, 40.0, 0.0]))
     np.testing.assert_array_equal(m.origin, np.zeros(3))
     assert m.version == v
-    m._recentre(np.array([0.0, 0.0, -50.5]))
-    np.testing.assert_array_equal(m.origin, [0.0, 0.0, -50.5])
+    m._recentre(np.array([0.0, 49.999, 0.0]))  # just under: kept
+    np.testing.assert_array_equal(m.origin, np.zeros(3))
+    m._recentre(np.array([0.0, 0.0, -50.0]))  # exactly RECENTRE_M (the docstring's "or more")
+    np.testing.assert_array_equal(m.origin, [0.0, 0.0, -50.0])
     assert m.version > v
