@@ -58,16 +58,17 @@ class SyntheticCamera:
         self.pubs = {r: Publisher(session, key_for(topics, r), congestion_control=cc) for r in self.ROLES}
         self.sent = 0
 
-    def wait_matching(self, timeout_s: float) -> bool:
+    def wait_matching(self, timeout_s: float, stop: threading.Event | None = None) -> bool:
         """Wait until a subscriber matches every topic this camera publishes, not only the
         images and the pose: a put before its route exists is lost. (The maskless first frames
         the bench saw were another cause, keys reordered on the way: the daemon now waits for a
-        first frame's mask, see ``Daemon._side_missing``.)"""
+        first frame's mask, see ``Daemon._side_missing``.) False after ``timeout_s``, or at once
+        when ``stop`` is set (the demo is shutting down)."""
+        stop = threading.Event() if stop is None else stop
         t0 = time.monotonic()
         while not all(self.pubs[r].matching for r in self.ROLES):
-            if time.monotonic() - t0 > timeout_s:
+            if time.monotonic() - t0 > timeout_s or stop.wait(0.02):
                 return False
-            time.sleep(0.02)
         return True
 
     def publish(self, frame: StereoFrame, stamp_ns: int) -> float:
@@ -281,7 +282,9 @@ async def _demo_main(
         write(f"[{time.monotonic() - t_start:6.1f} s] rendered {len(frames)} views; daemon serving")
 
         def run_camera() -> None:
-            if not camera.wait_matching(10.0):
+            if not camera.wait_matching(10.0, stop_camera):
+                if stop_camera.is_set():
+                    return
                 log.warning("camera: the daemon's subscriptions did not match within 10 s")
             i = 0
             next_t = time.monotonic()
@@ -315,8 +318,10 @@ async def _demo_main(
             write("interrupted; shutting down")
     finally:
         stop_camera.set()
-        if cam_thread is not None:
+        if cam_thread is not None:  # it never waits on this loop: a plain join cannot deadlock
             cam_thread.join(5.0)
+            if cam_thread.is_alive():
+                log.warning("camera: its thread did not stop within 5 s (a put blocked?); going on")
         stop.set()
         try:
             await serve  # re-raises the daemon's failure, after the clean-up below

@@ -66,6 +66,31 @@ def test_the_synthetic_camera_waits_for_a_route_on_every_topic_it_publishes() ->
         cam.pubs[role].matching = True
 
 
+def test_the_synthetic_camera_stops_waiting_for_routes_when_the_demo_shuts_down() -> None:
+    """A demo interrupted while its camera waited for the daemon's subscriptions: the camera
+    thread waited out its 10 s regardless, longer than the 5 s the shutdown joins it for."""
+    import threading
+
+    from pugsd.daemon.demo import SyntheticCamera
+
+    stop = threading.Event()
+    reads = [0]
+
+    class NeverMatches:
+        @property
+        def matching(self) -> bool:
+            reads[0] += 1
+            if reads[0] == 3:
+                stop.set()  # the shutdown, while the camera waits
+            return False
+
+    cam = SyntheticCamera.__new__(SyntheticCamera)
+    cam.pubs = {r: NeverMatches() for r in SyntheticCamera.ROLES}
+    assert not cam.wait_matching(1e6, stop)  # returns although the timeout is days away
+    assert reads[0] == 3  # the first poll after the stop ended the wait
+    assert not cam.wait_matching(1e6, stop) and reads[0] == 4  # already set: one look, no wait
+
+
 def test_demo_says_why_there_is_no_figure_after_a_reset() -> None:
     """README invites `pugsd reset` against a running demo; when it cleared the map after the
     camera's sweep, the end summary said "no grasps were computed (model not ready)" although
