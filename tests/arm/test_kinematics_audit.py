@@ -204,3 +204,29 @@ def test_tcp_offset_is_applied_in_the_tool_frame(model: Bravo7Model) -> None:
     assert np.allclose(m.fk(q), model.fk(q) @ X, atol=1e-15)
     T0 = model.fk(q)
     assert np.allclose(m.fk(q)[:3, 3], T0[:3, 3] + T0[:3, :3] @ [0.0, 0.01, 0.05], atol=1e-15)
+
+
+def test_ik_active_set_frees_the_other_joints_at_a_hard_limit(model: Bravo7Model) -> None:
+    """Targets reached with one limited joint exactly at its hard limit, seeded with that joint
+    there and the others off by N(0, 0.4) rad: a joint on its limit that the step pushes outwards
+    is frozen and the step re-solved for the others, instead of the projection eating that joint's
+    share. 190 such targets from a fixed seed: 186 solved, 9 taking more than 10 iterations
+    (without the active set: 182 solved, 25 over 10 iterations)."""
+    rng = np.random.default_rng(0)
+    solved, slow, n = 0, 0, 0
+    for _ in range(400):
+        q_t = model.random_q(rng, 1, margin=0.05)[0]
+        j = int(rng.integers(0, 6))
+        if model._circular[j]:
+            continue
+        q_t[j] = model.q_min[j] if rng.random() < 0.5 else model.q_max[j]
+        seed = q_t + rng.normal(0.0, 0.4, 6)
+        seed[j] = q_t[j]
+        n += 1
+        r = model.ik(model.fk(q_t), [seed], max_iter=150)
+        if r is not None:
+            solved += 1
+            slow += r.iterations > 10
+            assert model.within_limits(r.q)
+    assert n == 190
+    assert solved >= 185 and slow <= 14, (solved, slow)
