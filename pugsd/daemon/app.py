@@ -447,6 +447,23 @@ class Daemon:
                 log.warning("shutdown: %s did not finish in time; abandoning it", t.get_name())
                 t.cancel()
         log.info("shutdown: workers stopped in %.2f s", time.monotonic() - t0)
+        self._report_unprocessed()
+
+    def _report_unprocessed(self) -> None:
+        """Shutdown: say what was still queued (the map dies with the process, so frames are not
+        worked off first), and answer an accepted arm request that never started with a failed
+        report on ``<prefix>/arm/report``: its requester was told "accepted"."""
+        left = {b.name: len(b) for b in (self.stereo_box, self.depth_box, self.commands) if len(b)}
+        if left:
+            self.health.count("shutdown_unprocessed", sum(left.values()))
+            log.warning(
+                "shutdown: left unprocessed: %s", ", ".join(f"{n} in the {k} queue" for k, n in left.items())
+            )
+        why = "the daemon shut down before the motion started"
+        while (item := self.arm_box.take_nowait()) is not None:
+            grasp_id = item[1]
+            log.warning("arm: grasp %d not executed: %s", grasp_id, why)
+            self._publish_arm_report({"grasp_id": grasp_id, "ok": False, "error": why})
 
     def _undeclare_subscribers(self) -> None:
         for tok in self._sub_graph_tokens:
@@ -506,6 +523,8 @@ class Daemon:
         except (RecursionError, OverflowError, ValueError) as exc:  # deep nesting, huge numbers
             msg = f"arm/execute: unreadable request ({type(exc).__name__})"
             raise InputRejected("bad_request", msg) from None
+        if self._stopping:  # the arm box is closed: "busy" would mislead
+            raise InputRejected("shutting_down", "the daemon is shutting down")
         if self.arm.stop_latched is not None:
             msg = f"stopped ({self.arm.stop_latched}): query {self.key('arm/release')} first"
             raise InputRejected("stopped", msg[:300])
@@ -590,11 +609,14 @@ class Daemon:
                 report = {"grasp_id": grasp_id, "ok": False, "error": repr(exc)}
             finally:
                 self._busy["arm"] = False
-            self.arm_report = report
-            try:
-                self.session.put(self.key("arm/report"), json.dumps(report))
-            except Exception as exc:
-                log.warning("arm: could not publish the report: %s", exc)
+            self._publish_arm_report(report)
+
+    def _publish_arm_report(self, report: dict[str, Any]) -> None:
+        self.arm_report = report
+        try:
+            self.session.put(self.key("arm/report"), json.dumps(report))
+        except Exception as exc:
+            log.warning("arm: could not publish the report: %s", exc)
 
     def _start_recorder(self) -> None:
         if not self.cfg.record.enabled:
@@ -1603,6 +1625,7 @@ class Daemon:
         self._last_frame_s = None
         self._newest_recv_s = None
         self.elbo = None
+        self.model_version = None  # the cleared map's: no grasps of it are served any more
         self._grasps_logged_s = -math.inf  # the new map's first grasps are logged
         self.health.count("resets")
         self._publish_cleared(cleared_stamp_ns)
@@ -1695,6 +1718,8 @@ class Daemon:
             "mailboxes": {b.name: b.stats() for b in (self.stereo_box, self.depth_box, self.commands)},
             "ingress": {"pending": self.ingress.pending, "dropped": self.ingress.dropped},
             "query_ingress": {"pending": self.query_ingress.pending, "dropped": self.query_ingress.dropped},
+            # arm/stop queries and puts beyond the eight on their way (those do the stopping)
+            "stop_ingress": {"pending": self.stop_ingress.pending, "dropped": self.stop_ingress.dropped},
             "deletes_ignored": self.deletes_ignored,
             "bridge_errors": dict(self.bridge_errors),
             "inputs": {
