@@ -275,7 +275,7 @@ class SimBravo7:
             self._send(out)
             return
         if pid == PacketID.KM_END_POS and p.device_id == 0x0E:
-            vals = p.floats()
+            vals = _n_floats(p, 6)
             self.events.append((now, p.device_id, "KM_END_POS", tuple(vals)))
             if self.has_km:
                 self._km_position(vals)
@@ -292,7 +292,7 @@ class SimBravo7:
                     ax.setpoint = ax.pos
                 ax.vdemand = 0.0
         elif pid == PacketID.POSITION:
-            (v,) = p.floats()
+            (v,) = _n_floats(p, 1)
             self.events.append((now, p.device_id, "POSITION", (v,)))
             for ax in axes:
                 if ax.mode in _INACTIVE:
@@ -304,7 +304,7 @@ class SimBravo7:
                 ax.setpoint = v
                 ax.mode = int(Mode.POSITION)
         elif pid == PacketID.VELOCITY:
-            (v,) = p.floats()
+            (v,) = _n_floats(p, 1)
             self.events.append((now, p.device_id, "VELOCITY", (v,)))
             for ax in axes:
                 if ax.mode in _INACTIVE:
@@ -393,6 +393,14 @@ class SimBravo7:
                         make_packet(ax.device_id, PacketID.HARDWARE_STATUS_FLAGS, list(ax.flags.to_bytes()))
                     )
             self._send(out)
+
+
+def _n_floats(p: Packet, n: int) -> tuple[float, ...]:
+    """The packet's ``n`` floats; DecodeError for any other payload (which ``_on_packet`` drops)."""
+    vals = p.floats()
+    if len(vals) != n:
+        raise DecodeError(f"{p.name}: {len(vals)} floats, expected {n}")
+    return vals
 
 
 # ---------------------------------------------------------------- link helpers
