@@ -43,12 +43,13 @@ from pugsd.arm.protocol import (
     Mode,
     Packet,
     PacketID,
+    decode_payload,
     has_nonfinite,
     heartbeat_frequency_hz,
     make_packet,
 )
 from pugsd.arm.transport import Transport, make_transport
-from pugsd.errors import ArmError, PugsdError, SafetyError
+from pugsd.errors import ArmError, DecodeError, PugsdError, SafetyError
 
 log = logging.getLogger(__name__)
 
@@ -146,11 +147,29 @@ class AxisState:
         return None
 
 
+# feedback the link stores: a payload that does not fit its packet id is dropped whole
+_CHECKED_FEEDBACK = frozenset(
+    {PacketID.POSITION, PacketID.VELOCITY, PacketID.MODE, PacketID.POSITION_LIMITS, PacketID.KM_END_POS}
+)
+
+
+def _payload_fits(p: Packet) -> bool:
+    """Whether ``p``'s data has the size and value count its packet id's spec gives."""
+    try:
+        decode_payload(p.packet_id, p.data)
+    except DecodeError:
+        return False
+    return True
+
+
 class ArmLink:
     """Telemetry and commands over one transport (host side).
 
     Non-finite feedback (NaN or infinite POSITION, VELOCITY, limits, KM_END_POS) is never
     stored: it is counted in ``nonfinite`` and marks the axis invalid until a finite value comes.
+    Feedback whose payload does not fit its packet id (a POSITION of two floats, an empty MODE)
+    is dropped whole and counted in ``malformed``: nothing is stored, and a request waiting for
+    that packet id is not answered by it.
     In heartbeat mode, HEARTBEAT_SET (lost on a power cycle) is sent again to a device whose
     position feedback is older than ``stale_s``: at once when other traffic from it shows that
     it is back, and every ``HEARTBEAT_RESEND_S`` while it stays silent.
@@ -178,6 +197,7 @@ class ArmLink:
         self.km_end_pos: tuple[float, ...] | None = None
         self.other: dict[tuple[int, int], tuple[float, Packet]] = {}
         self.nonfinite = 0  # feedback values rejected as NaN or infinite
+        self.malformed = 0  # feedback packets whose payload does not fit their packet id
         self.heartbeat_resends = 0
         self._hb_sent: dict[int, float] = {}
         self._hb_due: set[int] = set()
@@ -340,6 +360,11 @@ class ArmLink:
         if ax is not None and now - ax.t_position > self.stale_s:
             self._hb_due.add(p.device_id)  # heard from again while its feedback is stale
         pid = p.packet_id
+        if pid in _CHECKED_FEEDBACK and not _payload_fits(p):
+            self.malformed += 1
+            lvl = logging.WARNING if self.malformed <= 10 else logging.DEBUG
+            log.log(lvl, "device 0x%02X sent a malformed %s (%s): dropped", p.device_id, p.name, p.data.hex())
+            return
         try:
             bad = has_nonfinite(p)
             if bad:
@@ -767,6 +792,7 @@ class ArmController:
                 "error": self.link.transport.error,
                 "feedback_age_s": self.link.feedback_age(),
                 "rx_nonfinite": self.link.nonfinite,
+                "rx_malformed": self.link.malformed,
                 "heartbeat_resends": self.link.heartbeat_resends,
             },
             "stop_latched": self.stop_latched,

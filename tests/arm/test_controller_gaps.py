@@ -407,3 +407,52 @@ def test_can_bases_must_differ() -> None:
         ArmCanConfig(tx_base=0x300, rx_base=0x300)
     with pytest.raises(ConfigError, match="tx_id and rx_id must differ"):
         ArmCanConfig(fixed_ids=True, tx_id=0x123, rx_id=0x123)
+
+
+GOOD_FEEDBACK = {
+    PacketID.POSITION: make_packet(0x03, PacketID.POSITION, [0.5]),
+    PacketID.VELOCITY: make_packet(0x03, PacketID.VELOCITY, [0.5]),
+    PacketID.MODE: make_packet(0x03, PacketID.MODE, [int(Mode.STANDBY)]),
+    PacketID.POSITION_LIMITS: make_packet(0x03, PacketID.POSITION_LIMITS, [0.5, 1.0]),
+}
+
+
+@pytest.mark.parametrize(
+    ("pid", "data"),
+    [
+        (PacketID.POSITION, struct.pack("<2f", 1.5, 9.0)),  # two floats: the first was taken
+        (PacketID.POSITION, b""),
+        (PacketID.POSITION, b"\x00\x00\x80"),  # not a whole float
+        (PacketID.VELOCITY, struct.pack("<2f", 0.5, 0.5)),
+        (PacketID.MODE, b""),
+        (PacketID.MODE, b"\x02\x02"),
+        (PacketID.POSITION_LIMITS, struct.pack("<3f", 0.1, 0.2, 0.3)),
+    ],
+)
+def test_malformed_feedback_is_dropped_whole_counted_and_answers_no_request(pid: int, data: bytes) -> None:
+    """Feedback whose payload does not fit its packet id: nothing of it is stored (a POSITION of
+    two floats used to set the joint to the first), it is counted in ``rx_malformed``, and a
+    request waiting for that packet id is not answered by it; the good packet after it is."""
+    ctl, _ = _controller()
+    _feed(ctl)
+    link = ctl.link
+    ax = link.axes[0x03]
+
+    def state() -> tuple[object, ...]:
+        return (ax.position, ax.velocity, ax.mode, ax.limits, ax.t_position)
+
+    before = state()
+
+    async def main() -> tuple[bool, bool]:
+        fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        link._waiters.append((0x03, {int(pid)}, fut))
+        link._ingest(Packet(0x03, int(pid), data))
+        assert state() == before
+        answered_by_bad = fut.done()
+        link._ingest(GOOD_FEEDBACK[PacketID(pid)])
+        return answered_by_bad, fut.done()
+
+    assert asyncio.run(main()) == (False, True)
+    assert link.malformed == 1 and link.nonfinite == 0
+    assert ctl.status()["link"]["rx_malformed"] == 1
+    assert state() != before  # the good packet was stored
