@@ -149,7 +149,14 @@ class AxisState:
 
 # feedback the link stores: a payload that does not fit its packet id is dropped whole
 _CHECKED_FEEDBACK = frozenset(
-    {PacketID.POSITION, PacketID.VELOCITY, PacketID.MODE, PacketID.POSITION_LIMITS, PacketID.KM_END_POS}
+    {
+        PacketID.POSITION,
+        PacketID.VELOCITY,
+        PacketID.MODE,
+        PacketID.HARDWARE_STATUS_FLAGS,
+        PacketID.POSITION_LIMITS,
+        PacketID.KM_END_POS,
+    }
 )
 
 

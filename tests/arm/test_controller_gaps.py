@@ -414,6 +414,7 @@ GOOD_FEEDBACK = {
     PacketID.VELOCITY: make_packet(0x03, PacketID.VELOCITY, [0.5]),
     PacketID.MODE: make_packet(0x03, PacketID.MODE, [int(Mode.STANDBY)]),
     PacketID.POSITION_LIMITS: make_packet(0x03, PacketID.POSITION_LIMITS, [0.5, 1.0]),
+    PacketID.HARDWARE_STATUS_FLAGS: make_packet(0x03, PacketID.HARDWARE_STATUS_FLAGS, [0, 0, 0x08, 0]),
 }
 
 
@@ -427,6 +428,7 @@ GOOD_FEEDBACK = {
         (PacketID.MODE, b""),
         (PacketID.MODE, b"\x02\x02"),
         (PacketID.POSITION_LIMITS, struct.pack("<3f", 0.1, 0.2, 0.3)),
+        (PacketID.HARDWARE_STATUS_FLAGS, b"\x00\x00\x08"),
     ],
 )
 def test_malformed_feedback_is_dropped_whole_counted_and_answers_no_request(pid: int, data: bytes) -> None:
@@ -439,7 +441,7 @@ def test_malformed_feedback_is_dropped_whole_counted_and_answers_no_request(pid:
     ax = link.axes[0x03]
 
     def state() -> tuple[object, ...]:
-        return (ax.position, ax.velocity, ax.mode, ax.limits, ax.t_position)
+        return (ax.position, ax.velocity, ax.mode, ax.limits, ax.flags, ax.t_position)
 
     before = state()
 
