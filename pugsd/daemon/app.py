@@ -317,6 +317,10 @@ class Daemon:
         # from that bump until the map is cleared (the reset may wait for the model thread), no
         # grasp computation starts: it would snapshot the old map under the new generation
         self._resetting = False
+        # the last reset could not clear the pipeline (it raised part-way): the model may still
+        # hold the old map, so no grasps are published and the daemon reports itself unhealthy
+        # (systemd's watchdog then restarts it: a fresh map) until a reset succeeds
+        self._reset_failed = False
         self._busy: dict[str, bool] = {}
         # a map reset allocates a new TSDF grid in one call that holds Python's GIL for ~0.25 s
         # (40000 blocks), as long as the arm watchdog's default bound: it waits for an arm motion
@@ -1531,7 +1535,7 @@ class Daemon:
         while not self._stopping:
             await asyncio.sleep(0.02)
             publishable = self.ready or (self.cfg.daemon.ready_latch and self.was_ready)
-            if not (publishable and self._changed) or self._stopping or self._resetting:
+            if not (publishable and self._changed) or self._stopping or self._resetting or self._reset_failed:
                 continue
             now = time.monotonic()
             if not self._grasps_due(now, last_start):
@@ -1616,6 +1620,10 @@ class Daemon:
         if await self._guard("reset", self._offload("reset", self._reset_locked)):
             # a run of integrate failures belonged to the old map (out_of_map_range: its anchor)
             self.health.succeeded("integrate")
+            self._reset_failed = False
+        else:
+            self._reset_failed = True
+            log.error("reset: the pipeline could not be cleared; no grasps until a reset succeeds")
         self.latest_grasps = None
         self.latest_result = None
         self.ready = False
@@ -1696,13 +1704,20 @@ class Daemon:
                 ", ".join(f"{r} for {ages[r]:.1f} s" for r in new), self.cfg.daemon.input_stale_s,
             )  # fmt: skip
 
+    def problems(self) -> list[str]:
+        """Why the daemon is unhealthy (empty: healthy): the health monitor's and a failed reset."""
+        out = self.health.problems()
+        if self._reset_failed:
+            out.append("reset failed: the map may not be cleared (grasps withheld; send a reset again)")
+        return out
+
     def status(self) -> dict[str, Any]:
         try:
             pstats = self.pipeline.stats()
         except Exception as exc:  # stats are best effort
             pstats = {"error": str(exc)}
         snap = self.health.snapshot()
-        problems = self.health.problems()
+        problems = self.problems()
         return {
             "node": self.cfg.daemon.node_name,
             "stamp_ns": time.time_ns(),
@@ -1808,7 +1823,7 @@ class Daemon:
         reported_s = -math.inf
         while not self._stopping:
             self.health.tick()
-            problems = self.health.problems()
+            problems = self.problems()
             if problems:
                 kinds = sorted(_NUMBER.sub("#", p) for p in problems)
                 now = time.monotonic()

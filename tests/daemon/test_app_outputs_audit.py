@@ -1120,3 +1120,49 @@ def test_the_cloud_keeps_the_snapshots_stamp_when_a_frame_is_integrated_meanwhil
     assert _stamp_ns(h.calls[0][1]["grasps"], GRASP_ARRAY) == 8 * 10**9
     assert codec.decode_cloud(h.calls[1][1]["cloud"]).stamp_ns == 8 * 10**9
     assert d._newest_stamp_ns == 9 * 10**9
+
+
+class ResetFailsPipeline(FakePipeline):
+    """``reset`` raises while ``fail_reset`` is set (e.g. a MemoryError allocating the new grid)."""
+
+    fail_reset = True
+
+    def reset(self) -> None:
+        if self.fail_reset:
+            raise MemoryError("new TSDF grid")
+        super().reset()
+
+
+def test_a_failed_reset_withholds_grasps_and_makes_the_daemon_unhealthy_until_one_succeeds(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A reset whose pipeline reset raised went on as if the map were cleared: the model, still
+    holding the old map, became ready again and its grasps went out under the new generation."""
+    pipe = ResetFailsPipeline()
+    d = _daemon(pipe, grasp_rate_hz=50.0, publish_cloud=False)
+
+    async def reset() -> None:
+        d._loop = asyncio.get_running_loop()
+        await d._reset()
+
+    with caplog.at_level(logging.ERROR, logger="pugsd"):
+        asyncio.run(reset())
+    assert "reset: the pipeline could not be cleared; no grasps until a reset succeeds" in caplog.text
+    assert d.health.counts["errors.reset"] == 1 and d._generation == 1
+    problem = "reset failed: the map may not be cleared (grasps withheld; send a reset again)"
+    st = d.status()
+    assert st["healthy"] is False and st["problems"] == [problem] and d.problems() == [problem]
+    cleared = len(_puts(d, "grasps"))  # the empty GraspArray of the reset
+    d.ready = d._changed = True  # the old map's model trains on and is ready again
+    t_end = time.monotonic() + 0.3  # an observation window (about 15 rounds), not a synchronisation
+    _grasp_rounds(d, lambda: time.monotonic() > t_end)
+    assert d.grasps_published == 0 and len(_puts(d, "grasps")) == cleared
+
+    pipe.fail_reset = False  # the operator sends a reset again: it succeeds
+    d._stopping = False  # _grasp_rounds stopped the daemon and its executors: fresh ones
+    d._depth_exec, d._model_exec, d._grasp_exec = (concurrent.futures.ThreadPoolExecutor(1) for _ in range(3))
+    asyncio.run(reset())
+    assert pipe.resets == 1 and d.problems() == [] and d.status()["healthy"] is True
+    d.ready = d._changed = True
+    _grasp_rounds(d, lambda: d.grasps_published >= 1)
+    assert d.grasps_published == 1
