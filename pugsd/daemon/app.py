@@ -1764,20 +1764,26 @@ class Daemon:
         period = 1.0 / self.cfg.daemon.status_rate_hz
         while not self._stopping:
             await asyncio.sleep(period)
-            st = self.status()
-            self.latest_status = st
-            self._put_output("status", codec.encode_status(_jsonable(st)))
-            c = st["counts"]
-            stale = st["inputs"]["stale"]
-            self._report_stale(stale)
-            self._report_publishers(st["upstream"]["concurrent_publishers"])
-            self._report_overload(time.monotonic())
-            self.notifier.send(
-                f"STATUS=frames {c.get('frames.stereo', 0) + c.get('frames.depth', 0)}, "
-                f"integrated {c.get('integrated', 0)}, ready {self.ready}, "
-                f"grasps {self.grasps_published}, dropped {self.dropped_total()}, "
-                f"rejected {c.get('rejected', 0)}" + (f", stale input: {' '.join(stale)}" if stale else "")
-            )
+            try:
+                self._status_round()
+            except Exception as exc:  # a bug: count and log; the daemon keeps serving
+                self._internal_error("errors.status", "the status round", exc)
+
+    def _status_round(self) -> None:
+        st = self.status()
+        self.latest_status = st
+        self._put_output("status", codec.encode_status(_jsonable(st)))
+        c = st["counts"]
+        stale = st["inputs"]["stale"]
+        self._report_stale(stale)
+        self._report_publishers(st["upstream"]["concurrent_publishers"])
+        self._report_overload(time.monotonic())
+        self.notifier.send(
+            f"STATUS=frames {c.get('frames.stereo', 0) + c.get('frames.depth', 0)}, "
+            f"integrated {c.get('integrated', 0)}, ready {self.ready}, "
+            f"grasps {self.grasps_published}, dropped {self.dropped_total()}, "
+            f"rejected {c.get('rejected', 0)}" + (f", stale input: {' '.join(stale)}" if stale else "")
+        )
 
     def _report_overload(self, now_s: float) -> None:
         """Warn when newer frames pushed older ones out of the stereo or depth queue (not a reset's

@@ -579,6 +579,39 @@ def test_the_status_worker_publishes_the_status_and_the_status_line(sleeps: list
     assert pub.puts == [codec.encode_status(app_mod._jsonable(st))]
 
 
+def test_a_status_round_that_raises_is_counted_and_the_worker_goes_on(
+    sleeps: list[float], caplog: pytest.LogCaptureFixture
+) -> None:
+    """An exception in a status round (a bug, e.g. in the pipeline's stats encoding) ended the
+    status worker and with it the daemon's task group: the whole daemon stopped."""
+    d = _daemon(status_rate_hz=4.0)
+    notifier = RecordingNotifier(on_send=lambda f: setattr(d, "_stopping", True))
+    d.notifier = notifier
+    real_status = d.status
+    calls = [0]
+
+    def flaky_status() -> dict[str, Any]:
+        calls[0] += 1
+        if calls[0] <= 2:
+            raise ValueError("stats went wrong")
+        return real_status()
+
+    d.status = flaky_status  # type: ignore[method-assign]
+    with caplog.at_level(logging.ERROR, logger="pugsd"):
+        try:
+            asyncio.run(asyncio.wait_for(d._status_worker(), 10.0))
+        finally:
+            _shutdown(d)
+    assert calls[0] == 3 and sleeps == [0.25, 0.25, 0.25]  # two failed rounds, then a good one
+    assert d.health.counts["errors.status"] == 2
+    assert notifier.sent == ["STATUS=frames 0, integrated 0, ready False, grasps 0, dropped 0, rejected 0"]
+    msgs = [r.getMessage() for r in caplog.records]
+    assert msgs == [
+        "the status round failed: stats went wrong",
+        "the status round failed (#2): ValueError: stats went wrong",
+    ]
+
+
 def test_the_status_line_names_no_stale_input_when_none_is() -> None:
     d = _daemon(status_rate_hz=50.0)
     notifier = RecordingNotifier(on_send=lambda f: setattr(d, "_stopping", True))
