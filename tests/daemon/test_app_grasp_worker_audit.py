@@ -1,0 +1,471 @@
+# SPDX-License-Identifier: Apache-2.0
+"""The grasp worker, the overload warning and ``run()``'s start-up with the recorder and the ROS
+graph tokens, pinned (a mutation audit of pugsd/daemon/app.py after tests/daemon/test_app_audit.py,
+test_app_outputs_audit.py and test_app_workers_audit.py): grasp rounds follow the grasp rate and
+the model's changes, the whole cloud goes out every ``cloud_interval_s`` while frames stream (the
+first one too), a round whose pipeline raises is counted and logged and the worker goes on, the
+urgency of grasps for a new frame lasts exactly one round; the overload warning says how many
+frames were pushed out, over how long, and the rates in and integrated, in that window; ``run()``
+starts the recorder once the inputs listen and declares the node's and its publishers' graph
+tokens before anything else and the subscriptions' after their subscribers. No zenoh session: the
+workers run on their own with a stand-in clock, a scripted ``asyncio.sleep`` and stand-in
+sessions."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import pugsd.daemon.app as app_mod
+from pugsd.config import load_config_dict
+from pugsd.daemon.app import Daemon
+from pugsd.daemon.notify import Notifier
+from pugsd.record.recorder import default_record_keys
+from pugsd.wire.topics import INPUT_ROLES, OUTPUT_ROLES, ros_graph_tokens
+from tests.daemon.conftest import FakePipeline, RecordingPublisher
+from tests.daemon.test_app_workers_audit import Clock, DeclSession, RecordingNotifier, _depth
+
+ROLES = ("grasps", "markers", "cloud", "status")
+
+
+def _daemon(pipe: FakePipeline | None = None, **daemon: Any) -> Daemon:
+    d = Daemon(load_config_dict({"daemon": daemon}), pipe or FakePipeline(), notifier=Notifier(""))
+    d._publishers = {r: RecordingPublisher() for r in ROLES}  # type: ignore[misc]
+    return d
+
+
+def _puts(d: Daemon, role: str) -> list[bytes]:
+    pub = d._publishers[role]
+    assert isinstance(pub, RecordingPublisher)
+    return pub.puts
+
+
+@pytest.fixture
+def clock(monkeypatch: pytest.MonkeyPatch) -> Clock:
+    c = Clock(100.0)
+    monkeypatch.setattr(app_mod, "time", c)
+    return c
+
+
+class RoundPipeline(FakePipeline):
+    """Records, per grasp round, the stand-in clock's time and the daemon's urgency flag (at
+    ``grasp_input``, the round's first call) and when a cloud was asked for (``cloud_job``);
+    ``fail`` names a call that raises once."""
+
+    def __init__(self, clock: Clock) -> None:
+        super().__init__()
+        self.clock = clock
+        self.daemon: Daemon | None = None
+        self.rounds: list[float] = []
+        self.urgent: list[bool] = []
+        self.clouds: list[float] = []
+        self.fail: str | None = None
+
+    def _maybe_fail(self, what: str) -> None:
+        if self.fail == what:
+            self.fail = None
+            raise RuntimeError(f"{what} broke")
+
+    def grasp_input(self) -> int:
+        assert self.daemon is not None
+        self.rounds.append(self.clock.t)
+        self.urgent.append(self.daemon._grasps_urgent)
+        return super().grasp_input()
+
+    def propose(self, inp: int) -> int:
+        self._maybe_fail("propose")
+        return super().propose(inp)
+
+    def score(self, proposal: int) -> Any:
+        self._maybe_fail("score")
+        return super().score(proposal)
+
+    def cloud_job(self, result: Any) -> Any:
+        self.clouds.append(self.clock.t)
+        return super().cloud_job(result)
+
+    def finish_cloud(self, result: Any, should_stop: Any = None) -> Any:
+        self._maybe_fail("finish_cloud")
+        return super().finish_cloud(result, should_stop)
+
+
+def _scripted_rounds(
+    d: Daemon, monkeypatch: pytest.MonkeyPatch, steps: list[Callable[[], None]]
+) -> list[float]:
+    """Run the grasp worker with ``asyncio.sleep`` scripted: each of its waits (``sleep(0.02)``
+    at the top of a round) runs the next step (set the clock, mark the model changed, ...) and
+    returns at once; after the last step the daemon stops. The worker's offloaded computation
+    runs for real on the grasp thread. Returns the positive delays the worker slept."""
+    real = asyncio.sleep
+    delays: list[float] = []
+    todo = list(steps)
+
+    async def fake(delay: float, result: Any = None) -> Any:
+        if delay > 0:
+            delays.append(delay)
+            if todo:
+                todo.pop(0)()
+            else:
+                d._stopping = True
+        await real(0)
+        return result
+
+    async def main() -> None:
+        d._loop = asyncio.get_running_loop()
+        await asyncio.wait_for(d._grasp_worker(), 10.0)
+
+    monkeypatch.setattr(app_mod.asyncio, "sleep", fake)
+    try:
+        asyncio.run(main())
+    finally:
+        monkeypatch.undo()
+        for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+            ex.shutdown(wait=True)
+    return delays
+
+
+def _round_daemon(clock: Clock, **daemon: Any) -> tuple[Daemon, RoundPipeline]:
+    pipe = RoundPipeline(clock)
+    d = _daemon(pipe, **daemon)
+    pipe.daemon = d
+    d.ready = True
+    return d, pipe
+
+
+def _at(
+    d: Daemon, clock: Clock, t: float, changed: bool = True, new_frame: bool = False
+) -> Callable[[], None]:
+    def step() -> None:
+        clock.t = t
+        if changed:
+            d._changed = True
+        if new_frame:
+            d._frame_unpublished = True
+
+    return step
+
+
+# --- the grasp worker --------------------------------------------------------------------------------
+
+
+def test_while_frames_stream_the_cloud_goes_out_every_cloud_interval_and_rounds_follow_the_rate(
+    clock: Clock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Streaming (a frame waits in the depth queue): the first round starts the cloud interval
+    (no cloud), a cloud goes out once ``cloud_interval_s`` has passed since the last one (exactly
+    then too), and a round within the grasp period does not start however the model changed;
+    once the input pauses every round has its cloud."""
+    d, pipe = _round_daemon(clock, grasp_rate_hz=1.0, cloud_interval_s=10.0, pause_publish_s=0.5)
+    d.depth_box.offer((_depth(1), 0.0))  # a frame waits: the input streams
+    paused = _at(d, clock, 130.0)
+
+    def pause() -> None:
+        d.depth_box.clear()
+        paused()
+
+    steps = [
+        _at(d, clock, 100.0), _at(d, clock, 100.5), _at(d, clock, 101.0), _at(d, clock, 110.0),
+        _at(d, clock, 111.0), _at(d, clock, 112.0, changed=False), _at(d, clock, 119.0),
+        _at(d, clock, 120.0), pause, _at(d, clock, 131.0),
+    ]  # fmt: skip
+    delays = _scripted_rounds(d, monkeypatch, steps)
+    assert pipe.rounds == [100.0, 101.0, 110.0, 111.0, 119.0, 120.0, 130.0, 131.0]
+    assert pipe.clouds == [110.0, 120.0, 130.0, 131.0]
+    assert d.grasps_published == 8 and len(_puts(d, "cloud")) == 4
+    assert delays == [0.02] * (len(steps) + 1)  # one 20 ms wait per round, the last ends it
+
+
+def test_a_frame_within_pause_publish_s_counts_as_streaming_for_the_cloud(
+    clock: Clock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """No frame queued, the last integrated at 100 s, ``pause_publish_s`` 0.5: the input streams
+    until 100.5 s (the round at 100 s starts the cloud interval, the one at 100.3 s has no cloud),
+    the round at 100.5 s is after a pause and has its cloud; a frame at 101 s streams again and
+    the cloud interval runs from 100.5 s."""
+    d, pipe = _round_daemon(clock, grasp_rate_hz=10.0, cloud_interval_s=10.0, pause_publish_s=0.5)
+    d._last_frame_s = 100.0
+    again = _at(d, clock, 101.0)
+
+    def frame_again() -> None:
+        d._last_frame_s = 101.0
+        again()
+
+    steps = [_at(d, clock, t) for t in (100.0, 100.3, 100.5)] + [frame_again, _at(d, clock, 110.5)]
+    _scripted_rounds(d, monkeypatch, steps)
+    assert pipe.rounds == [100.0, 100.3, 100.5, 101.0, 110.5]
+    assert pipe.clouds == [100.5, 110.5]
+
+
+def test_grasps_for_a_new_frame_are_urgent_for_their_round_only_and_carry_its_receive_time(
+    clock: Clock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    d, pipe = _round_daemon(clock, grasp_rate_hz=1.0, publish_cloud=False)
+    d._newest_recv_s = 97.5
+
+    def newer() -> None:
+        d._newest_recv_s = 101.0  # read when the round starts, not when its grasps come back
+
+    steps = [_at(d, clock, 100.0, new_frame=True), _at(d, clock, 102.0), _at(d, clock, 103.0, new_frame=True)]
+    pipe_propose = pipe.propose
+
+    def propose(inp: int) -> int:
+        if pipe.rounds == [100.0]:
+            newer()
+        return pipe_propose(inp)
+
+    pipe.propose = propose  # type: ignore[method-assign]
+    _scripted_rounds(d, monkeypatch, steps)
+    assert pipe.rounds == [100.0, 102.0, 103.0]
+    assert pipe.urgent == [True, False, True] and not d._grasps_urgent
+    # newest frame to grasps: 100 - 97.5, then 102 - 101 and 103 - 101 (the stand-in clock)
+    lat = d.health.latency["newest_frame_to_grasps"].summary()
+    assert (lat["n"], lat["max_ms"], lat["last_ms"]) == (3, 2500.0, 2000.0)
+
+
+@pytest.mark.parametrize("fails", ["propose", "score"])
+def test_a_round_whose_grasps_fail_is_counted_logged_and_the_next_round_publishes(
+    clock: Clock, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, fails: str
+) -> None:
+    """The error is the grasps stage's (counted, a consecutive failure, its traceback logged once),
+    the urgency ends with the failed round, nothing is published, and the worker goes on: the next
+    change of the model is published and heals the stage."""
+    d, pipe = _round_daemon(clock, grasp_rate_hz=1.0, publish_cloud=False)
+    pipe.fail = fails
+    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    checked: list[tuple[Any, ...]] = []
+
+    def after_failure() -> None:
+        c, f = d.health.counts, d.health.failures
+        checked.append((c["errors.grasps"], f["grasps"], d._grasps_urgent, d.grasps_published))
+        _at(d, clock, 102.0)()
+
+    _scripted_rounds(d, monkeypatch, [_at(d, clock, 100.0, new_frame=True), after_failure])
+    assert checked == [(1, 1, False, 0)]
+    assert pipe.rounds == [100.0, 102.0] and d.grasps_published == 1 and len(_puts(d, "grasps")) == 1
+    assert d.health.counts["errors.grasps"] == 1 and "grasps" not in d.health.failures
+    (rec,) = [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert rec.getMessage() == "grasps stage failed; continuing" and rec.exc_info is not None
+    assert str(rec.exc_info[1]) == f"{fails} broke"
+    for key in ("grasps_discarded", "clouds_preempted", "clouds_discarded"):
+        assert key not in d.health.counts
+
+
+def test_a_failing_cloud_leaves_the_grasps_published_and_counts_a_grasps_error(
+    clock: Clock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    d, pipe = _round_daemon(clock, grasp_rate_hz=1.0)
+    pipe.fail = "finish_cloud"
+    before = d._last_cloud_published_s
+    _scripted_rounds(d, monkeypatch, [_at(d, clock, 100.0), _at(d, clock, 101.0)])
+    assert pipe.clouds == [100.0, 101.0] and pipe.rounds == [100.0, 101.0]
+    assert d.grasps_published == 2 and len(_puts(d, "cloud")) == 1
+    assert d.health.counts["errors.grasps"] == 1 and "clouds_preempted" not in d.health.counts
+    assert d._last_cloud_published_s == 101.0 != before
+
+
+def test_a_stop_during_the_wait_starts_no_round(clock: Clock, monkeypatch: pytest.MonkeyPatch) -> None:
+    d, pipe = _round_daemon(clock, grasp_rate_hz=1.0)
+
+    def stop() -> None:
+        _at(d, clock, 100.0)()
+        d._stopping = True  # shutdown begins while the worker waits
+
+    _scripted_rounds(d, monkeypatch, [stop])
+    assert pipe.rounds == [] and d._changed and d.grasps_published == 0
+
+
+def test_the_cloud_is_asked_to_give_way_to_fresh_grasps(
+    clock: Clock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``finish_cloud`` is handed the daemon's own ``_cloud_gives_way``; a cloud that gave way is
+    counted as preempted and not published."""
+    seen: list[Any] = []
+
+    class GiveWay(RoundPipeline):
+        def finish_cloud(self, result: Any, should_stop: Any = None) -> Any:
+            assert self.daemon is not None and should_stop is not None
+            own = should_stop.__func__ is Daemon._cloud_gives_way
+            seen.append(own and should_stop.__self__ is self.daemon)
+            self.daemon._frame_unpublished = True  # a newer frame came, then the input paused
+            self.daemon._last_cloud_published_s = self.clock.t - 1.0  # a cloud went out recently
+            return None if should_stop() else super().finish_cloud(result, should_stop)
+
+    pipe = GiveWay(clock)
+    d = _daemon(pipe, grasp_rate_hz=1.0, cloud_interval_s=10.0, pause_publish_s=0.5)
+    pipe.daemon, d.ready = d, True
+    _scripted_rounds(d, monkeypatch, [_at(d, clock, 100.0)])
+    assert seen == [True] and d.health.counts["clouds_preempted"] == 1 and _puts(d, "cloud") == []
+    assert d.grasps_published == 1
+
+
+# --- the overload warning ----------------------------------------------------------------------------
+
+
+def _overload_lines(caplog: pytest.LogCaptureFixture) -> list[str]:
+    return [r.getMessage() for r in caplog.records if "input faster than the daemon" in r.getMessage()]
+
+
+def _overflow(box: Any, n: int) -> None:
+    """Push ``n`` frames out of ``box`` (it holds its maximum first)."""
+    while len(box) < box.maxsize:
+        box.offer((None, 0.0))
+    before = box.overflowed
+    for _ in range(n):
+        box.offer((None, 0.0))
+    assert box.overflowed == before + n
+
+
+def test_the_overload_line_counts_only_the_window_and_divides_by_its_real_length(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Counts from before the window are left out, stereo and depth frames and overflows add up,
+    the rates divide by the time since the window began (13 s: the status worker may be late),
+    and the median wait before fusion is given in seconds."""
+    d = _daemon()
+    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    _overflow(d.stereo_box, 3)
+    d.health.count("frames.stereo", 50)
+    d.health.count("frames.depth", 20)
+    d.health.count("integrated", 40)
+    d._report_overload(1000.0)  # the window starts
+    _overflow(d.stereo_box, 4)
+    _overflow(d.depth_box, 9)
+    d.health.count("frames.stereo", 100)
+    d.health.count("frames.depth", 30)
+    d.health.count("integrated", 26)
+    for s in (0.5, 1.5, 2.5):
+        d.health.observe("frame_age_at_integrate", s)
+    d._report_overload(1013.0)
+    assert _overload_lines(caplog) == [
+        "input faster than the daemon integrates: 13 frames dropped at the stereo and depth queues "
+        "in the last 13 s (10.0 frames/s in, 2.0 integrated; frames waited 1.50 s (median) before "
+        "fusion). Set daemon.max_frame_rate_hz below the integrated rate to keep the output fresh "
+        "(docs/deploy.md, Tuning)"
+    ]
+
+
+def test_without_a_measured_wait_the_line_says_so(caplog: pytest.LogCaptureFixture) -> None:
+    d = _daemon()
+    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    d._report_overload(0.0)
+    _overflow(d.depth_box, 6)
+    d.health.count("frames.depth", 20)
+    d._report_overload(10.0)
+    (line,) = _overload_lines(caplog)
+    assert "6 frames dropped" in line and "(2.0 frames/s in, 0.0 integrated; frames waited ? before" in line
+
+
+def test_the_overload_warning_is_repeated_once_a_minute_has_passed_exactly(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Windows of 10 s, each with frames pushed out: a line at 10 s, none for the next 50 s, the
+    next at 70 s (60 s after the first); calls within a window neither log nor move it."""
+    d = _daemon()
+    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    logged: list[float] = []
+    for t in range(0, 81, 5):
+        _overflow(d.depth_box, 6)
+        d.health.count("frames.depth", 20)
+        n = len(_overload_lines(caplog))
+        d._report_overload(float(t))
+        if len(_overload_lines(caplog)) > n:
+            logged.append(float(t))
+    assert logged == [10.0, 70.0]
+    # the window moved at 0, 10, ..., 80 (every other call): each line counts its 10 s
+    head = "12 frames dropped at the stereo and depth queues in the last 10 s"
+    assert all(head in x for x in _overload_lines(caplog))
+
+
+# --- run(): the recorder and the ROS graph tokens --------------------------------------------------------
+
+
+def test_run_starts_the_recorder_after_the_inputs_and_stops_it_at_the_end(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    order: list[str] = []
+    stop = asyncio.Event()
+
+    def on_send(f: str) -> None:
+        order.append(f)
+        if f == "READY=1":
+            stop.set()
+
+    cfg = load_config_dict(
+        {"record": {"enabled": True, "directory": str(tmp_path)}, "topics": {"ros_graph_tokens": "off"}}
+    )
+    s = DeclSession(order)
+    d = Daemon(cfg, FakePipeline(), notifier=RecordingNotifier(on_send=on_send), session=s)  # type: ignore[arg-type]
+    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    asyncio.run(asyncio.wait_for(d.run(stop), 10.0))
+    keys = default_record_keys(cfg)
+    ready = order.index("READY=1")
+    alive = ready - 1
+    assert order[alive].startswith("token pugs/alive/")
+    # the recorder subscribes its keys once the inputs listen, right before the alive token
+    assert order[alive - len(keys) : alive] == [f"subscriber {k}" for k in keys]
+    inputs = [e for e in order[: alive - len(keys)] if e.startswith("subscriber ")]
+    assert len(inputs) == 1 + len(INPUT_ROLES)  # the reset put and the inputs
+    msgs = [r.getMessage() for r in caplog.records]
+    assert f"recording {len(keys)} key expressions to {tmp_path}" in msgs
+    assert any(m.startswith("recording finished: ") for m in msgs) and d.recorder is None
+    assert msgs.index(f"recording {len(keys)} key expressions to {tmp_path}") < next(
+        i for i, m in enumerate(msgs) if m.startswith("pugsd serving")
+    )
+
+
+def test_run_declares_the_graph_tokens_node_first_and_subscriptions_after_their_subscribers(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    order: list[str] = []
+    stop = asyncio.Event()
+
+    def on_send(f: str) -> None:
+        order.append(f)
+        if f == "READY=1":
+            stop.set()
+
+    cfg = load_config_dict({"topics": {"ros_graph_tokens": "on", "domain_id": 7}})
+    s = DeclSession(order)
+    d = Daemon(cfg, FakePipeline(), notifier=RecordingNotifier(on_send=on_send), session=s)  # type: ignore[arg-type]
+    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    asyncio.run(asyncio.wait_for(d.run(stop), 10.0))
+    graph = ros_graph_tokens(cfg.topics, cfg.daemon.node_name, "0123")
+    tokens = [e.split(" ", 1)[1] for e in order if e.startswith("token @ros2_lv/")]
+    assert tokens == graph.all() and tokens[0].startswith("@ros2_lv/7/0123/0/0/NN/")
+    # the output publishers, then the node's token and its publishers', then the queryables
+    n_out = len(OUTPUT_ROLES)
+    assert [e.split(" ")[0] for e in order[:n_out]] == ["publisher"] * n_out
+    assert order[n_out : 2 * n_out + 1] == [f"token {k}" for k in (graph.node, *graph.publishers.values())]
+    assert order[2 * n_out + 1].startswith("queryable ")
+    last_input = max(i for i, e in enumerate(order) if e.startswith("subscriber ") and "reset" not in e)
+    subs = [order.index(f"token {k}") for k in graph.subscriptions.values()]
+    assert subs == list(range(last_input + 1, last_input + 1 + len(INPUT_ROLES)))
+    assert order[subs[-1] + 1].startswith("token pugs/alive/")
+    msg = (
+        f"ROS graph: node /{cfg.daemon.node_name} with {len(OUTPUT_ROLES)} publishers and "
+        f"{len(INPUT_ROLES)} subscriptions (rmw_zenoh liveliness tokens, domain 7)"
+    )
+    assert msg in [r.getMessage() for r in caplog.records]
+    kinds = ("publisher", "queryable", "subscriber", "token")
+    assert sorted(s.undeclared) == sorted(e for e in order if e.split(" ")[0] in kinds)
+
+
+def test_run_declares_no_graph_token_when_they_are_off() -> None:
+    order: list[str] = []
+    stop = asyncio.Event()
+    cfg = load_config_dict({"topics": {"ros_graph_tokens": "off"}})
+    s = DeclSession(order)
+
+    def on_send(f: str) -> None:
+        if f == "READY=1":
+            stop.set()
+
+    d = Daemon(cfg, FakePipeline(), notifier=RecordingNotifier(on_send=on_send), session=s)  # type: ignore[arg-type]
+    asyncio.run(asyncio.wait_for(d.run(stop), 10.0))
+    assert [e for e in order if e.startswith("token ")] == [f"token pugs/alive/{cfg.daemon.node_name}"]
+    assert d._sub_graph_keys == []
