@@ -28,7 +28,7 @@ from pugsd.daemon.notify import Notifier
 from pugsd.record.recorder import default_record_keys
 from pugsd.wire.topics import INPUT_ROLES, OUTPUT_ROLES, ros_graph_tokens
 from tests.daemon.conftest import FakePipeline, RecordingPublisher
-from tests.daemon.test_app_workers_audit import Clock, DeclSession, RecordingNotifier, _depth
+from tests.daemon.test_app_workers_audit import Clock, DeclSession, _depth, stop_at_ready
 
 ROLES = ("grasps", "markers", "cloud", "status")
 
@@ -388,18 +388,12 @@ def test_run_starts_the_recorder_after_the_inputs_and_stops_it_at_the_end(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     order: list[str] = []
-    stop = asyncio.Event()
-
-    def on_send(f: str) -> None:
-        order.append(f)
-        if f == "READY=1":
-            stop.set()
-
+    stop, notifier = stop_at_ready(order)
     cfg = load_config_dict(
         {"record": {"enabled": True, "directory": str(tmp_path)}, "topics": {"ros_graph_tokens": "off"}}
     )
     s = DeclSession(order)
-    d = Daemon(cfg, FakePipeline(), notifier=RecordingNotifier(on_send=on_send), session=s)  # type: ignore[arg-type]
+    d = Daemon(cfg, FakePipeline(), notifier=notifier, session=s)  # type: ignore[arg-type]
     caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
     asyncio.run(asyncio.wait_for(d.run(stop), 10.0))
     keys = default_record_keys(cfg)
@@ -422,16 +416,10 @@ def test_run_declares_the_graph_tokens_node_first_and_subscriptions_after_their_
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     order: list[str] = []
-    stop = asyncio.Event()
-
-    def on_send(f: str) -> None:
-        order.append(f)
-        if f == "READY=1":
-            stop.set()
-
+    stop, notifier = stop_at_ready(order)
     cfg = load_config_dict({"topics": {"ros_graph_tokens": "on", "domain_id": 7}})
     s = DeclSession(order)
-    d = Daemon(cfg, FakePipeline(), notifier=RecordingNotifier(on_send=on_send), session=s)  # type: ignore[arg-type]
+    d = Daemon(cfg, FakePipeline(), notifier=notifier, session=s)  # type: ignore[arg-type]
     caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
     asyncio.run(asyncio.wait_for(d.run(stop), 10.0))
     graph = ros_graph_tokens(cfg.topics, cfg.daemon.node_name, "0123")
@@ -457,15 +445,10 @@ def test_run_declares_the_graph_tokens_node_first_and_subscriptions_after_their_
 
 def test_run_declares_no_graph_token_when_they_are_off() -> None:
     order: list[str] = []
-    stop = asyncio.Event()
     cfg = load_config_dict({"topics": {"ros_graph_tokens": "off"}})
     s = DeclSession(order)
-
-    def on_send(f: str) -> None:
-        if f == "READY=1":
-            stop.set()
-
-    d = Daemon(cfg, FakePipeline(), notifier=RecordingNotifier(on_send=on_send), session=s)  # type: ignore[arg-type]
+    stop, notifier = stop_at_ready()
+    d = Daemon(cfg, FakePipeline(), notifier=notifier, session=s)  # type: ignore[arg-type]
     asyncio.run(asyncio.wait_for(d.run(stop), 10.0))
     assert [e for e in order if e.startswith("token ")] == [f"token pugs/alive/{cfg.daemon.node_name}"]
     assert d._sub_graph_keys == []

@@ -119,6 +119,20 @@ class RecordingNotifier(Notifier):
         return True
 
 
+def stop_at_ready(order: list[str] | None = None) -> tuple[asyncio.Event, RecordingNotifier]:
+    """A notifier that appends each field it sends to ``order`` (when given) and sets the returned
+    event at READY=1: ``Daemon.run(event)`` then ends once the daemon has started."""
+    stop = asyncio.Event()
+
+    def on_send(f: str) -> None:
+        if order is not None:
+            order.append(f)
+        if f == "READY=1":
+            stop.set()
+
+    return stop, RecordingNotifier(on_send=on_send)
+
+
 class LockPipeline(FakePipeline):
     """Records whether the daemon's model lock was held at each model call; training fails while
     ``fail`` is set, or raises EmptyCloudError while ``empty`` is set."""
@@ -1112,14 +1126,7 @@ def test_a_stop_before_the_warm_up_ends_never_declares_inputs_or_sends_ready() -
 
 def test_ready_follows_the_inputs_and_the_alive_token_and_a_stop_then_ends_the_run() -> None:
     order: list[str] = []
-    stop = asyncio.Event()
-
-    def on_send(f: str) -> None:
-        order.append(f)
-        if f == "READY=1":
-            stop.set()
-
-    notifier = RecordingNotifier(on_send=on_send)
+    stop, notifier = stop_at_ready(order)
     pipe = FakePipeline()
     s = DeclSession(order)
     d = Daemon(load_config_dict({}), pipe, notifier=notifier, session=s)  # type: ignore[arg-type]
