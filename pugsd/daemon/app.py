@@ -1828,9 +1828,15 @@ class Daemon:
         reported: list[str] = []  # the problems logged last, without their changing numbers
         reported_s = -math.inf
         while not self._stopping:
-            self.health.tick()
-            problems = self.problems()
-            if problems:
+            try:
+                self.health.tick()
+                problems: list[str] | None = self.problems()
+            except Exception as exc:  # a bug: no verdict this round, so no ping; the daemon serves on
+                self._internal_error("errors.watchdog", "the watchdog round", exc)
+                problems = None
+            if problems is None:
+                pass
+            elif problems:
                 kinds = sorted(_NUMBER.sub("#", p) for p in problems)
                 now = time.monotonic()
                 if kinds != reported or now - reported_s >= _UNHEALTHY_RELOG_S:

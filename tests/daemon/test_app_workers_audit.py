@@ -677,6 +677,32 @@ def test_a_healthy_daemon_pings_the_watchdog_every_round(
     assert sleeps == [period] * 3
 
 
+def test_a_watchdog_round_that_raises_withholds_that_ping_is_counted_and_the_worker_goes_on(
+    monkeypatch: pytest.MonkeyPatch, sleeps: list[float], caplog: pytest.LogCaptureFixture
+) -> None:
+    """An exception while judging health (a bug) ended the watchdog worker and with it the
+    daemon's task group. Now that round sends no ping (no verdict), the error is counted and
+    logged, and the next round judges again."""
+    _watchdog_env(monkeypatch, "20000")
+    caplog.set_level(logging.ERROR, logger="pugsd.daemon.app")
+    notifier = RecordingNotifier()
+    d = _daemon(notifier=notifier)
+    real_problems = d.problems
+    calls = [0]
+
+    def flaky_problems() -> list[str]:
+        calls[0] += 1
+        if calls[0] == 2:
+            raise KeyError("stage")
+        return real_problems()
+
+    d.problems = flaky_problems  # type: ignore[method-assign]
+    _drive_watchdog(d, [lambda: None] * 3)
+    assert notifier.sent == ["WATCHDOG=1", "WATCHDOG=1"]  # rounds 1 and 3; none for round 2
+    assert sleeps == [0.01] * 3 and d.health.counts["errors.watchdog"] == 1
+    assert [r.getMessage() for r in caplog.records] == ["the watchdog round failed: 'stage'"]
+
+
 def test_without_a_watchdog_nothing_is_sent(monkeypatch: pytest.MonkeyPatch, sleeps: list[float]) -> None:
     _watchdog_env(monkeypatch, None)
     notifier = RecordingNotifier()
