@@ -22,7 +22,7 @@ import time
 import tty
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -35,6 +35,7 @@ from pugsd.arm.protocol import (
     Mode,
     Packet,
     PacketID,
+    decode_payload,
     encode_frame,
     make_packet,
 )
@@ -275,7 +276,7 @@ class SimBravo7:
             self._send(out)
             return
         if pid == PacketID.KM_END_POS and p.device_id == 0x0E:
-            vals = _n_floats(p, 6)
+            vals = _floats(p)
             self.events.append((now, p.device_id, "KM_END_POS", tuple(vals)))
             if self.has_km:
                 self._km_position(vals)
@@ -292,7 +293,7 @@ class SimBravo7:
                     ax.setpoint = ax.pos
                 ax.vdemand = 0.0
         elif pid == PacketID.POSITION:
-            (v,) = _n_floats(p, 1)
+            (v,) = _floats(p)
             self.events.append((now, p.device_id, "POSITION", (v,)))
             for ax in axes:
                 if ax.mode in _INACTIVE:
@@ -304,7 +305,7 @@ class SimBravo7:
                 ax.setpoint = v
                 ax.mode = int(Mode.POSITION)
         elif pid == PacketID.VELOCITY:
-            (v,) = _n_floats(p, 1)
+            (v,) = _floats(p)
             self.events.append((now, p.device_id, "VELOCITY", (v,)))
             for ax in axes:
                 if ax.mode in _INACTIVE:
@@ -395,12 +396,10 @@ class SimBravo7:
             self._send(out)
 
 
-def _n_floats(p: Packet, n: int) -> tuple[float, ...]:
-    """The packet's ``n`` floats; DecodeError for any other payload (which ``_on_packet`` drops)."""
-    vals = p.floats()
-    if len(vals) != n:
-        raise DecodeError(f"{p.name}: {len(vals)} floats, expected {n}")
-    return vals
+def _floats(p: Packet) -> tuple[float, ...]:
+    """The floats of a float packet, checked against its packet id's spec (``decode_payload``);
+    DecodeError for any other payload size or count, which ``_on_packet`` drops."""
+    return cast(tuple[float, ...], decode_payload(p.packet_id, p.data))
 
 
 # ---------------------------------------------------------------- link helpers
