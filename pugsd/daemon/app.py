@@ -1426,7 +1426,7 @@ class Daemon:
                 sigma2_occ=result.sigma2_occ,
                 pugs_confidence=result.pugs_conf_points,
             )
-            on_grasps(None, {"cloud": cloud})
+            on_grasps(result, {"cloud": cloud})  # the round's result, its sigma^2_occ now whole
         return "published"
 
     def _publish_outputs(
@@ -1436,14 +1436,19 @@ class Daemon:
         unless a reset began since it was computed: the grasp thread checks the generation
         before scoring, but a reset can bump it (here, on the loop) while the scoring runs."""
         if generation != self._generation:
-            self.health.count("grasps_discarded" if result is not None else "clouds_discarded")
+            self.health.count("grasps_discarded" if "grasps" in payloads else "clouds_discarded")
             log.info("grasp results discarded: the map was reset while they were computed")
             return
         for role, data in payloads.items():
             self._put_output(role, data)
         if "cloud" in payloads:
             self._last_cloud_published_s = time.monotonic()
-        if result is None:
+        if "grasps" not in payloads:
+            # the cloud of the latest grasps' round: the same grasps, with sigma^2_occ over the
+            # whole query cloud (the demo draws it); a cloud of another round changes nothing
+            latest = self.latest_result
+            if result is not None and latest is not None and result.grasps is latest.grasps:
+                self.latest_result = result
             return
         self._grasps_urgent = False  # the grasps are out: idle training need not wait for the cloud
         self.latest_grasps = payloads["grasps"]

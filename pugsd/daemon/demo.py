@@ -171,7 +171,8 @@ def render_scene(object_name: str, n_frames: int, width: int, height: int, seed:
 
 
 def save_figure(result: Any, path: Path, top_k: int = 5, gripper_depth_m: float = 0.09) -> None:
-    """The fused cloud coloured by sigma^2_occ and the top grasps (PUGS-ranked) as grippers."""
+    """The fused cloud coloured by sigma^2_occ and the top grasps (PUGS-ranked) as grippers; points
+    whose sigma^2_occ was not computed (NaN: a round without the whole cloud) are drawn grey."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -182,13 +183,18 @@ def save_figure(result: Any, path: Path, top_k: int = 5, gripper_depth_m: float 
     s2 = np.asarray(result.sigma2_occ)
     fig = plt.figure(figsize=(8, 7))
     ax: Any = fig.add_subplot(111, projection="3d")
-    pos = s2[np.isfinite(s2) & (s2 > 0)]
+    known = np.isfinite(s2)
+    pos = s2[known & (s2 > 0)]
     norm = LogNorm(vmin=float(pos.min()), vmax=float(pos.max())) if pos.size else None
+    if not known.all():
+        rest = cloud[~known]
+        ax.scatter(rest[:, 0], rest[:, 1], rest[:, 2], s=1, color="0.7", label="sigma^2_occ not computed")
+        ax.legend(loc="upper left")
     sc = ax.scatter(
-        cloud[:, 0],
-        cloud[:, 1],
-        cloud[:, 2],
-        c=np.clip(s2, 1e-30, None),
+        cloud[known, 0],
+        cloud[known, 1],
+        cloud[known, 2],
+        c=np.clip(s2[known], 1e-30, None),
         s=2,
         cmap="viridis",
         norm=norm,

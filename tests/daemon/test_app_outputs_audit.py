@@ -603,7 +603,10 @@ def test_grasps_and_markers_are_stamped_with_the_snapshot_and_the_cloud_follows(
     assert {m.header.frame_id for m in markers} == {"map"}
     h = Handed()
     assert d._compute_and_encode("map", d._generation, h, True) == "published"
-    assert [sorted(p) for _, p in h.calls] == [["grasps", "markers"], ["cloud"]] and h.calls[1][0] is None
+    assert [sorted(p) for _, p in h.calls] == [["grasps", "markers"], ["cloud"]]
+    scored, finished = h.calls[0][0], h.calls[1][0]  # the cloud comes with its round's finished result
+    assert finished.grasps is scored.grasps and np.isnan(scored.sigma2_occ).all()
+    np.testing.assert_allclose(finished.sigma2_occ, 0.1)
     cloud = codec.decode_cloud(h.calls[1][1]["cloud"])
     assert (cloud.stamp_ns, cloud.frame_id, len(cloud.points)) == (7 * 10**9 + 5, "map", 50)
     np.testing.assert_allclose(cloud.fields["sigma2_occ"], 0.1)  # finished, not the NaN of scoring
@@ -671,6 +674,26 @@ def test_a_published_cloud_alone_changes_no_grasp_state_and_grasps_end_the_urgen
     assert d.model_version == 12 and type(d.model_version) is int
     assert (_puts(d, "grasps"), _puts(d, "markers")) == ([b"g"], [b"m"])
     assert d.health.counts["grasps_published"] == 1 and "newest_frame_to_grasps" in d.health.latency
+
+
+def test_the_cloud_of_the_latest_round_completes_latest_result_and_another_rounds_does_not() -> None:
+    """The demo draws ``latest_result``: after its round's cloud it has sigma^2_occ over the whole
+    query cloud, not only at the grasp contacts (it kept the scoring's NaN elsewhere)."""
+    d = _daemon()
+    pipe = FakePipeline()
+    scored = pipe.score(0)
+    d._publish_outputs(scored, {"grasps": b"g", "markers": b"m"}, None, d._generation)
+    assert d.latest_result is scored and np.isnan(d.latest_result.sigma2_occ).all()
+    other_round = pipe.finish_cloud(pipe.score(0))  # equal values, other grasps object
+    d._publish_outputs(other_round, {"cloud": b"c0"}, None, d._generation)
+    assert d.latest_result is scored
+    finished = pipe.finish_cloud(scored)
+    d._publish_outputs(finished, {"cloud": b"c1"}, None, d._generation)
+    assert d.latest_result is finished and d.latest_grasps == b"g"
+    np.testing.assert_allclose(d.latest_result.sigma2_occ, 0.1)
+    assert _puts(d, "cloud") == [b"c0", b"c1"] and d.grasps_published == 1
+    d._publish_outputs(pipe.finish_cloud(finished), {"cloud": b"c2"}, None, d._generation - 1)
+    assert d.latest_result is finished and d.health.counts["clouds_discarded"] == 1
 
 
 def test_a_failed_put_is_logged_for_the_first_ten_of_a_role_then_every_100th(

@@ -367,3 +367,34 @@ def test_a_daemon_that_fails_to_start_is_reraised_and_the_handlers_removed(
 
     asyncio.run(main_())
     assert lines == [] and not list(tmp_path.iterdir())  # no recorder was started
+
+
+@pytest.mark.parametrize("computed", [10, 0])
+def test_the_figure_draws_every_cloud_point_grey_where_sigma2_was_not_computed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, computed: int
+) -> None:
+    """The demo's grasps.png showed only the grasp contacts when its result came from a round
+    without the whole cloud (sigma^2_occ NaN elsewhere): those points are now drawn grey."""
+    from mpl_toolkits.mplot3d.axes3d import Axes3D
+
+    drawn: list[tuple[int, Any]] = []
+    scatter = Axes3D.scatter
+
+    def spy(self: Any, xs: Any, ys: Any, zs: Any, *a: Any, **kw: Any) -> Any:
+        drawn.append((len(xs), kw.get("color")))
+        return scatter(self, xs, ys, zs, *a, **kw)
+
+    monkeypatch.setattr(Axes3D, "scatter", spy)
+    n = 40
+    s2 = np.full(n, np.nan)
+    s2[:computed] = np.geomspace(1e-4, 1e-2, computed)
+    grasps = codec.decode_grasp_array(_grasps(1.0))
+    result = types.SimpleNamespace(
+        cloud_W=np.random.default_rng(1).normal(scale=0.05, size=(n, 3)),
+        sigma2_occ=s2,
+        grasps=grasps,
+        model_version=3,
+    )
+    demo.save_figure(result, tmp_path / "g.png")
+    assert (tmp_path / "g.png").stat().st_size > 10_000
+    assert drawn == [(n - computed, "0.7"), (computed, None)]  # the grey ones first, then by sigma^2
