@@ -205,6 +205,18 @@ def test_keys_that_zenoh_would_refuse_are_config_errors(override: str) -> None:
         load_config_dict({}, [override])
 
 
+@pytest.mark.parametrize("key", ["a//b", "/pugs/**", "a/**/**", "pugs/grasps?x", ""])
+def test_record_keys_zenoh_would_refuse_are_config_errors(key: str, tmp_path: Path) -> None:
+    """They were refused only when the recorder subscribed: the daemon then ran unrecorded."""
+    with pytest.raises(ConfigError, match=r"record\.keys: .* is not a zenoh key expression \(Invalid Key"):
+        load_config_dict({"record": {"keys": ["*/pugs/**", key]}})
+    f = tmp_path / "r.toml"
+    f.write_text(f"[record]\nkeys = [{key!r}]\n".replace("'", '"'))
+    assert main(["check-config", str(f)]) == 1
+    wildcards = ["*/pugs/**", "0/stereo/*/image_raw/**", "**"]
+    assert load_config_dict({"record": {"keys": wildcards}}).record.keys == tuple(wildcards)
+
+
 def test_usable_keys_are_accepted() -> None:
     cfg = load_config_dict(
         {}, ["daemon.prefix=robot1/pugs", "daemon.node_name=bow", "topics.pose=/nav/pose/"]

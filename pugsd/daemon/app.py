@@ -628,9 +628,21 @@ class Daemon:
         from pugsd.record.recorder import Recorder, default_record_keys  # only when recording
 
         keys = default_record_keys(self.cfg)
-        self.recorder = Recorder.from_config(self.cfg).start()
-        self.recorder.subscribe(self.session, keys)
-        if not self.recorder.stats.error:  # else the recorder logged why it is not recording
+        try:
+            rec = Recorder.from_config(self.cfg)
+        except Exception as exc:  # recording is optional: serve without it, say why
+            log.error("recording off: the recorder could not be set up: %s: %s", type(exc).__name__, exc)
+            return
+        self.recorder = rec  # stopped by _close, and its stats (and error) in the status
+        try:
+            rec.start()
+            rec.subscribe(self.session, keys)
+        except Exception as exc:  # a thread that cannot start, a key expression zenoh refuses
+            msg = f"not recording: {type(exc).__name__}: {exc}"
+            rec.stats.error = f"{rec.stats.error}; {msg}" if rec.stats.error else msg
+            log.error("recorder: %s", msg)
+            return
+        if not rec.stats.error:  # else the recorder logged why it is not recording
             log.info("recording %d key expressions to %s", len(keys), self.cfg.record.directory)
 
     def _close(self) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from pugsd.configbase import opt
+from pugsd.errors import ConfigError
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,3 +47,17 @@ class RecordConfig:
         unit="B",
         ge=1048576,
     )
+
+    def __post_init__(self) -> None:
+        """``keys`` must be key expressions zenoh accepts (``a//b`` or the non-canonical ``a/**/**``
+        were refused only when the recorder subscribed: the daemon then ran without recording)."""
+        if not self.keys:
+            return
+        import zenoh  # only for a config that names keys
+
+        for key in self.keys:
+            try:
+                zenoh.KeyExpr(key)
+            except Exception as exc:  # zenoh.ZError
+                reason = str(exc).split(" at /", 1)[0]  # without zenoh's source path
+                raise ConfigError(f"keys: {key!r} is not a zenoh key expression ({reason})") from None
