@@ -42,3 +42,24 @@ def test_alternating_pose_clocks_do_not_log_a_warning_per_pose(
     assert len(logged) == 5 + 299 // 100, len(logged)
     assert f"stamped {10**9 + 199} ns" in logged[-1].getMessage()  # the 200th stray
     assert not any("stamps went back" in r.getMessage() for r in caplog.records)
+
+
+def test_a_clock_stepping_back_again_and_again_is_logged_for_the_first_five_then_every_100th(
+    port: int, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Each restart of the pose timeline (a source restarted or a clock stepped back, confirmed by
+    the pose after it) is counted; its warning line follows _log_nth, with the running number."""
+    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    d = Daemon(load_config_dict(daemon_config_dict(port)), FakePipeline())
+    key = key_for(d.cfg.topics, "pose")
+    base = 1_700_000_000 * 10**9
+    for block in range(106):  # each block of three poses 100 s before the previous one
+        for i in range(3):
+            stamp = base - block * 100 * 10**9 + i * 10**8
+            d._on_inbound(Inbound("pose", key, codec.encode_pose_with_covariance(stamp, np.eye(4), COV),
+                                  time.monotonic()))  # fmt: skip
+    assert d.status()["waiting"]["pose_clock_jumps_back"] == 105
+    lines = [r.getMessage() for r in caplog.records if "stamps went back" in r.getMessage()]
+    assert [line.rsplit("(#", 1)[1] for line in lines] == ["1)", "2)", "3)", "4)", "5)", "100)"]
+    # the pose that confirms the 100th restart: the second of block 100
+    assert f"starts afresh at {base - 100 * 100 * 10**9 + 10**8} ns (#100)" in lines[-1]
