@@ -32,6 +32,12 @@ def _check_config(args: argparse.Namespace) -> int:
             ) from None
     zenoh_config(cfg.zenoh)  # zenoh's own parser: unknown keys and bad values
     problems = cuda_problems(cfg)
+    if cfg.grasp.proposer == "torchscript":  # `pugsd run` loads it at start and refuses a missing one
+        from pugsd.models import model_path_problem
+
+        problem = model_path_problem(cfg.grasp.model_path)
+        if problem:
+            problems.append(problem)
     if problems:
         raise ConfigError("; ".join(problems))
     for w in config_warnings(cfg):

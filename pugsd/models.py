@@ -16,13 +16,24 @@ from pugsd.core.pipeline import PugsPipeline
 from pugsd.errors import PugsdError
 
 
+def model_path_problem(path: str | Path) -> str | None:
+    """Why ``grasp.model_path`` cannot be loaded (``proposer = "torchscript"``), None when it names a
+    file; ``pugsd check-config`` asks this without loading it (no torch import)."""
+    if not str(path).strip():
+        return 'grasp.model_path is empty, but grasp.proposer = "torchscript" needs a TorchScript file'
+    if not Path(path).is_file():
+        return f"grasp.model_path: no TorchScript model at {Path(path)!s}"
+    return None
+
+
 def load_torchscript(path: str | Path) -> Any:
     """The TorchScript module at ``path`` on the CPU, in eval mode; PugsdError naming the file."""
     import torch
 
+    problem = model_path_problem(path)
+    if problem:
+        raise PugsdError(problem)
     p = Path(path)
-    if not p.is_file():
-        raise PugsdError(f"grasp.model_path: no TorchScript model at {p!s}")
     try:
         model = torch.jit.load(str(p), map_location="cpu")
     except (RuntimeError, ValueError, OSError) as exc:

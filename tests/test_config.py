@@ -417,3 +417,15 @@ def test_the_sgbm_settings_are_bounded_where_opencv_still_takes_them(key: str) -
         load_config_dict({"stereo": {key: top + 1}})
     with pytest.raises(ConfigError, match=rf"stereo\.{key}"):
         load_config_dict({"stereo": {key: 1 << 40}})
+
+
+@pytest.mark.parametrize("path", ["", "/nonexistent/grasp-net.pt"])
+def test_check_config_refuses_a_missing_torchscript_model(
+    path: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`pugsd run` refuses it when it builds the pipeline; check-config used to print ok for it."""
+    ref = str(ROOT / "config" / "pugsd.toml")
+    sets = ["--set", 'grasp.proposer="torchscript"', "--set", f'grasp.model_path="{path}"']
+    assert main(["check-config", ref, *sets]) == 1
+    err = capsys.readouterr().err
+    assert ("grasp.model_path is empty" if not path else f"no TorchScript model at {path}") in err

@@ -56,7 +56,16 @@ def _ask(args: argparse.Namespace, suffix: str) -> bytes | None:
     data, errors = query_daemon(cfg, suffix, args.timeout)
     if data is None:
         key = f"{cfg.daemon.prefix}/{suffix}"
-        detail = "; ".join(errors) or "no reply (is the daemon running, on these zenoh endpoints?)"
+        if not errors:
+            from pugsd.wire.session import tool_config
+
+            asked = ", ".join(tool_config(cfg.zenoh)["connect"]["endpoints"]) or "none"
+            errors = [
+                f"no reply within {args.timeout:g} s from {asked} (is the daemon running, on these "
+                "zenoh endpoints? give its --config, or "
+                "--set 'zenoh.listen.endpoints=[\"tcp/127.0.0.1:PORT\"]')"
+            ]
+        detail = "; ".join(errors)
         sys.stderr.write(f"pugsd: {key}: {detail}\n")
     return data
 

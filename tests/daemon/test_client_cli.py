@@ -81,6 +81,9 @@ def test_status_grasps_and_reset_from_the_command_line(
 
 def test_no_daemon_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     cfg_path = tmp_path / "nobody.toml"
-    cfg_path.write_text(toml_text({"zenoh": loopback_config(free_tcp_port())}))
+    port = free_tcp_port()
+    cfg_path.write_text(toml_text({"zenoh": loopback_config(port)}))
     rc, out, err = _run(capsys, "status", "--config", str(cfg_path), "--timeout", "0.5")
-    assert rc == 1 and not out and "pugs/status: no reply (is the daemon running" in err
+    assert rc == 1 and not out and "pugs/status: no reply within 0.5 s" in err
+    # the endpoints it asked, so that a wrong port shows (it used to say only "these endpoints")
+    assert f"from tcp/127.0.0.1:{port} (is the daemon running" in err
