@@ -369,6 +369,15 @@ class PugsdConfig:
     )
 
     def __post_init__(self) -> None:
+        for what in ("listen", "connect"):  # zenoh took a string for one endpoint only at open
+            table = self.zenoh.get(what) if isinstance(self.zenoh, dict) else None
+            value = table.get("endpoints") if isinstance(table, dict) else None
+            if isinstance(value, str):
+                one = value.strip().strip("[]").strip().strip("'\"")[:100]  # "[tcp/...]" unquoted too
+                raise ConfigError(
+                    f"zenoh.{what}.endpoints must be a list, e.g. [\"tcp/127.0.0.1:7447\"] (got the string "
+                    f"{value[:100]!r}; on a command line: --set 'zenoh.{what}.endpoints=[\"{one}\"]')"
+                )
         # [topics] checks its own names for ros_graph_tokens = "on"; the node name is [daemon]'s
         if self.topics.ros_graph_tokens == "on":
             graph_tokens_enabled(self.topics, self.daemon.node_name)  # ConfigError if refused

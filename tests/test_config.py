@@ -217,6 +217,27 @@ def test_record_keys_zenoh_would_refuse_are_config_errors(key: str, tmp_path: Pa
     assert load_config_dict({"record": {"keys": wildcards}}).record.keys == tuple(wildcards)
 
 
+@pytest.mark.parametrize(
+    ("override", "given"),
+    [
+        ("zenoh.listen.endpoints=tcp/127.0.0.1:21447", "tcp/127.0.0.1:21447"),  # the brackets forgotten
+        ("zenoh.connect.endpoints=[tcp/127.0.0.1:21447]", "[tcp/127.0.0.1:21447]"),  # the quotes forgotten
+    ],
+)
+def test_an_endpoint_string_instead_of_a_list_says_so(override: str, given: str) -> None:
+    """It was refused as "no listen or connect endpoint" / "must be given explicitly (... unless
+    allow_non_loopback)", which pointed at the safety switch instead of the missing brackets."""
+    what = override.split(".")[1]
+    with pytest.raises(ConfigError) as err:
+        load_config_dict({}, [override])
+    assert str(err.value) == (
+        f'zenoh.{what}.endpoints must be a list, e.g. ["tcp/127.0.0.1:7447"] (got the string {given!r}; '
+        f"on a command line: --set 'zenoh.{what}.endpoints=[\"tcp/127.0.0.1:21447\"]')"
+    )
+    listed = load_config_dict({}, [f'zenoh.{what}.endpoints=["tcp/127.0.0.1:21447"]'])
+    assert listed.zenoh[what]["endpoints"] == ["tcp/127.0.0.1:21447"]
+
+
 def test_usable_keys_are_accepted() -> None:
     cfg = load_config_dict(
         {}, ["daemon.prefix=robot1/pugs", "daemon.node_name=bow", "topics.pose=/nav/pose/"]

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from pugsd.config import PugsdConfig, dump_config, load_config
-from pugsd.errors import ConfigError
+from pugsd.errors import ConfigError, PugsdError
 
 
 def _load(args: argparse.Namespace) -> PugsdConfig:
@@ -190,10 +190,16 @@ def _recover(args: argparse.Namespace) -> int:
 def _info(args: argparse.Namespace) -> int:
     from pugsd.record.mcapio import scan
 
-    infos = [scan(f) for f in args.files]
+    infos, rc = [], 0
+    for f in args.files:
+        try:
+            infos.append(scan(f))
+        except PugsdError as exc:  # not an MCAP, unreadable: said, and the other files go on
+            sys.stderr.write(f"pugsd mcap info: error: {exc}\n")
+            rc = 1
     if args.json:
         sys.stdout.write(json.dumps([i.to_dict() for i in infos], indent=1) + "\n")
-        return 0
+        return rc
     for i in infos:
         state = "complete" if i.complete else f"INCOMPLETE ({i.error})"
         sys.stdout.write(
@@ -207,7 +213,7 @@ def _info(args: argparse.Namespace) -> int:
             sys.stdout.write(f"  schema {name} ({enc})\n")
         for name in sorted(i.metadata):
             sys.stdout.write(f"  metadata {name}: {', '.join(sorted(i.metadata[name]))}\n")
-    return 0
+    return rc
 
 
 def _synth(args: argparse.Namespace) -> int:

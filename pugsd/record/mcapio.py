@@ -56,6 +56,22 @@ def _open_read(path: str | Path) -> IO[bytes]:
         raise file_error(path, exc) from None
 
 
+_MCAP_MAGIC = b"\x89MCAP0\r\n"  # the first 8 bytes of every MCAP file (and its last 8)
+
+
+def _require_magic(f: IO[bytes], path: str | Path) -> None:
+    """DecodeError unless ``f`` starts with the MCAP magic (left at its start): a file that is
+    not an MCAP was read as an incomplete one, and `pugsd mcap recover` cannot help it."""
+    try:
+        head = f.read(len(_MCAP_MAGIC))
+        f.seek(0)
+    except OSError as exc:
+        raise file_error(path, exc) from None
+    if head != _MCAP_MAGIC:
+        what = "an empty file" if not head else "it does not start with the MCAP magic"
+        raise DecodeError(f"{path}: not an MCAP file ({what})")
+
+
 def versions() -> dict[str, str]:
     """Software versions for the MCAP metadata record ``pugsd.versions``."""
     out = {
@@ -161,6 +177,7 @@ def _iter_file(
     path: Path, idx: int, topics: list[str] | None, start_ns: int | None, end_ns: int | None
 ) -> Iterator[tuple[int, int, int, RecordedMessage]]:
     with _open_read(path) as f:
+        _require_magic(f, path)
         try:
             # the chunk CRCs: a corrupt chunk is an error, not altered payloads (zstd has no
             # checksum); the summary's, which the reader does not check, tells what the channels are
@@ -285,6 +302,7 @@ def scan(path: str | Path) -> FileInfo:
     complete, otherwise by streaming through it (``complete`` False, ``error`` says why)."""
     p = Path(path)
     with _open_read(p) as f:
+        _require_magic(f, p)
         try:
             size = os.fstat(f.fileno()).st_size
         except OSError as exc:

@@ -286,6 +286,31 @@ def test_cli_file_errors_are_one_line(synth_recording: Any, tmp_path: Path,
         scan(missing)
 
 
+def test_a_file_that_is_not_an_mcap_is_said_so_and_info_goes_on_with_the_others(
+    synth_recording: Any, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """info called it an INCOMPLETE MCAP (exit 0), and replay / play suggested `pugsd mcap
+    recover`, which cannot help a file that is not one."""
+    src, _ = synth_recording
+    text, empty = tmp_path / "notes.mcap", tmp_path / "empty.mcap"
+    text.write_text("hello\n")
+    empty.write_bytes(b"")
+    assert main(["mcap", "info", str(text), str(src), str(empty)]) == 1
+    out, err = capsys.readouterr()
+    assert err.splitlines() == [
+        f"pugsd mcap info: error: {text}: not an MCAP file (it does not start with the MCAP magic)",
+        f"pugsd mcap info: error: {empty}: not an MCAP file (an empty file)",
+    ]
+    assert out.startswith(f"{src}: ") and ", complete\n" in out  # the good one is still listed
+    for path in (text, empty):
+        with pytest.raises(PugsdError, match=r"not an MCAP file") as exc:
+            list(iter_recording([src, path]))
+        assert "recover" not in str(exc.value)
+    truncated = tmp_path / "cut.mcap"
+    truncated.write_bytes(src.read_bytes()[:1000])  # an MCAP cut short is still one: recover it
+    assert not scan(truncated).complete
+
+
 def test_recover_removes_its_temp_file_when_writing_fails(
     synth_recording: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
