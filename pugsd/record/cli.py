@@ -111,14 +111,20 @@ def _record(args: argparse.Namespace) -> int:
 
 def _play(args: argparse.Namespace) -> int:
     from pugsd.record.player import Player, PlayOptions, PlayProgress, parse_remap
-    from pugsd.wire.session import close_session
+    from pugsd.wire.session import close_session, tool_config
+    from pugsd.wire.topics import INPUT_ROLES, OUTPUT_ROLES
 
     cfg = _load(args)
+    topics = tuple(args.topic) if args.topic else None
+    if args.inputs_only:
+        if topics is not None:
+            raise ConfigError("--inputs-only and --topic exclude each other")
+        topics = tuple(getattr(cfg.topics, r) for r in INPUT_ROLES)
     opts = PlayOptions(
         rate=args.rate,
         start_s=args.start,
         end_s=args.end,
-        topics=tuple(args.topic) if args.topic else None,
+        topics=topics,
         remap=parse_remap(args.remap or ()),
         loop=args.loop,
         key_style=args.key_style,
@@ -144,12 +150,30 @@ def _play(args: argparse.Namespace) -> int:
             session, args.files, opts, progress=progress, stop_event=stop,
             wait_for_subscribers_s=args.wait_subscribers,
         )  # fmt: skip
+        outputs = player.played_topics(getattr(cfg.topics, r) for r in OUTPUT_ROLES)
+        if outputs:  # a daemon's recording played whole into a running daemon: its old grasps go out
+            sys.stderr.write(
+                f"pugsd play: warning: playing pugsd's outputs too ({', '.join(outputs)}): next to a "
+                "running daemon they mix with its own; --inputs-only plays its inputs alone\n"
+            )
         n = player.run()
     finally:
         close_session(session)
     if tty and not args.quiet:
         sys.stderr.write("\n")
-    sys.stderr.write(f"pugsd play: {n} messages published\n")
+    if n and player.unheard == n:
+        asked = ", ".join(tool_config(cfg.zenoh, args.connect, args.listen)["connect"]["endpoints"])
+        sys.stderr.write(
+            f"pugsd play: {n} messages published, none of them to a subscriber (is anything "
+            f"listening on {asked or 'the listen endpoints'}? --wait-subscribers S waits for one)\n"
+        )
+    elif player.unheard:
+        sys.stderr.write(
+            f"pugsd play: {n} messages published ({player.unheard} of them while nothing "
+            "subscribed to their key)\n"
+        )
+    else:
+        sys.stderr.write(f"pugsd play: {n} messages published\n")
     return 0
 
 
@@ -263,6 +287,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--start", type=float, default=0.0, help="start offset [s]")
     p.add_argument("--end", type=float, default=None, help="end offset [s]")
     p.add_argument("--topic", action="append", help="only this ROS topic (repeatable)")
+    p.add_argument("--inputs-only", action="store_true",
+                   help="only the config's [topics] inputs (not a recorded daemon's outputs)")  # fmt: skip
     p.add_argument("--remap", action="append", metavar="OLD:=NEW", help="topic remap")
     p.add_argument("--loop", action="store_true")
     p.add_argument("--key-style", choices=("rmw_zenoh", "ros2dds"), default=None,

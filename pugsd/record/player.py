@@ -122,6 +122,7 @@ class Player:
         self.wait_for_subscribers_s = wait_for_subscribers_s
         self._pubs: dict[str, Publisher] = {}
         self.published = 0
+        self.unheard = 0  # of those, published while no subscriber matched their key
 
     def _publisher(self, key: str) -> Publisher:
         pub = self._pubs.get(key)
@@ -157,6 +158,14 @@ class Player:
             self._pubs.clear()
         return self.published
 
+    def played_topics(self, among: Iterable[str]) -> list[str]:
+        """The topics of ``among`` (as published, after remapping) that this play publishes:
+        recorded in the files and selected by ``topics``."""
+        wanted = {"/" + strip_topic(t) for t in among}
+        recorded = {c.topic for f in self.files for c in scan(f).channels}
+        chosen = recorded if self.opts.topics is None else recorded & set(self.opts.topics)
+        return sorted({self.opts.remap.get(t, t) for t in chosen} & wanted)
+
     def _nothing_to_play(self) -> str:
         o = self.opts
         names = ", ".join(str(f) for f in self.files)
@@ -186,6 +195,7 @@ class Player:
                     return
             pub.put(msg.data)
             self.published += 1
+            self.unheard += not pub.matching
             now = time.monotonic()
             if self.progress is not None and now - last_progress >= self.progress_interval_s:
                 last_progress = now

@@ -31,8 +31,13 @@ class _CapturePlayer:
         self.files, self.opts, self.kw = files, opts, kw
         _CapturePlayer.made.append(self)
 
+    unheard = 0
+
     def run(self) -> int:
         return 5
+
+    def played_topics(self, among: Any) -> list[str]:
+        return []
 
 
 @pytest.fixture
