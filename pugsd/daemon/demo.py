@@ -294,8 +294,12 @@ async def _demo_main(
                 log.warning("camera: the daemon's subscriptions did not match within 10 s")
             i = 0
             next_t = time.monotonic()
+            # stamps on an exact 1 / rate_hz grid, as a camera's clock would give: with wall-clock
+            # jitter a 2 Hz pose stream came 0.495-0.505 s apart, against daemon.pose_max_gap_s
+            # (0.5 s), and a looped replay of its recording lost frames to "stray" poses
+            t0_ns, period_ns = time.time_ns(), round(1e9 / rate_hz)
             while not stop_camera.is_set() and (sweeps <= 0 or i < sweeps * len(frames)):
-                worst = camera.publish(frames[i % len(frames)], time.time_ns())
+                worst = camera.publish(frames[i % len(frames)], t0_ns + i * period_ns)
                 put_worst[0] = max(put_worst[0], worst)
                 i += 1
                 next_t += 1.0 / rate_hz

@@ -21,6 +21,7 @@ import pytest
 from pugsd.core.types import ScoredGrasps, StereoFrame
 from pugsd.daemon import demo
 from pugsd.errors import ConfigError
+from pugsd.record.mcapio import iter_recording
 from pugsd.wire import codec
 from tests.daemon.conftest import RIG, FakePipeline
 from tests.daemon.test_daemon_inprocess import pose_at
@@ -296,6 +297,11 @@ def test_demo_main_sends_its_sweeps_prints_grasps_and_stops_on_ctrl_c(
     assert [f.suffix for f in files] == [".mcap"] and files[0].exists()
     assert not list(tmp_path.glob("*.part"))
     assert extra["recorder"] is not None
+    # the camera's stamps are on an exact 1 / 50 Hz grid (they were wall-clock times, jittered
+    # around daemon.pose_max_gap_s at the demo's 2 Hz)
+    poses = [codec.decode_pose(m.data, m.typename).stamp_ns for m in iter_recording(files)
+             if m.topic == cfg.topics.pose]  # fmt: skip
+    assert len(poses) == 6 and set(np.diff(poses)) == {20_000_000}
 
 
 def test_demo_main_returns_after_its_duration_with_the_camera_looping(
