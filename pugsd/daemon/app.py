@@ -395,10 +395,12 @@ class Daemon:
                 self.session.liveliness().declare_token(self.key(f"alive/{self.cfg.daemon.node_name}"))
             )
             log.info(
-                "pugsd serving: prefix %r, %d input keys, zenoh %s",
+                "pugsd serving: prefix %r, %d input keys, zenoh %s, listening on %s, connecting to %s",
                 self.cfg.daemon.prefix,
                 len(self._subscribers),
                 self.session.zid(),
+                _endpoints(self.cfg.zenoh, "listen"),
+                _endpoints(self.cfg.zenoh, "connect"),
             )
             self.notifier.send("READY=1", "STATUS=waiting for frames")
             async with asyncio.TaskGroup() as tg:
@@ -1886,6 +1888,15 @@ _SIDE_ACTIVE_S = 2.0  # a mask/std topic counts as active this long after its la
 _PUBLISHERS_WINDOW_S = 5.0  # status upstream.active_publishers: publishers heard this recently
 _STREAM_ROLES = ("left_image", "right_image", "depth", "pose")  # inputs that flow continuously
 _UNHEALTHY_RELOG_S = 300.0  # an unchanged unhealthy state is logged again this often
+def _endpoints(zenoh_cfg: Any, what: str) -> str:
+    """The ``[zenoh] <what>.endpoints`` for the serving line ("none" when empty or not given)."""
+    table = zenoh_cfg.get(what) if isinstance(zenoh_cfg, dict) else None
+    value = table.get("endpoints") if isinstance(table, dict) else None
+    if isinstance(value, dict):  # per mode
+        value = [e for lst in value.values() if isinstance(lst, list) for e in lst]
+    return ", ".join(str(e) for e in value) if isinstance(value, list) and value else "none"
+
+
 def _log_nth(n: int, first: int = 5) -> bool:
     """Whether the ``n``-th (1-based) of a repeated event is logged: the first ``first``, then
     every 100th (each is counted regardless)."""

@@ -53,6 +53,14 @@ def _endpoint_lists(value: Any, what: str) -> list[str]:
     return out
 
 
+def _listen_endpoints(cfg: Mapping[str, Any]) -> list[str]:
+    value = _get(cfg, "listen/endpoints")
+    try:
+        return _endpoint_lists(value, "listen")
+    except ConfigError:
+        return []
+
+
 def check_loopback_safe(cfg: Mapping[str, Any]) -> None:
     """Raise ConfigError unless the zenoh config can only talk over 127.0.0.1.
 
@@ -172,7 +180,15 @@ def open_session(cfg: Mapping[str, Any], *, require_loopback: bool = True) -> ze
     try:
         session = zenoh.open(zcfg)
     except Exception as exc:
-        raise ConfigError(f"cannot open zenoh session: {exc}") from None
+        text = str(exc)
+        if "Address already in use" in text:  # another daemon, demo or router holds the port
+            taken = [e for e in _listen_endpoints(d) if e.split("#", 1)[0] in text] or _listen_endpoints(d)
+            raise ConfigError(
+                f"cannot open zenoh session: {', '.join(taken)} is already in use (another pugsd, "
+                "pugsd demo or zenoh router listens there; `pugsd status` with its config tells whether "
+                "a daemon answers)"
+            ) from None
+        raise ConfigError(f"cannot open zenoh session: {text}") from None
     log.debug("zenoh session %s opened", session.zid())
     return session
 

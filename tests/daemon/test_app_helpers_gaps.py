@@ -46,3 +46,13 @@ def test_status_values_are_strict_json() -> None:
     assert back["latency"] == {"depth": {"p50_ms": None, "p95_ms": 2.5}}
     assert back["skew"] == [0.25, None, None]
     assert back["pair"] == [3, None] and back["ok"] is True
+
+
+def test_the_serving_line_names_the_endpoints_as_configured() -> None:
+    from pugsd.daemon.app import _endpoints
+
+    z = {"listen": {"endpoints": ["tcp/127.0.0.1:7447", "tcp/127.0.0.1:7448"]}, "connect": {"endpoints": []}}
+    assert _endpoints(z, "listen") == "tcp/127.0.0.1:7447, tcp/127.0.0.1:7448"
+    assert _endpoints(z, "connect") == "none" and _endpoints({}, "listen") == "none"
+    per_mode = {"connect": {"endpoints": {"peer": ["tcp/127.0.0.1:1"], "client": ["tcp/127.0.0.1:2"]}}}
+    assert _endpoints(per_mode, "connect") == "tcp/127.0.0.1:1, tcp/127.0.0.1:2"

@@ -195,7 +195,8 @@ def test_end_to_end_stereo_to_grasps(
     assert not [p for p in children if psutil.pid_exists(p)]
     # structured JSON logs
     lines = [json.loads(ln) for ln in log.splitlines() if ln.startswith("{")]
-    assert any(ln["msg"].startswith("pugsd serving") for ln in lines)
+    (serving,) = [ln["msg"] for ln in lines if ln["msg"].startswith("pugsd serving")]
+    assert ", listening on tcp/127.0.0.1:" in serving and serving.endswith(", connecting to none")
     # the automatic inducing-point count, resolved for the device the SVGP runs on: the CPU,
     # svgp.device's default (CUDA is opted into), also on a GPU host
     assert load_config_dict({}).svgp.device == "cpu"

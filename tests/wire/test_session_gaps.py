@@ -14,7 +14,15 @@ import pytest
 
 import pugsd.wire.session as session_mod
 from pugsd.errors import ConfigError
-from pugsd.wire.session import _check_readback, check_loopback_safe, loopback_config, zenoh_config
+from pugsd.wire.session import (
+    _check_readback,
+    check_loopback_safe,
+    close_session,
+    free_tcp_port,
+    loopback_config,
+    open_session,
+    zenoh_config,
+)
 
 UNSAFE = {
     "multicast_on": lambda d: d["scouting"]["multicast"].update(enabled=True),
@@ -136,3 +144,18 @@ def test_open_session_checks_the_dict_and_zenohs_parse_before_opening(
     with pytest.raises(ConfigError, match="not loopback-safe"):
         session_mod.open_session(bad, require_loopback=True)
     assert order == ["check"]
+
+
+def test_a_port_already_in_use_is_named_without_zenohs_source_paths() -> None:
+    """A second daemon on the same port got zenoh's error with Rust source paths in it."""
+    port = free_tcp_port()
+    first = open_session(loopback_config(listen_port=port), require_loopback=True)
+    try:
+        with pytest.raises(ConfigError) as err:
+            open_session(loopback_config(listen_port=port), require_loopback=True)
+    finally:
+        close_session(first)
+    assert str(err.value) == (
+        f"cannot open zenoh session: tcp/127.0.0.1:{port} is already in use (another pugsd, pugsd demo "
+        "or zenoh router listens there; `pugsd status` with its config tells whether a daemon answers)"
+    )
