@@ -66,7 +66,7 @@ def _record(args: argparse.Namespace) -> int:
     rec.start()
     try:  # the session is closed and the recorder stopped whatever happens from here
         if rec.stats.error:
-            raise ConfigError(f"record: {rec.stats.error}")
+            raise ConfigError(str(rec.stats.error))
         rec.subscribe(session, keys)  # ConfigError naming a key zenoh refuses
         sys.stderr.write(f"pugsd record: {len(keys)} key expressions -> {rec.directory}\n")
         sys.stderr.flush()
@@ -98,6 +98,14 @@ def _record(args: argparse.Namespace) -> int:
         f"range), {s.unknown_type} of unknown type, {s.deletes} zenoh deletes skipped, "
         f"{s.callback_errors} lost to callback errors\n"
     )
+    if s.received == 0:  # nothing came: nobody publishing, or not where it asked
+        from pugsd.wire.session import tool_config
+
+        asked = ", ".join(tool_config(cfg.zenoh, args.connect, args.listen)["connect"]["endpoints"])
+        sys.stderr.write(
+            f"pugsd record: no message received (is anything publishing on these keys, reachable at "
+            f"{asked or 'the listen endpoints'}?)\n"
+        )
     for f in files:
         sys.stdout.write(f"{f}\n")
     if s.error:
@@ -133,7 +141,7 @@ def _play(args: argparse.Namespace) -> int:
     )
     for f in args.files:
         if not Path(f).is_file():
-            raise ConfigError(f"play: no such file {f}")
+            raise ConfigError(f"no such file {f}")
     tty = sys.stderr.isatty()
 
     def progress(p: PlayProgress) -> None:
@@ -150,6 +158,11 @@ def _play(args: argparse.Namespace) -> int:
             session, args.files, opts, progress=progress, stop_event=stop,
             wait_for_subscribers_s=args.wait_subscribers,
         )  # fmt: skip
+        unknown = sorted(set(opts.remap) - player.selected_topics())
+        if unknown:  # a typo, or a topic the files do not have: nothing is renamed
+            sys.stderr.write(
+                f"pugsd play: warning: --remap {', '.join(unknown)}: not among the topics played\n"
+            )
         outputs = player.played_topics(getattr(cfg.topics, r) for r in OUTPUT_ROLES)
         if outputs:  # a daemon's recording played whole into a running daemon: its old grasps go out
             sys.stderr.write(
@@ -186,7 +199,7 @@ def _replay(args: argparse.Namespace) -> int:
     cfg = _load(args)
     for f in args.files:
         if not Path(f).is_file():
-            raise ConfigError(f"replay: no such file {f}")
+            raise ConfigError(f"no such file {f}")
     res = replay(args.files, cfg, out_dir=args.out, mode=args.mode, seed=args.seed)
     sys.stdout.write(f"pugsd replay: {res.frames} frames, {len(res.grasps)} grasps\n")
     for line in iter_top(res.grasps):

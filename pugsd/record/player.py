@@ -158,13 +158,16 @@ class Player:
             self._pubs.clear()
         return self.published
 
-    def played_topics(self, among: Iterable[str]) -> list[str]:
-        """The topics of ``among`` (as published, after remapping) that this play publishes:
-        recorded in the files and selected by ``topics``."""
-        wanted = {"/" + strip_topic(t) for t in among}
+    def selected_topics(self) -> set[str]:
+        """The recorded topics this play publishes (before remapping): in the files, selected
+        by ``topics``."""
         recorded = {c.topic for f in self.files for c in scan(f).channels}
-        chosen = recorded if self.opts.topics is None else recorded & set(self.opts.topics)
-        return sorted({self.opts.remap.get(t, t) for t in chosen} & wanted)
+        return recorded if self.opts.topics is None else recorded & set(self.opts.topics)
+
+    def played_topics(self, among: Iterable[str]) -> list[str]:
+        """The topics of ``among`` that this play publishes, as published (after remapping)."""
+        wanted = {"/" + strip_topic(t) for t in among}
+        return sorted({self.opts.remap.get(t, t) for t in self.selected_topics()} & wanted)
 
     def _nothing_to_play(self) -> str:
         o = self.opts

@@ -39,6 +39,9 @@ class _CapturePlayer:
     def played_topics(self, among: Any) -> list[str]:
         return []
 
+    def selected_topics(self) -> set[str]:
+        return {"/a"}
+
 
 @pytest.fixture
 def captured_play(monkeypatch: pytest.MonkeyPatch, restore_signals: None) -> type[_CapturePlayer]:
@@ -109,6 +112,24 @@ def test_record_without_key_records_the_topics_under_the_prefix(
     (f,) = list(tmp_path.glob("*.mcap"))
     assert f.name.startswith("myrun_") and str(f) in out
     assert [(m.topic, m.data) for m in iter_recording([f])] == [("/stereo/left/image_raw", data)]
+
+
+def test_record_of_nothing_says_where_it_listened(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], restore_signals: None
+) -> None:
+    """No daemon at its endpoint (a wrong port, none started): it ended with '0 written' and no
+    hint that nothing ever came."""
+    from pugsd.wire.session import free_tcp_port
+
+    port = free_tcp_port()
+    rc = main(["record", "--connect", f"tcp/127.0.0.1:{port}", "--out", str(tmp_path), "--duration", "0.3",
+               "--status-interval", "0"])  # fmt: skip
+    out, err = capsys.readouterr()
+    assert rc == 0 and out == "" and not list(tmp_path.glob("*.mcap"))
+    assert err.splitlines()[-1] == (
+        "pugsd record: no message received (is anything publishing on these keys, reachable at "
+        f"tcp/127.0.0.1:{port}?)"
+    )
 
 
 def test_info_says_incomplete_for_a_cut_file(synth_recording: Any, tmp_path: Path,

@@ -52,12 +52,16 @@ def test_play_to_nobody_says_so_and_names_where_it_published(
     src, _ = synth_recording
     n = len(list(iter_recording([src])))
     port = free_tcp_port()  # nothing listens there
-    assert main(["play", str(src), "--rate", "0", "--quiet", "--set", SET.format(port)]) == 0
+    argv = ["play", str(src), "--rate", "0", "--quiet", "--set", SET.format(port)]
+    assert main([*argv, "--remap", "camera_pose:=/p2", "--remap", "/nope:=/x"]) == 0
     err = capsys.readouterr().err
     assert err == (
+        "pugsd play: warning: --remap /nope: not among the topics played\n"  # a typo renames nothing
         f"pugsd play: {n} messages published, none of them to a subscriber (is anything listening on "
         f"tcp/127.0.0.1:{port}? --wait-subscribers S waits for one)\n"
     )
+    assert main(["play", str(src.parent / "nope.mcap"), "--set", SET.format(port)]) == 1
+    assert capsys.readouterr().err == f"pugsd play: error: no such file {src.parent / 'nope.mcap'}\n"
 
 
 @pytest.mark.timeout(60)
