@@ -6,7 +6,9 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import signal
 import sys
+import threading
 from collections.abc import Sequence
 
 from pugsd.errors import PugsdError
@@ -38,8 +40,35 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # Ctrl-C before the command runs (its imports take seconds)
+        sys.stderr.write("pugsd: interrupted\n")
+        return 130
+
+
+def _build_and_parse(argv: Sequence[str] | None) -> argparse.Namespace:
+    """``build_parser().parse_args(argv)``, with a Ctrl-C during the subcommand modules' imports
+    (open3d, torch, mujoco: seconds) noted and turned into KeyboardInterrupt afterwards: raised
+    inside an import, a library's catch-all import guard swallowed it and the command ran on."""
+    if threading.current_thread() is not threading.main_thread():
+        return build_parser().parse_args(argv)
+    before = signal.getsignal(signal.SIGINT)
+    if before is not signal.default_int_handler:  # ignored (a background job) or the caller's own
+        return build_parser().parse_args(argv)
+    hit = threading.Event()
+    signal.signal(signal.SIGINT, lambda signum, frame: hit.set())
+    try:
+        args = build_parser().parse_args(argv)
+    finally:
+        signal.signal(signal.SIGINT, before)
+    if hit.is_set():
+        raise KeyboardInterrupt
+    return args
+
+
+def _main(argv: Sequence[str] | None) -> int:
+    args = _build_and_parse(argv)
     logging.basicConfig(
         level=getattr(logging, str(args.log_level or "warning").upper(), logging.WARNING),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",

@@ -7,6 +7,7 @@ synthetic scene replaced by stubs."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import types
 from collections.abc import Iterator
@@ -63,6 +64,42 @@ def test_ctrl_c_in_a_command_exits_130(monkeypatch: pytest.MonkeyPatch) -> None:
 
     _stub(monkeypatch, "_version", interrupted)
     assert main(["version"]) == 130
+
+
+def test_ctrl_c_while_the_commands_are_imported_exits_130_without_a_traceback(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The subcommand modules import open3d, torch and scipy (seconds): a Ctrl-C then gave a
+    KeyboardInterrupt traceback, before main's own handler."""
+
+    def importing() -> Any:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("pugsd.cli.build_parser", importing)
+    assert main(["version"]) == 130
+    assert capsys.readouterr().err == "pugsd: interrupted\n"
+
+
+def test_ctrl_c_swallowed_by_an_import_guard_still_stops_the_command(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A library's catch-all import guard swallowed the KeyboardInterrupt raised inside it, and
+    the command ran on (a `pugsd run` interrupted 0.3 s after its start went on to serve)."""
+    import signal
+
+    real = build_parser
+    ran: list[str] = []
+
+    def importing_with_a_guard() -> argparse.ArgumentParser:
+        with contextlib.suppress(BaseException):  # an import guard that swallows everything ...
+            signal.raise_signal(signal.SIGINT)  # ... and the Ctrl-C during that import
+        return real()
+
+    monkeypatch.setattr("pugsd.cli.build_parser", importing_with_a_guard)
+    _stub(monkeypatch, "_version", lambda args: ran.append("version") or 0)
+    assert main(["version"]) == 130 and ran == []
+    assert capsys.readouterr().err == "pugsd: interrupted\n"
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
 
 
 @pytest.mark.parametrize(("rc", "want"), [(None, 0), (0, 0), (3, 3)])
