@@ -137,7 +137,10 @@ class GraspPrinter:
             self.write(f"  (undecodable GraspArray: {exc})")
             return
         t = time.monotonic() - self.t0
-        if len(g) == 0:
+        if len(g) == 0:  # a reset's empty array (or none found): said once, after grasps were shown
+            if self.last_ident:
+                self.write(f"[{t:6.1f} s] no grasps (the map was reset, or none were found)")
+                self.best, self.last_ident, self.last_print_s = -1.0, (), t
             return
         if self.first_s is None:
             self.first_s = t

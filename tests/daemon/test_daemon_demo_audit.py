@@ -155,6 +155,11 @@ def test_the_grasp_printer_prints_when_the_ranking_changes() -> None:
     assert len(lines) == 7
     assert p.first_s == first and p.received == 11 and len(p.history) == 9
     assert [n for _, n, _ in p.history].count(2) == 3
+    p.on_grasps(_grasps(1.0, n=0))  # a reset: said once
+    p.on_grasps(_grasps(1.0, n=0))
+    assert len(lines) == 8 and _body(lines[-1]) == "no grasps (the map was reset, or none were found)"
+    p.on_grasps(_grasps(10.6, n=2, dx=0.01))  # the same grasps as before the reset: shown again
+    assert len(lines) == 9 and _body(lines[-1]).startswith("2 grasps: #1 PUGS 10.6 ")
 
 
 class _StubDaemon:
