@@ -4,8 +4,10 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
+from pathlib import Path
 
 from pugsd import __version__
 from pugsd.config import PugsdConfig, config_warnings, core_of, dump_config, load_config
@@ -40,10 +42,30 @@ def _check_config(args: argparse.Namespace) -> int:
             problems.append(problem)
     if problems:
         raise ConfigError("; ".join(problems))
-    for w in config_warnings(cfg):
+    for w in [*config_warnings(cfg), *record_directory_warnings(cfg)]:
         sys.stderr.write(f"{args.file}: warning: {w}\n")
     sys.stdout.write(f"{args.file}: ok\n")
     return 0
+
+
+def record_directory_warnings(cfg: PugsdConfig) -> list[str]:
+    """With ``[record] enabled``: a ``directory`` this user cannot create or write (the daemon
+    then serves without recording, its status says why). A warning, not an error: systemd's
+    StateDirectory may create it only when the unit starts."""
+    if not cfg.record.enabled:
+        return []
+    path = Path(cfg.record.directory).expanduser().absolute()
+    probe = path
+    while not probe.exists() and probe != probe.parent:  # the nearest existing ancestor
+        probe = probe.parent
+    if not probe.is_dir():
+        return [f"record.directory = {str(path)!r}: {str(probe)!r} is not a directory; the daemon will run "
+                "without recording"]  # fmt: skip
+    if not os.access(probe, os.W_OK | os.X_OK):
+        what = "cannot write" if probe == path else f"cannot create it ({str(probe)!r} is not writable)"
+        return [f"record.directory = {str(path)!r}: this user {what}; the daemon will run without "
+                "recording"]  # fmt: skip
+    return []
 
 
 def cuda_problems(cfg: PugsdConfig) -> list[str]:

@@ -238,6 +238,38 @@ def test_an_endpoint_string_instead_of_a_list_says_so(override: str, given: str)
     assert listed.zenoh[what]["endpoints"] == ["tcp/127.0.0.1:21447"]
 
 
+def test_check_config_warns_of_a_recording_directory_it_cannot_use(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The daemon then serves without recording; check-config said ok without a word."""
+    import os
+
+    ref = str(ROOT / "config" / "pugsd.toml")
+    (tmp_path / "afile").write_text("x")
+    under_a_file = tmp_path / "afile" / "rec"
+    assert main(["check-config", ref, "--set", "record.enabled=true",
+                 "--set", f'record.directory="{under_a_file}"']) == 0  # fmt: skip
+    assert capsys.readouterr().err == (
+        f"{ref}: warning: record.directory = {str(under_a_file)!r}: {str(tmp_path / 'afile')!r} is not a "
+        "directory; the daemon will run without recording\n"
+    )
+    new = tmp_path / "new" / "rec"  # created by the recorder: fine
+
+    def enabled_at(path: Path) -> list[str]:
+        return ["--set", "record.enabled=true", "--set", f'record.directory="{path}"']
+
+    assert main(["check-config", ref, *enabled_at(new)]) == 0
+    assert capsys.readouterr().err == ""
+    monkeypatch.setattr(os, "access", lambda path, mode: False)  # as a user without write access
+    assert main(["check-config", ref, *enabled_at(new)]) == 0
+    assert capsys.readouterr().err == (
+        f"{ref}: warning: record.directory = {str(new)!r}: this user cannot create it "
+        f"({str(tmp_path)!r} is not writable); the daemon will run without recording\n"
+    )
+    assert main(["check-config", ref, "--set", f'record.directory="{new}"']) == 0  # not enabled: no word
+    assert capsys.readouterr().err == ""
+
+
 def test_usable_keys_are_accepted() -> None:
     cfg = load_config_dict(
         {}, ["daemon.prefix=robot1/pugs", "daemon.node_name=bow", "topics.pose=/nav/pose/"]
