@@ -213,6 +213,8 @@ def run_bench(
         references[traj] = (stream_res.cloud_W, paper_res.sigma2_occ)
         same = m.same_top_grasp(stream_res, paper_res)
         rho_floor = None
+        # the reference's repeatability at the grasp level (top grasp, top-5 contacts)
+        floor_grasps: dict[str, Any] = {"top_grasp_same": None, "top5_overlap": None}
         conv: dict[str, Any] | None = None
         if opts.optimal_q:
             # a converged reference: the paper fit with q(u) at its closed-form optimum
@@ -246,6 +248,10 @@ def run_bench(
             )
             paper2, _, _, paper2_pipe = m.run_paper(core2, frames[traj], stream_res.cloud_W, opts)
             rho_floor = m.spearman(paper_res.sigma2_occ, paper2.sigma2_occ)
+            floor_grasps = {
+                "top_grasp_same": m.same_top_grasp(paper_res, paper2),
+                "top5_overlap": m.topk_overlap(paper_res, paper2),
+            }
             if conv is not None:
                 p2_opt = m.optimal_q(paper2_pipe, stream_res.cloud_W)
                 conv["spearman_paper_optimal_q_vs_other_seed_optimal_q"] = m.spearman(
@@ -284,6 +290,8 @@ def run_bench(
             "ratio_paper_over_streaming": round(paper_s / run.last_frame_to_grasps_s, 2),
             "spearman_sigma2_occ": None if rho is None else round(rho, 4),
             "spearman_paper_vs_paper_other_seed": None if rho_floor is None else round(rho_floor, 4),
+            "top_grasp_same_paper_vs_paper_other_seed": floor_grasps["top_grasp_same"],
+            "top5_overlap_paper_vs_paper_other_seed": floor_grasps["top5_overlap"],
             "spearman_after_idle_steps": [
                 {"steps": k, "train_s": round(t, 2), "spearman": m.spearman(s2, paper_res.sigma2_occ)}
                 for k, t, s2 in refined

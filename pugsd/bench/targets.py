@@ -267,6 +267,13 @@ def format_table(r: dict[str, Any]) -> list[str]:
                     for x in refined
                 )
             )
+        if c.get("spearman_paper_vs_paper_other_seed") is not None:
+            out.append(
+                f"{'':<11} the paper fit against itself with another svgp.seed: spearman "
+                f"{_fmt(c['spearman_paper_vs_paper_other_seed'], 3)}, top grasp same "
+                f"{_fmt(c.get('top_grasp_same_paper_vs_paper_other_seed'))}, top5 "
+                f"{_fmt(c.get('top5_overlap_paper_vs_paper_other_seed'), 1)}"
+            )
         pm = c.get("streaming_at_paper_num_inducing")
         if pm:
             out.append(

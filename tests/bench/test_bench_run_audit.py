@@ -131,10 +131,12 @@ class _Fakes:
         return float(a[0] * b[0]) + 1e-6  # the rounding to 4 places shows
 
     def same_top_grasp(self, a: Any, b: Any) -> bool:
-        return a.sigma2_occ[0] == STREAM
+        # streaming vs the paper fit, and the paper fit vs its other seed (the reference's own
+        # repeatability); any other pair (the run at the paper's M) is False
+        return (a.sigma2_occ[0], b.sigma2_occ[0]) in {(STREAM, PAPER), (PAPER, PAPER2)}
 
     def topk_overlap(self, a: Any, b: Any) -> float:
-        return 0.6
+        return 0.6 if a.sigma2_occ[0] == STREAM else float(a.sigma2_occ[0] * b.sigma2_occ[0]) / 1000.0
 
     def daemon_last_frame(
         self, cfg: Any, frames: list[str], opts: Any, write: Any, ref: Any
@@ -236,6 +238,9 @@ def test_a_full_run_derives_every_comparison_field_from_its_sources(
         "ratio_paper_over_streaming": 8.0,  # paper / streaming, not the inverse
         "spearman_sigma2_occ": _r4(STREAM * PAPER),
         "spearman_paper_vs_paper_other_seed": _r4(PAPER * PAPER2),
+        # the reference's repeatability at the grasp level: the seed-0 fit against the seed-1 fit
+        "top_grasp_same_paper_vs_paper_other_seed": True,
+        "top5_overlap_paper_vs_paper_other_seed": PAPER * PAPER2 / 1000.0,
         "spearman_after_idle_steps": [
             {"steps": 100, "train_s": 0.12, "spearman": REF1 * PAPER + 1e-6},
             {"steps": 400, "train_s": 0.25, "spearman": REF2 * PAPER + 1e-6},
@@ -365,6 +370,8 @@ def test_optional_diagnostics_are_skipped_when_switched_off(
     c = res["paper_vs_streaming"]["partial"]
     assert c["converged_reference"] is None
     assert c["spearman_paper_vs_paper_other_seed"] is None
+    assert c["top_grasp_same_paper_vs_paper_other_seed"] is None
+    assert c["top5_overlap_paper_vs_paper_other_seed"] is None
     assert c["streaming_at_paper_num_inducing"] is None
     assert c["spearman_after_idle_steps"] == []
     assert "svgp_step_by_torch_threads" not in res and "svgp_thread_sweep" not in f.calls
