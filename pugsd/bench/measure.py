@@ -215,15 +215,20 @@ def run_streaming(
     )
 
 
-def idle_refinement(run: StreamRun, steps: Sequence[int]) -> list[tuple[int, float, np.ndarray]]:
+def idle_refinement(
+    run: StreamRun, steps: Sequence[int], decay_steps: int = 0
+) -> list[tuple[int, float, np.ndarray]]:
     """What the daemon publishes while it trains on after the last frame (idle rounds, for
     ``daemon.idle_train_s``): sigma2_occ on the streaming run's query cloud after each cumulative
-    number of extra SVGP steps, with the training time they took. Trains ``run.pipe`` on."""
+    number of extra SVGP steps, with the training time they took. The i-th extra step runs at the
+    daemon's idle rate scale 1 / (1 + i / ``decay_steps``) (``daemon.idle_rate_decay_steps``; 0:
+    constant rates). Trains ``run.pipe`` on."""
     out: list[tuple[int, float, np.ndarray]] = []
     done, train_s = 0, 0.0
     for k in sorted(steps):
         t0 = time.perf_counter()
-        run.pipe.train_steps(k - done)
+        for i in range(done, k):
+            run.pipe.train_steps(1, rate_scale=1.0 / (1.0 + i / decay_steps) if decay_steps > 0 else 1.0)
         train_s += time.perf_counter() - t0
         done = k
         _, s2 = run.pipe.sigma2_occ(run.result.cloud_W)

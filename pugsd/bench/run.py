@@ -194,7 +194,7 @@ def run_bench(
             f"{run.extra_steps_after_last_frame} idle steps after the last frame; "
             f"whole cloud {run.last_frame_to_cloud_s:.2f} s)"
         )
-        refined = m.idle_refinement(run, opts.refine_steps)
+        refined = m.idle_refinement(run, opts.refine_steps, d.idle_rate_decay_steps)
         # the streaming model (after its idle training) against its own closed-form optimum
         stream_opt = (
             m.optimal_q(run.pipe, stream_res.cloud_W, restore=True) if opts.optimal_q else None

@@ -204,9 +204,12 @@ class PugsPipeline:
             self._scale = s
         return self.store.training_data(self._scale)
 
-    def train_steps(self, steps: int | None = None) -> TrainStats:
-        """Streaming SVGP update (warm start, NGD + Adam, replay) on what changed since last call."""
+    def train_steps(self, steps: int | None = None, rate_scale: float = 1.0) -> TrainStats:
+        """Streaming SVGP update (warm start, NGD + Adam, replay) on what changed since last call,
+        with the learning rates multiplied by ``rate_scale`` in (0, 1] (``OccupancySVGP.set_rate_scale``;
+        the daemon's idle training lowers it)."""
         t0 = time.perf_counter()
+        self.svgp.set_rate_scale(rate_scale)
         x, y = self._targets()
         new = np.unique(np.concatenate(self._pending)) if self._pending else np.zeros(0, np.int64)
         new = new[new < len(x)]

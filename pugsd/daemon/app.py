@@ -92,7 +92,7 @@ class Pipeline(Protocol):
 
     def integrate(self, depth: DepthFrame) -> int: ...
 
-    def train_steps(self, n: int) -> Any: ...
+    def train_steps(self, n: int, rate_scale: float = 1.0) -> Any: ...
 
     def grasp_input(self) -> Any: ...
 
@@ -339,6 +339,7 @@ class Daemon:
         self._grasps_urgent = False  # computing grasps for a newly integrated frame
         self._last_cloud_published_s = -math.inf
         self._steps_since_frame = 0  # training steps since the newest frame was integrated
+        self._idle_steps = 0  # idle training steps since then (their learning rates decay)
         self._last_frame_s: float | None = None  # monotonic time of the last integrated frame
         self._newest_recv_s: float | None = None  # receive time of the newest integrated frame
         self._last_recv_s: dict[str, float] = {}  # monotonic receive time per input stream
@@ -1265,12 +1266,12 @@ class Daemon:
         with self._model_lock:
             return fn(*args)
 
-    def _train_step_locked(self) -> Any:
+    def _train_step_locked(self, rate_scale: float = 1.0) -> Any:
         """One SVGP step under the model lock; None when the map is empty: a reset between two
         steps of a round emptied it, which ends the round and is not a rejected input."""
         with self._model_lock:
             try:
-                return self.pipeline.train_steps(1)
+                return self.pipeline.train_steps(1, rate_scale=rate_scale)
             except EmptyCloudError:
                 return None
 
@@ -1314,7 +1315,10 @@ class Daemon:
         One step is forced when the last is older than ``min_train_interval_s``, so sustained
         overload cannot starve the model (it then drops frames instead, counted). Idle rounds
         (``idle``) also stop while grasps for a newly integrated frame are being computed: on two
-        cores the SVGP steps and the grasp proposal slow each other down."""
+        cores the SVGP steps and the grasp proposal slow each other down. Idle steps run at
+        learning rates that decay with the idle steps since the last frame
+        (``idle_rate_decay_steps``); steps after a frame run at the configured rates."""
+        tau = self.cfg.daemon.idle_rate_decay_steps
         for _ in range(steps):
             overdue = time.monotonic() - self._last_train_s > self.cfg.daemon.min_train_interval_s
             if self._stopping or (len(self.depth_box) > 0 and not overdue):
@@ -1322,12 +1326,17 @@ class Daemon:
             if idle and self._grasps_urgent:
                 break
             self._last_train_s = time.monotonic()
-            stats = await self._guard("train", self._offload("train", self._train_step_locked))
+            scale = 1.0 / (1.0 + self._idle_steps / tau) if idle and tau > 0 else 1.0
+            stats = await self._guard(
+                "train", self._offload("train", self._train_step_locked, scale)
+            )
             if stats is None:
                 break
             self._note_train(stats, 1)
             self._changed = True
             self._steps_since_frame += 1
+            if idle:
+                self._idle_steps += 1
 
     async def _model_worker(self) -> None:
         d = self.cfg.daemon
@@ -1356,6 +1365,7 @@ class Daemon:
                 self._changed = True
                 self._frame_unpublished = True
                 self._steps_since_frame = 0
+                self._idle_steps = 0
                 if d.train_steps_per_frame > 0 and not self._stopping:
                     await self._train(d.train_steps_per_frame)
             elif (

@@ -109,6 +109,14 @@ class DaemonConfig:
     idle_train_s: float = opt(
         60.0, "keep training without new frames for this long after the last one", unit="s", ge=0.0
     )
+    idle_rate_decay_steps: int = opt(
+        100,
+        "idle training: the SVGP's learning rates fall as 1 / (1 + k / this), k the idle steps "
+        "since the last integrated frame (a frame restores them), so that a model with nothing new "
+        "to learn settles instead of jittering with its minibatches and swapping near-tied grasps "
+        "at every republish; 0 keeps them constant",
+        ge=0,
+    )
     pose_max_gap_s: float = opt(
         0.5,
         "never interpolate between poses further apart than this; two poses in a row stamped this "

@@ -223,3 +223,32 @@ def test_restamp_gives_a_copy_with_the_new_stamp() -> None:
     assert g.stamp_ns == 1_000_000_123 and f.stamp_ns == 5
     assert g.left is f.left and g.right is f.right and g.rig is f.rig  # the rest is the frame's
     np.testing.assert_array_equal(g.T_W_C, f.T_W_C)
+
+
+class _IdlePipe:
+    """Records each ``train_steps`` call's rate scale and when sigma2_occ was asked for."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[int, float]] = []
+        self.asked_after: list[int] = []
+
+    def train_steps(self, steps: int, rate_scale: float = 1.0) -> None:
+        self.calls.append((steps, rate_scale))
+
+    def sigma2_occ(self, cloud: np.ndarray) -> tuple[None, np.ndarray]:
+        self.asked_after.append(len(self.calls))
+        return None, np.full(len(cloud), float(len(self.calls)))
+
+
+@pytest.mark.parametrize("decay", [0, 2])
+def test_idle_refinement_trains_at_the_daemons_idle_rates(decay: int) -> None:
+    """The bench's 'after +N idle steps' figures follow the daemon's idle schedule: the i-th extra
+    step at rate scale 1 / (1 + i / daemon.idle_rate_decay_steps), counted across checkpoints."""
+    pipe = _IdlePipe()
+    run = SimpleNamespace(pipe=pipe, result=SimpleNamespace(cloud_W=np.zeros((4, 3))))
+    out = measure.idle_refinement(run, (5, 3), decay)  # type: ignore[arg-type]
+    expected = [1.0 / (1.0 + i / decay) if decay else 1.0 for i in range(5)]
+    assert [n for n, _ in pipe.calls] == [1] * 5
+    assert [s for _, s in pipe.calls] == pytest.approx(expected, abs=1e-12)
+    assert pipe.asked_after == [3, 5]  # checkpoints sorted, cumulative
+    assert [k for k, _, _ in out] == [3, 5] and out[1][2][0] == 5.0

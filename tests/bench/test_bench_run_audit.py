@@ -97,8 +97,10 @@ class _Fakes:
             run.samples = {"train_per_frame": [0.5, 0.25]}
         return run
 
-    def idle_refinement(self, run: Any, steps: tuple[int, ...]) -> list[tuple[int, float, np.ndarray]]:
-        self._rec("idle_refinement", steps)
+    def idle_refinement(
+        self, run: Any, steps: tuple[int, ...], decay_steps: int
+    ) -> list[tuple[int, float, np.ndarray]]:
+        self._rec("idle_refinement", steps, decay_steps)
         tags = [REF1, REF2]
         return [(k, 0.123 * (i + 1), _arr(tags[i])) for i, k in enumerate(steps)]
 
@@ -286,7 +288,8 @@ def test_a_full_run_derives_every_comparison_field_from_its_sources(
     assert all(r[4:] == (4, 6, False) for r in rs)  # the daemon's steps per frame, idle steps, latch
     assert f.calls["run_paper"] == [("complete", 0, 0), ("complete", 1, 0),
                                     ("partial", 0, 0), ("partial", 1, 0)]  # fmt: skip
-    assert f.calls["idle_refinement"] == [((100, 400),)] * 2
+    # at the daemon's idle rates (its default idle_rate_decay_steps: the overrides leave it)
+    assert f.calls["idle_refinement"] == [((100, 400), 100)] * 2
     assert f.calls["steady_state_cycles"] == [("complete", 4), ("partial", 4)]
     # the thread sweep runs once, on the first trajectory's streaming model
     assert f.calls["svgp_thread_sweep"] == [("stream-complete", (1, 2), 4)]

@@ -124,6 +124,7 @@ class FakePipeline:
     frames: list[DepthFrame] = field(default_factory=list)
     resets: int = 0
     version: int = 0
+    rate_scales: list[float] = field(default_factory=list)  # each train_steps call's rate_scale
 
     @property
     def ready(self) -> bool:
@@ -146,8 +147,9 @@ class FakePipeline:
         self.version += 1
         return int(np.isfinite(depth.depth_m).sum())
 
-    def train_steps(self, n: int) -> TrainStats:
+    def train_steps(self, n: int, rate_scale: float = 1.0) -> TrainStats:
         time.sleep(self.train_delay_s)
+        self.rate_scales.append(rate_scale)
         self.steps += n
         self.version += 1
         return TrainStats(-1.0 / (1 + self.steps), self.ready)

@@ -549,7 +549,7 @@ def test_output_stamps_never_go_back_within_the_gap_follow_beyond_it_and_restart
 
 def test_a_training_step_on_an_emptied_map_returns_none() -> None:
     class Emptied(FakePipeline):
-        def train_steps(self, n: int) -> Any:
+        def train_steps(self, n: int, rate_scale: float = 1.0) -> Any:
             raise EmptyCloudError("no points")
 
     d = _daemon()

@@ -152,13 +152,13 @@ class LockPipeline(FakePipeline):
         self._seen("integrate")
         return super().integrate(depth)
 
-    def train_steps(self, n: int) -> TrainStats:
+    def train_steps(self, n: int, rate_scale: float = 1.0) -> TrainStats:
         self._seen("train")
         if self.fail:
             raise RuntimeError("model diverged")
         if self.empty:
             raise EmptyCloudError("empty map")
-        return super().train_steps(n)
+        return super().train_steps(n, rate_scale)
 
     def reset(self) -> None:
         self._seen("reset")
@@ -296,14 +296,47 @@ def test_idle_rounds_train_after_a_frame_until_idle_train_s_unless_grasps_are_ur
     assert timeouts == [0.5, 0.02, 0.02, 0.02, 0.02, 0.02, 0.5, 0.5]
 
 
+def test_idle_steps_run_at_decaying_rates_and_a_frame_restores_them(clock: Clock) -> None:
+    """``idle_rate_decay_steps`` (tau): the k-th idle step since the last integrated frame runs at
+    rate scale 1 / (1 + k / tau); the steps after a frame at 1, and a frame starts k afresh."""
+    d, pipe = _lock_daemon(train_steps_per_frame=2, idle_train_steps=3, idle_rate_decay_steps=4)
+    _drive_model(
+        d,
+        [
+            lambda: (_depth(5), 100.0),  # a frame: 2 steps at the configured rates
+            lambda: None,  # idle: k = 0, 1, 2
+            lambda: None,  # idle: k = 3, 4, 5
+            lambda: (_depth(6), 100.0),  # a new frame: configured rates, k from 0 again
+            lambda: None,  # idle: k = 0, 1, 2
+        ],
+    )
+    decayed = [1.0 / (1.0 + k / 4.0) for k in range(6)]
+    assert pipe.rate_scales == pytest.approx([1.0, 1.0, *decayed, 1.0, 1.0, *decayed[:3]], abs=1e-12)
+    assert d._idle_steps == 3
+
+
+def test_idle_rate_decay_steps_0_keeps_the_rates_constant(clock: Clock) -> None:
+    d, pipe = _lock_daemon(train_steps_per_frame=1, idle_train_steps=2, idle_rate_decay_steps=0)
+    _drive_model(d, [lambda: (_depth(5), 100.0), lambda: None, lambda: None])
+    assert pipe.rate_scales == [1.0] * 5
+
+
+def test_the_default_idle_decay_halves_the_rates_after_100_idle_steps(clock: Clock) -> None:
+    d, pipe = _lock_daemon(train_steps_per_frame=0, idle_train_steps=101)
+    d._last_frame_s = 100.0
+    _drive_model(d, [lambda: None])
+    assert len(pipe.rate_scales) == 101
+    assert pipe.rate_scales[0] == 1.0 and pipe.rate_scales[100] == pytest.approx(0.5)
+
+
 def test_an_idle_round_stops_as_soon_as_grasps_become_urgent(clock: Clock) -> None:
     d, pipe = _lock_daemon(train_steps_per_frame=0, idle_train_steps=4)
     d._last_frame_s = 100.0
     real = pipe.train_steps
 
-    def urgent_after(n: int) -> TrainStats:
+    def urgent_after(n: int, rate_scale: float = 1.0) -> TrainStats:
         d._grasps_urgent = True  # grasps for a new frame began during this step
-        return real(n)
+        return real(n, rate_scale)
 
     pipe.train_steps = urgent_after  # type: ignore[method-assign]
     _drive_model(d, [lambda: None])

@@ -55,8 +55,8 @@ class TimedPipeline(FakePipeline):
     def integrate(self, depth: Any) -> int:
         return int(self._timed("integrate", super().integrate, depth))
 
-    def train_steps(self, n: int) -> Any:
-        return self._timed("train", super().train_steps, n)
+    def train_steps(self, n: int, rate_scale: float = 1.0) -> Any:
+        return self._timed("train", super().train_steps, n, rate_scale)
 
     def grasp_input(self) -> int:
         return int(self._timed("grasp_input", super().grasp_input))

@@ -252,7 +252,7 @@ def test_failing_training_backs_off_and_withholds_watchdog(
     cfg = load_config_dict(daemon_config_dict(port, max_consecutive_failures=3))
     pipe = FakePipeline()
 
-    def broken(n: int) -> Any:
+    def broken(n: int, rate_scale: float = 1.0) -> Any:
         raise RuntimeError("model diverged")
 
     pipe.train_steps = broken  # type: ignore[method-assign,assignment]

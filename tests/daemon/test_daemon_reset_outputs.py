@@ -72,12 +72,12 @@ class GatedTrainPipeline(FakePipeline):
     training: threading.Event = field(default_factory=threading.Event)
     finish: threading.Event = field(default_factory=threading.Event)
 
-    def train_steps(self, n: int) -> TrainStats:
+    def train_steps(self, n: int, rate_scale: float = 1.0) -> TrainStats:
         if not self.integrated:
             raise EmptyCloudError("no training points")
         self.training.set()
         assert self.finish.wait(10.0)
-        return super().train_steps(n)
+        return super().train_steps(n, rate_scale)
 
 
 def test_a_reset_during_idle_training_rejects_nothing() -> None:
