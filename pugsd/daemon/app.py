@@ -339,7 +339,7 @@ class Daemon:
         self._grasps_urgent = False  # computing grasps for a newly integrated frame
         self._last_cloud_published_s = -math.inf
         self._steps_since_frame = 0  # training steps since the newest frame was integrated
-        self._idle_steps = 0  # idle training steps since then (their learning rates decay)
+        self._idle_steps = 0  # idle steps of a ready model since then (their learning rates decay)
         self._last_frame_s: float | None = None  # monotonic time of the last integrated frame
         self._newest_recv_s: float | None = None  # receive time of the newest integrated frame
         self._last_recv_s: dict[str, float] = {}  # monotonic receive time per input stream
@@ -1315,9 +1315,11 @@ class Daemon:
         One step is forced when the last is older than ``min_train_interval_s``, so sustained
         overload cannot starve the model (it then drops frames instead, counted). Idle rounds
         (``idle``) also stop while grasps for a newly integrated frame are being computed: on two
-        cores the SVGP steps and the grasp proposal slow each other down. Idle steps run at
-        learning rates that decay with the idle steps since the last frame
-        (``idle_rate_decay_steps``); steps after a frame run at the configured rates."""
+        cores the SVGP steps and the grasp proposal slow each other down. Idle steps of a ready
+        model run at learning rates that decay with the number of such steps since the last frame
+        (``idle_rate_decay_steps``: what is published settles); steps after a frame, and idle
+        steps before the model is ready (nothing published yet to settle, readiness not to be
+        slowed), run at the configured rates."""
         tau = self.cfg.daemon.idle_rate_decay_steps
         for _ in range(steps):
             overdue = time.monotonic() - self._last_train_s > self.cfg.daemon.min_train_interval_s
@@ -1326,7 +1328,8 @@ class Daemon:
             if idle and self._grasps_urgent:
                 break
             self._last_train_s = time.monotonic()
-            scale = 1.0 / (1.0 + self._idle_steps / tau) if idle and tau > 0 else 1.0
+            decaying = idle and tau > 0 and self.ready
+            scale = 1.0 / (1.0 + self._idle_steps / tau) if decaying else 1.0
             stats = await self._guard(
                 "train", self._offload("train", self._train_step_locked, scale)
             )
@@ -1335,7 +1338,7 @@ class Daemon:
             self._note_train(stats, 1)
             self._changed = True
             self._steps_since_frame += 1
-            if idle:
+            if decaying:
                 self._idle_steps += 1
 
     async def _model_worker(self) -> None:

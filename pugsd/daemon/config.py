@@ -111,10 +111,11 @@ class DaemonConfig:
     )
     idle_rate_decay_steps: int = opt(
         100,
-        "idle training: the SVGP's learning rates fall as 1 / (1 + k / this), k the idle steps "
-        "since the last integrated frame (a frame restores them), so that a model with nothing new "
-        "to learn settles instead of jittering with its minibatches and swapping near-tied grasps "
-        "at every republish; 0 keeps them constant",
+        "idle training: the SVGP's learning rates fall as 1 / (1 + k / this), k the idle steps of "
+        "the ready model since the last integrated frame (a frame restores them; before the model "
+        "is ready idle steps run at full rates), so that a model with nothing new to learn settles "
+        "instead of jittering with its minibatches and swapping near-tied grasps at every "
+        "republish; 0 keeps them constant",
         ge=0,
     )
     pose_max_gap_s: float = opt(

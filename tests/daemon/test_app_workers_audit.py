@@ -300,6 +300,7 @@ def test_idle_steps_run_at_decaying_rates_and_a_frame_restores_them(clock: Clock
     """``idle_rate_decay_steps`` (tau): the k-th idle step since the last integrated frame runs at
     rate scale 1 / (1 + k / tau); the steps after a frame at 1, and a frame starts k afresh."""
     d, pipe = _lock_daemon(train_steps_per_frame=2, idle_train_steps=3, idle_rate_decay_steps=4)
+    pipe.ready_after = 0  # ready from the first step
     _drive_model(
         d,
         [
@@ -315,8 +316,19 @@ def test_idle_steps_run_at_decaying_rates_and_a_frame_restores_them(clock: Clock
     assert d._idle_steps == 3
 
 
+def test_idle_steps_before_the_model_is_ready_run_at_full_rates_and_do_not_count(clock: Clock) -> None:
+    """Nothing is published before the model is ready, and decaying rates would only delay it:
+    the decay starts with the first idle step taken by a ready model."""
+    d, pipe = _lock_daemon(train_steps_per_frame=1, idle_train_steps=3, idle_rate_decay_steps=4)
+    pipe.ready_after = 3  # ready once 3 steps are done: after the 2nd idle step
+    _drive_model(d, [lambda: (_depth(5), 100.0), lambda: None, lambda: None])
+    assert pipe.rate_scales == pytest.approx([1.0, 1.0, 1.0, 1.0, 1 / 1.25, 1 / 1.5, 1 / 1.75], abs=1e-12)
+    assert d.ready and d._idle_steps == 4
+
+
 def test_idle_rate_decay_steps_0_keeps_the_rates_constant(clock: Clock) -> None:
     d, pipe = _lock_daemon(train_steps_per_frame=1, idle_train_steps=2, idle_rate_decay_steps=0)
+    pipe.ready_after = 0
     _drive_model(d, [lambda: (_depth(5), 100.0), lambda: None, lambda: None])
     assert pipe.rate_scales == [1.0] * 5
 
@@ -324,6 +336,8 @@ def test_idle_rate_decay_steps_0_keeps_the_rates_constant(clock: Clock) -> None:
 def test_the_default_idle_decay_halves_the_rates_after_100_idle_steps(clock: Clock) -> None:
     d, pipe = _lock_daemon(train_steps_per_frame=0, idle_train_steps=101)
     d._last_frame_s = 100.0
+    d.ready = True
+    pipe.ready_after, pipe.integrated = 0, [1]  # and it stays ready
     _drive_model(d, [lambda: None])
     assert len(pipe.rate_scales) == 101
     assert pipe.rate_scales[0] == 1.0 and pipe.rate_scales[100] == pytest.approx(0.5)
