@@ -307,9 +307,10 @@ class OccupancySVGP:
         always runs at the paper's rate.
 
         A minibatch step at a constant rate keeps the model jittering about its optimum: on the
-        bench's complete orbit, rounds of 4 idle steps moved sigma^2_occ by 8-10 % (median over
-        the query cloud) from one round to the next, so near-tied grasps swapped ranks each time
-        the daemon republished them. Decaying rates (Robbins-Monro) let it settle."""
+        bench's complete orbit, sigma^2_occ moved by 8-12 % (median over the query cloud) from one
+        grasp round to the next (25 idle steps apart), so near-tied grasps swapped ranks each time
+        the daemon republished them. Decaying rates (Robbins-Monro) let it settle
+        (docs/bench-history/2026-11-28-idle-rate-decay/)."""
         if not (math.isfinite(scale) and 0.0 < scale <= 1.0):
             raise ValueError(f"rate scale must be in (0, 1], got {scale}")
         if scale != self._rate_scale:
