@@ -129,6 +129,7 @@ BOUNDS: list[tuple[str, str, float]] = [
     ("daemon.idle_train_steps", "ge", 0),
     ("daemon.min_train_interval_s", "gt", 0.0),
     ("daemon.idle_train_s", "ge", 0.0),
+    ("daemon.idle_rate_decay_steps", "ge", 0),
     ("daemon.pose_max_gap_s", "gt", 0.0),
     ("daemon.pose_max_gap_s", "le", 3600.0),
     ("daemon.pose_publisher_hold_s", "ge", 0.0),
