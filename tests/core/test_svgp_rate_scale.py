@@ -13,10 +13,7 @@ import torch
 
 from pugsd.config import SvgpConfig
 from pugsd.core.predictive import OccupancySVGP
-
-
-def _field(x: np.ndarray) -> np.ndarray:
-    return np.exp(-(x[:, 0] ** 2) / 0.002) + 0.5 * np.exp(-((x[:, 1] - 0.05) ** 2) / 0.001)
+from tests.core.test_predictive import _field  # the known field the SVGP tests learn
 
 
 def _data(n: int = 2000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
