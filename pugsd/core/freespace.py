@@ -20,7 +20,7 @@ updates the blocks within ``extent_m`` of its observed surface by the projective
 vectorised over all their voxel centres; blocks are evicted least recently updated first beyond
 ``max_blocks``, so memory is bounded like the point store's. The map works relative to an origin
 snapped from the first frame's camera centre, so map coordinates far from the world origin keep
-their precision.
+their precision, and on a lattice of world multiples of the voxel edge.
 """
 
 from __future__ import annotations
@@ -33,7 +33,9 @@ from pugsd.core.types import DepthFrame
 UNKNOWN, FREE, SURFACE = 0, 1, 2
 BLOCK = 8  # voxels per block edge
 _BIAS = 1 << 20  # block coordinates are packed into 21 bits each
-_ORIGIN_GRID_M = 100.0
+# the map's origin is a multiple of this many voxels (about 120 m at 1.5 cm), so that its voxel
+# lattice lies on world multiples of the voxel edge wherever the first frame was
+_ORIGIN_GRID_VOXELS = 8192
 
 
 def _pack(b: np.ndarray) -> np.ndarray:
@@ -88,7 +90,8 @@ class FreeSpaceMap:
         if not valid.any():
             return 0
         if self.origin_W is None:
-            self.origin_W = np.round(frame.T_W_C[:3, 3] / _ORIGIN_GRID_M) * _ORIGIN_GRID_M
+            grid = _ORIGIN_GRID_VOXELS * self.cfg.voxel_m
+            self.origin_W = np.round(frame.T_W_C[:3, 3] / grid) * grid
         cam = frame.camera
         T_L_C = np.array(frame.T_W_C, dtype=np.float64)
         T_L_C[:3, 3] -= self.origin_W

@@ -123,7 +123,8 @@ def _evaluate(args: argparse.Namespace) -> int:
                 for m, v in r["methods"].items()
             )
             sys.stderr.write(
-                f"[{done[0]}/{total}] {r['object']} {r['recon']} seed {r['seed']} {r['mode']}: {marks}\n"
+                f"[{done[0]}/{total}] {r['object']} {r['recon']} seed {r['seed']} "
+                f"{r.get('mode', '')}: {marks}\n"
             )
 
     results = run_evaluation(opts, progress)

@@ -281,11 +281,54 @@ def _pick(grasps: Any, views_W: np.ndarray) -> dict[str, Any] | None:
     return out
 
 
+def _scored(
+    opts: EvalOptions, job: Job, cfg: Any, seq: SyntheticSequence, whole_cloud: bool = False
+) -> tuple[np.ndarray, dict[str, dict[str, Any] | str], dict[str, int]]:
+    """Ingest the sequence once, propose with both proposers, and per mode score them: (camera
+    centres, mode -> {"swept", "contact", "antipodal": PipelineResult} or the error text,
+    valid candidates per proposer). ``whole_cloud``: Algorithm 1 on the whole query cloud of
+    the swept result too (for the figures)."""
+    from pugsd.core.grasp.proposer import make_proposer
+    from pugsd.core.pipeline import PugsPipeline
+
+    views = np.zeros((1, 3))
+    out: dict[str, dict[str, Any] | str] = {}
+    try:
+        pipe = PugsPipeline(cfg, seed=job.seed)
+        for f in seq.frames:
+            pipe.add_stereo(f)
+            if "streaming" in opts.modes:
+                pipe.train_steps()
+        inp = pipe.grasp_input()
+        views = inp.views_W
+        props = {
+            kind: pipe.propose(inp, make_proposer(cfg.grasp, job.seed, kind=kind))
+            for kind in ("single_contact", "antipodal")
+        }
+    except Exception as exc:  # the pipeline failing on a trial is a failed trial, not a crash
+        log.warning("pipeline failed on %s/%s seed %d: %s", job.object_name, job.recon, job.seed, exc)
+        return views, dict.fromkeys(opts.modes, f"{type(exc).__name__}: {exc}"), {}
+    counts = {k: int(np.count_nonzero(p.candidates.valid)) for k, p in props.items()}
+    for mode in opts.modes:  # streaming first: the paper fit replaces the streamed model
+        try:
+            if mode == "paper":
+                pipe.fit_paper()
+            swept = pipe.score(props["single_contact"], uncertainty="swept")
+            out[mode] = {
+                "swept": pipe.complete_cloud(swept) if whole_cloud else swept,
+                "contact": pipe.score(props["single_contact"], uncertainty="contact"),
+                "antipodal": pipe.score(props["antipodal"], uncertainty="contact"),
+            }
+        except Exception as exc:
+            log.warning("scoring failed on %s/%s seed %d (%s): %s", job.object_name, job.recon,
+                        job.seed, mode, exc)  # fmt: skip
+            out[mode] = f"{type(exc).__name__}: {exc}"
+    return views, out, counts
+
+
 def _run_job(opts: EvalOptions, job: Job) -> list[dict[str, Any]]:
     """Render, ingest, propose with both proposers, then per mode rank and trial each method's
     top grasp (one worker's unit of work): one record per mode."""
-    from pugsd.core.grasp.proposer import make_proposer
-    from pugsd.core.pipeline import PugsPipeline
     from pugsd.core.stereo import reach_m as stereo_reach_m
     from pugsd.sim.physics import GraspTrial, TrialConfig
     from pugsd.sim.sequence import make_sequence
@@ -328,49 +371,23 @@ def _run_job(opts: EvalOptions, job: Job) -> list[dict[str, Any]]:
             cache[k] = trial.run(pose_W, traversal_only=traversal_only)
         return cache[k]
 
+    want_figures = bool(opts.figures_dir) and job.index < opts.figures_per_cell
+    views, scored, counts = _scored(opts, job, cfg, seq, want_figures)
     records: list[dict[str, Any]] = []
-    error: str | None = None
-    pipe = None
-    props: dict[str, Any] = {}
-    views = np.zeros((1, 3))
-    try:
-        pipe = PugsPipeline(cfg, seed=job.seed)
-        for f in seq.frames:
-            pipe.add_stereo(f)
-            if "streaming" in opts.modes:
-                pipe.train_steps()
-        inp = pipe.grasp_input()
-        views = inp.views_W
-        for kind in ("single_contact", "antipodal"):
-            props[kind] = pipe.propose(inp, make_proposer(cfg.grasp, job.seed, kind=kind))
-    except Exception as exc:  # the pipeline failing on a trial is a failed trial, not a crash
-        log.warning("pipeline failed on %s/%s seed %d: %s", job.object_name, job.recon, job.seed, exc)
-        error = f"{type(exc).__name__}: {exc}"
     t2 = time.perf_counter()
     rng = np.random.default_rng(job.seed)
-    sc = props.get("single_contact")
     sample = np.zeros(0, dtype=np.int64)
-    if sc is not None and opts.auc_candidates > 0:
-        valid = np.flatnonzero(sc.candidates.valid)
+    first = next((r for r in scored.values() if isinstance(r, dict)), None)
+    if first is not None and opts.auc_candidates > 0:
+        valid = np.flatnonzero(first["swept"].candidates.valid)
         sample = np.sort(rng.choice(valid, min(opts.auc_candidates, len(valid)), replace=False))
     for mode in opts.modes:
         tm0 = time.perf_counter()
         out: dict[str, Any] = {**base, "mode": mode}
-        results: dict[str, Any] = {}
-        if error is None and pipe is not None:
-            try:
-                if mode == "paper":
-                    pipe.fit_paper()
-                results["swept"] = pipe.score(props["single_contact"], uncertainty="swept")
-                results["contact"] = pipe.score(props["single_contact"], uncertainty="contact")
-                results["antipodal"] = pipe.score(props["antipodal"], uncertainty="contact")
-            except Exception as exc:
-                log.warning("scoring failed on %s/%s seed %d (%s): %s", job.object_name, job.recon,
-                            job.seed, mode, exc)  # fmt: skip
-                out["error"] = f"{type(exc).__name__}: {exc}"
-                results = {}
-        elif error is not None:
-            out["error"] = error
+        got = scored.get(mode)
+        results: dict[str, Any] = got if isinstance(got, dict) else {}
+        if isinstance(got, str):
+            out["error"] = got
         ranking = {
             "baseline": ("swept", "baseline_grasps"),
             "antipodal": ("antipodal", "baseline_grasps"),
@@ -392,25 +409,21 @@ def _run_job(opts: EvalOptions, job: Job) -> list[dict[str, Any]]:
             methods[method] = row
         out["methods"] = methods
         if "swept" in results:
-            out["candidates"] = {
-                "single_contact": int(np.count_nonzero(props["single_contact"].candidates.valid)),
-                "antipodal": int(np.count_nonzero(props["antipodal"].candidates.valid)),
-            }
+            out["candidates"] = dict(counts)
             out["cloud_points"] = len(results["swept"].cloud_W)
             out["auc_samples"] = _auc_samples(results, sample, run_trial)
         if "baseline" in methods and "pugs" in methods:
             gb, gp = methods["baseline"]["grasp"], methods["pugs"]["grasp"]
             out["same_grasp"] = bool(gb and gp and gb["grasp_id"] == gp["grasp_id"])
         out["timings_s"] = {
-            "render": t1 - t0, "pipeline": t2 - t1, "mode": time.perf_counter() - tm0
+            "render": t1 - t0, "pipeline": t2 - t1, "trials": time.perf_counter() - tm0
         }  # fmt: skip
-        if opts.figures_dir and "swept" in results and job.index < opts.figures_per_cell:
+        if want_figures and "swept" in results:
             from pugsd.sim.figures import grasp_figure
 
-            path = Path(opts.figures_dir) / f"{job.object_name}_{job.recon}_seed{job.seed}_{mode}.png"
+            path = Path(opts.figures_dir or ".") / f"{job.object_name}_{job.recon}_seed{job.seed}_{mode}.png"
             title = f"{job.object_name}, {RECON_TITLES.get(job.recon, job.recon)}, seed {job.seed}, {mode}"
-            done = pipe.complete_cloud(results["swept"]) if pipe is not None else results["swept"]
-            grasp_figure(done, seq, path, title=title, gripper=cfg.grasp.gripper)
+            grasp_figure(results["swept"], seq, path, title=title, gripper=cfg.grasp.gripper)
             out["figure"] = str(path)
         log.info(
             "%s/%s seed %d %s: %s",

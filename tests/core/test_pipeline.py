@@ -75,7 +75,13 @@ def test_result_is_consistent(partial_box) -> None:  # type: ignore[no-untyped-d
     pipe, r = partial_box
     g = r.grasps
     assert len(g) > 0
-    np.testing.assert_allclose(g.pugs_confidence, g.baseline_confidence / (1 + 5.0 * g.sigma2_occ))
+    gc = pipe.cfg.grasp
+    # the swept form of Eq. 13: sigma^2_occ over the scan's reference plus lambda U
+    np.testing.assert_allclose(
+        g.sigma2_grasp, g.sigma2_occ / r.sigma2_ref + gc.unknown_weight * g.unknown_share
+    )
+    np.testing.assert_allclose(g.pugs_confidence, g.baseline_confidence / (1 + gc.gamma * g.sigma2_grasp))
+    assert np.all((g.unknown_share >= 0) & (g.unknown_share <= 1))
     assert np.all(np.diff(g.pugs_confidence) <= 0)
     # every grasp closes on the box: its centre lies inside the box footprint
     centre = g.contact_W + 0.5 * g.width_m[:, None] * g.pose_W[:, :3, 0]

@@ -11,7 +11,7 @@ import dataclasses
 
 import numpy as np
 
-from pugsd.config import CoreConfig, SvgpConfig
+from pugsd.config import CoreConfig, FreeSpaceConfig, SvgpConfig
 from pugsd.core.camera import PinholeCamera
 from pugsd.core.pipeline import PipelineResult, PugsPipeline
 from pugsd.core.reconstruction import ORIGIN_GRID_VOXELS
@@ -26,7 +26,11 @@ def _run(offset_m: np.ndarray) -> PipelineResult:
     frames = orbit_frames(
         meshes, np.array([0, 0, 0.06]), 0.45, 0.25, np.linspace(-40, 40, 4), cam, sigma_m=0.002
     )
-    pipe = PugsPipeline(CoreConfig(svgp=SvgpConfig(num_inducing=64)))
+    # a free-space voxel that divides the offset (98.304 m = 8192 x 12 mm), so that the far map's
+    # lattice meets the box as the home map's does
+    pipe = PugsPipeline(
+        CoreConfig(svgp=SvgpConfig(num_inducing=64), freespace=FreeSpaceConfig(voxel_m=0.012))
+    )
     for f in frames:
         T = f.T_W_C.copy()
         T[:3, 3] += offset_m

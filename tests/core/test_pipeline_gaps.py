@@ -33,11 +33,18 @@ def test_per_point_confidences_use_the_configured_gamma() -> None:
     assert len(v) > 10 and len(np.unique(src)) == len(src)
     s2 = part.sigma2_occ[src]
     assert np.all(np.isfinite(s2)) and np.ptp(s2) > 0
+    # the swept form: Eq. 13 on sigma^2_grasp, the cloud's confidence on sigma^2_occ over the
+    # scan's reference
+    assert part.sigma2_grasp is not None
     want = np.zeros(len(part.cloud_W))
-    want[src] = c.confidence[v] / (1.0 + gamma * s2)
+    want[src] = c.confidence[v] / (1.0 + gamma * part.sigma2_grasp[v])
     np.testing.assert_allclose(part.pugs_conf_points, want, rtol=1e-12, atol=0)
-    np.testing.assert_allclose(part.occupancy_confidence[src], 1.0 / (1.0 + gamma * s2), rtol=1e-12)
+    ref = part.sigma2_ref
+    assert ref == np.median(s2)
+    np.testing.assert_allclose(part.occupancy_confidence[src], 1.0 / (1.0 + gamma * s2 / ref), rtol=1e-12)
     full = pipe.complete_cloud(part)
     assert np.all(np.isfinite(full.sigma2_occ))
-    np.testing.assert_allclose(full.occupancy_confidence, 1.0 / (1.0 + gamma * full.sigma2_occ), rtol=1e-12)
+    np.testing.assert_allclose(
+        full.occupancy_confidence, 1.0 / (1.0 + gamma * full.sigma2_occ / ref), rtol=1e-12
+    )
     np.testing.assert_array_equal(full.pugs_conf_points, part.pugs_conf_points)

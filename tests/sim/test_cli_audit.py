@@ -20,7 +20,7 @@ def _record(
 ) -> dict[str, Any]:
     keys = ("traversal", "closed", "lifted")
     return {
-        "object": obj, "recon": "partial", "seed": seed,
+        "object": obj, "recon": "partial", "seed": seed, "mode": "streaming",
         "methods": {"baseline": dict(zip(keys, baseline)), "pugs": dict(zip(keys, pugs))},
     }  # fmt: skip
 
@@ -47,7 +47,8 @@ def test_arguments_map_onto_the_options_and_progress_is_reported(
 ) -> None:
     """Comma lists are split and stripped, ``--resolution WxH`` is width then height, repeated
     ``--set`` keep their order; each finished trial is a stderr line ``[i/total] object recon seed
-    s: method=TCL`` (traversal, closed, lifted as 1/0; total = objects x recons x trials = 12) and
+    s mode: method=TCL`` (traversal, closed, lifted as 1/0; total = objects x recons x trials x
+    modes = 12) and
     a JSON line in ``<json>.trials.jsonl``; stdout has the table and the wall time."""
     out = tmp_path / "r" / "results.json"
     rc = main([
@@ -60,11 +61,12 @@ def test_arguments_map_onto_the_options_and_progress_is_reported(
     assert (opts.objects, opts.recons, opts.methods) == (["mug", "box"], ["partial", "complete"], ["pugs"])
     assert (opts.width, opts.height, opts.trials, opts.seed, opts.n_frames) == (160, 120, 3, 5, 4)
     assert (opts.pose, opts.overrides) == ("lying", ["z.b=1", "a=2"])
+    assert opts.modes == ["streaming"] and opts.auc_candidates == 8
     assert opts.object_mesh is None and opts.underwater is False
     io = capsys.readouterr()
     assert io.err.splitlines() == [
-        "[1/12] mug partial seed 7: baseline=110 pugs=111",
-        "[2/12] box partial seed 8: baseline=000 pugs=100",
+        "[1/12] mug partial seed 7 streaming: baseline=110 pugs=111",
+        "[2/12] box partial seed 8 streaming: baseline=000 pugs=100",
     ]
     assert io.out == f"TABLE\n\nwall time 12 s\nresults: {out}\n"
     lines = (tmp_path / "r" / "results.trials.jsonl").read_text().splitlines()

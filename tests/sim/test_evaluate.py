@@ -38,8 +38,8 @@ def test_mcnemar_exact_reference_values() -> None:
         for i in range(10)
     ]  # fmt: skip
     rows = paired_tests(trials, ["mug"], ["partial"])
-    assert [(r["metric"], r["baseline_only"], r["pugs_only"]) for r in rows] == [
-        (m, 0, 5) for m in METRICS
+    assert [(r["metric"], r["a"], r["b"], r["a_only"], r["b_only"]) for r in rows] == [
+        (m, "pugs", "baseline", 5, 0) for m in METRICS
     ]
     assert rows[0]["mcnemar_p"] == pytest.approx(0.0625)
 
@@ -51,23 +51,37 @@ def _fake_results() -> dict:
             for me in ("baseline", "pugs"):
                 k = 3 if me == "pugs" else 1
                 cells.append({
-                    "object": obj, "recon": rc, "method": me, "n": 5,
+                    "object": obj, "recon": rc, "mode": "streaming", "method": me, "n": 5,
                     "successes": dict.fromkeys(METRICS, k), "seeds": [0, 1, 2, 3, 4],
+                    "failures": {"no_grasp": 0, "traversal": 5 - k, "close": 0, "lift_hold": 0},
+                    "from_behind": 4 - k, "candidates_min": 7, "candidates_median": 12.0,
                 })
+    paired = [
+        {"object": o, "recon": "partial", "mode": "streaming", "metric": "lifted", "a": "pugs",
+         "b": "baseline", "n": 5, "a_only": 2, "b_only": 0, "mcnemar_p": 0.5}
+        for o in ("kettlebell", "mug")
+    ]
     return {
         "settings": {"objects": ["kettlebell", "mug"], "recons": ["partial"],
                      "methods": ["baseline", "pugs"], "trials": 5, "seed": 0,
-                     "mode": "streaming", "pose": "upright"},
+                     "modes": ["streaming"], "pose": "upright"},
         "cells": cells,
+        "paired": paired,
+        "auc": [{"recon": "partial", "mode": "streaming", "n": 40, "traversal_rate": 0.5,
+                 "confidence": 0.4, "pugs": 0.9, "pugs_contact": 0.6, "neg_unknown_share": 0.95,
+                 "neg_sigma2_occ": None}],
     }
 
 
 def test_table_layout() -> None:
     t = markdown_table(_fake_results())
     lines = t.splitlines()
-    assert lines[0].startswith("| Method | Reconstruction | Grasp Traversal Success: kettlebell")
-    assert "| PUGS | Partial | 60% (3/5) [23-88]" in t
-    assert "| Baseline (antipodal proposer) | Partial | 20% (1/5) [4-62]" in t
+    assert lines[0].startswith("| Mode | Method | Reconstruction | Grasp Traversal Success: kettlebell")
+    assert "| streaming | PUGS (swept volume) | Partial | 60% (3/5) [23-88]" in t
+    assert "| streaming | Baseline (single-contact, visibility-naive) | Partial | 20% (1/5) [4-62]" in t
+    # failures no grasp / traversal / close / lift-hold, picks from behind, candidates, McNemar
+    assert "| streaming | mug | Partial | 0/4/0/0 / 3 / 7-12 | 0/2/0/0 / 1 / 7-12 | 2:0 p=0.5 |" in t
+    assert "| streaming | Partial | 40 | 0.50 | 0.40 | 0.90 | 0.60 | 0.95 | - |" in t
     assert "Paper Table I" in t  # shown next to ours when both paper objects are evaluated
 
 
@@ -82,28 +96,42 @@ def test_evaluate_ci_variant(tmp_path: Path) -> None:
     assert rc == 0
     res = json.loads(out.read_text())
     cells = {c["method"]: c for c in res["cells"]}
-    assert set(cells) == {"baseline", "pugs"}
-    for c in cells.values():
-        assert c["n"] == 2 and c["seeds"] == [0, 1]
+    assert set(cells) == {"baseline", "antipodal", "pugs", "pugs_contact"}
+    for name, c in cells.items():
+        assert c["n"] == 2 and c["seeds"] == [0, 1] and c["mode"] == "streaming"
         assert set(c["successes"]) == set(METRICS)
         s = c["successes"]
         assert 0 <= s["lifted"] <= s["closed"] <= s["traversal"] <= 2  # cumulative metrics
+        # every failure is counted once, at the first stage the pick did not pass
+        assert sum(c["failures"].values()) == 2 - s["lifted"]
+        if name != "antipodal":
+            assert c["no_grasp"] == 0 and c["candidates_min"] >= 1  # single-contact proposals
     for t in res["trials"]:
         assert "error" not in t, t.get("error")
-        for m in t["methods"].values():
-            assert m["grasp"] is not None  # the pipeline proposed a grasp on the mug
+        for name, m in t["methods"].items():
+            if name == "antipodal" and m["grasp"] is None:
+                continue  # the antipodal proposer may find no observed pair on a partial scan
+            assert m["grasp"] is not None
             assert len(m["grasp"]["pose_W"]) == 4
             assert "traversal_max_penetration_m" in m["details"]
+            assert 0.0 <= m["grasp"]["approach_view_angle_deg"] <= 180.0
+        assert 0 < len(t["auc_samples"]) <= 8
+        assert all(0.0 <= a["unknown_share"] <= 1.0 for a in t["auc_samples"])
+    g = res["trials"][0]["methods"]["pugs"]["grasp"]
+    assert 0.0 <= g["pugs_confidence"] <= g["baseline_confidence"] <= 1.0  # readable, Eq. 13
     pngs = sorted(figs.glob("*.png"))
-    assert [p.name for p in pngs] == ["mug_partial_seed0.png"]
+    assert [p.name for p in pngs] == ["mug_partial_seed0_streaming.png"]
     assert pngs[0].stat().st_size > 20_000
-    assert "| PUGS | Partial |" in res["table_markdown"]
+    assert "| streaming | PUGS (swept volume) | Partial |" in res["table_markdown"]
     # the physics is deterministic: re-scoring the stored grasps reproduces every outcome
     again = rescore(res)
     assert [c["successes"] for c in again["cells"]] == [c["successes"] for c in res["cells"]]
-    # the paired test of baseline against PUGS on the same two sequences, one row per metric
-    assert [p["metric"] for p in res["paired"]] == list(METRICS)
+    # the paired tests of PUGS against the other three on the same sequences, one row per metric
+    assert [(p["b"], p["metric"]) for p in res["paired"]] == [
+        (b, m) for b in ("baseline", "antipodal", "pugs_contact") for m in METRICS
+    ]
     assert again["paired"] == res["paired"]
+    assert [a["recon"] for a in res["auc"]] == ["partial", "all"]
 
 
 def test_evaluate_rejects_bad_arguments(capsys: pytest.CaptureFixture[str]) -> None:
@@ -167,7 +195,6 @@ def test_user_meshes_with_the_same_name_get_their_own_physics(
 
     import trimesh
 
-    from pugsd.core.pipeline import PugsPipeline
     from pugsd.sim import evaluate
     from pugsd.sim.physics import GraspTrial, TrialResult
 
@@ -186,17 +213,18 @@ def test_user_meshes_with_the_same_name_get_their_own_physics(
         return Grasps(
             pose_W=np.eye(4)[None].repeat(n, 0), contact_W=np.zeros((n, 3)), width_m=np.full(n, 0.03),
             baseline_confidence=np.ones(n), sigma2_occ=np.ones(n), pugs_confidence=np.ones(n),
-            grasp_id=np.arange(n),
+            grasp_id=np.arange(n), unknown_share=None, sigma2_grasp=None,
         )  # fmt: skip
 
     fake = SimpleNamespace(
         grasps=one(1), baseline_grasps=one(1), cloud_W=np.zeros((5, 3)),
         candidates=SimpleNamespace(valid=np.ones(1, bool)),
     )  # fmt: skip
-    monkeypatch.setattr(PugsPipeline, "run", classmethod(lambda cls, *a, **k: fake))
+    scored = {"streaming": {"swept": fake, "contact": fake, "antipodal": fake}}
+    monkeypatch.setattr(evaluate, "_scored", lambda *a, **k: (np.zeros((1, 3)), scored, {}))
     seen: list[np.ndarray] = []
 
-    def run(self: GraspTrial, pose_W: np.ndarray) -> TrialResult:
+    def run(self: GraspTrial, pose_W: np.ndarray, traversal_only: bool = False) -> TrialResult:
         seen.append(np.sort(self.obj.extents_m))
         return TrialResult(False, False, False, {})
 
@@ -205,7 +233,7 @@ def test_user_meshes_with_the_same_name_get_their_own_physics(
     for path, ext in paths:
         opts = evaluate.EvalOptions(
             recons=["partial"], methods=["pugs"], trials=1, width=160, height=120, n_frames=1,
-            object_mesh=path, mass_kg=0.3,
+            object_mesh=path, mass_kg=0.3, auc_candidates=0,
         )  # fmt: skip
         evaluate._run_job(opts, evaluate.Job("thing", "partial", 0, 0))
         np.testing.assert_allclose(seen[-1], np.sort(ext), atol=1e-6)

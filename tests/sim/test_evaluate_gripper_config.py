@@ -14,7 +14,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-from pugsd.core.pipeline import PugsPipeline
 from pugsd.sim import evaluate, get_object, object_pose
 from pugsd.sim.physics import grasp_pose
 
@@ -28,12 +27,14 @@ def _result_with(pose_W: np.ndarray) -> Any:
     g = _Grasps(
         pose_W=pose_W[None], contact_W=np.zeros((1, 3)), width_m=np.full(1, 0.06),
         baseline_confidence=np.ones(1), sigma2_occ=np.ones(1), pugs_confidence=np.ones(1),
-        grasp_id=np.zeros(1, dtype=np.int64),
+        grasp_id=np.zeros(1, dtype=np.int64), unknown_share=None, sigma2_grasp=None,
     )  # fmt: skip
-    return SimpleNamespace(
+    res = SimpleNamespace(
         grasps=g, baseline_grasps=g, cloud_W=np.zeros((5, 3)),
         candidates=SimpleNamespace(valid=np.ones(1, bool)),
     )  # fmt: skip
+    # what evaluate._scored returns: camera centres, each mode's three rankings, counts
+    return np.zeros((1, 3)), {"streaming": {"swept": res, "contact": res, "antipodal": res}}, {}
 
 
 def test_trial_uses_the_configured_gripper(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -43,23 +44,24 @@ def test_trial_uses_the_configured_gripper(monkeypatch: pytest.MonkeyPatch) -> N
     contact = T[:3, :3] @ np.array([-0.03, 0.0, 0.12]) + T[:3, 3]
     # the top grasp across the 6 cm side that the proposer would make for this gripper
     pose = grasp_pose(contact, [1, 0, 0], [0, 0, -1], 0.06, depth_m=depth)
-    monkeypatch.setattr(PugsPipeline, "run", classmethod(lambda cls, *a, **k: _result_with(pose)))
+    monkeypatch.setattr(evaluate, "_scored", lambda *a, **k: _result_with(pose))
     monkeypatch.setattr(evaluate, "_TRIALS", {})
     opts = evaluate.EvalOptions(
         objects=["box"], recons=["partial"], methods=["baseline", "pugs"], trials=1, width=160, height=120,
-        n_frames=1, overrides=[f"grasp.gripper.depth_m={depth}"],
+        n_frames=1, overrides=[f"grasp.gripper.depth_m={depth}"], auc_candidates=0,
     )  # fmt: skip
-    out = evaluate._run_job(opts, evaluate.Job("box", "partial", 0, 0))
+    (out,) = evaluate._run_job(opts, evaluate.Job("box", "partial", 0, 0))
     m = out["methods"]["pugs"]
     assert m["traversal"] and m["closed"] and m["lifted"], m["details"]
     assert m["details"]["closed_opening_m"] == pytest.approx(0.06, abs=0.002)  # the pads are on the box
     # and the default gripper is still used (and cached separately) without the override
     opts_default = evaluate.EvalOptions(
         objects=["box"], recons=["partial"], methods=["pugs"], trials=1, width=160, height=120, n_frames=1,
+        auc_candidates=0,
     )  # fmt: skip
     pose_default = grasp_pose(contact, [1, 0, 0], [0, 0, -1], 0.06)
-    monkeypatch.setattr(PugsPipeline, "run", classmethod(lambda cls, *a, **k: _result_with(pose_default)))
-    again = evaluate._run_job(opts_default, evaluate.Job("box", "partial", 0, 0))["methods"]["pugs"]
+    monkeypatch.setattr(evaluate, "_scored", lambda *a, **k: _result_with(pose_default))
+    again = evaluate._run_job(opts_default, evaluate.Job("box", "partial", 0, 0))[0]["methods"]["pugs"]
     assert again["lifted"], again["details"]
 
 

@@ -419,8 +419,10 @@ class SingleContactProposer:
     is (a single layer of surface: the face towards the nearest camera), the near finger stands
     twice ``clearance_m`` off that face (its clearance box then clears it) and the jaws open to
     the maximum width into the side away from the camera (the visibility-naive choice a per-point
-    network makes). Collisions are checked against observed points only, as for ``AntipodalProposer``:
-    the open fingers, the palm and the palm's straight approach from ``approach_check_m`` back.
+    network makes). Collisions are checked against observed points only, as for
+    ``AntipodalProposer``: the open fingers (``clearance_m``), the palm and the palm's straight
+    approach from ``approach_check_m`` back (twice ``clearance_m``: the palm meets a surface
+    head on, where the reconstruction's depth error counts in full).
 
     Confidence in [0, 1], geometric only (it does not know what was never observed):
     ``f_lo f_hi (1 - exp(-support / 20))`` with f the mean |n . b| of each jaw's face (normals
@@ -521,10 +523,11 @@ class SingleContactProposer:
         )
 
     def _pad_depth(self, theta: float) -> float:
-        """How far past the contact along the approach the pads' centre line sits: about half a
-        finger when coming down the normal (the pads straddle the part), none when tangential."""
+        """How far past the contact along the approach the pads' centre line sits: half a finger
+        less three clearances when coming down the normal (the pads straddle the part, the palm
+        stops short of the contact by the palm's clearance and one more), none when tangential."""
         g, c = self.g, self.cfg.clearance_m
-        return max(0.0, 0.5 * g.finger_length_m - 2.0 * c) * float(np.cos(theta))
+        return max(0.0, 0.5 * g.finger_length_m - 3.0 * c) * float(np.cos(theta))
 
     def _best(
         self,
@@ -607,9 +610,12 @@ class SingleContactProposer:
         finger = (ax >= W / 2 - c) & (ax <= outer) & (y <= g.finger_width_m / 2 + c)
         finger &= np.abs(z) <= half_l + c
         ok &= ~finger.any(1)
-        palm_y = max(g.palm_width_m, g.finger_width_m) / 2 + c
-        palm_back = -half_l - g.palm_depth_m - cfg.approach_check_m - c
-        palm = (ax <= outer) & (y <= palm_y) & (z < -half_l + c) & (z >= palm_back)
+        # the palm meets a surface head on, where the reconstruction's depth error counts in
+        # full: it keeps twice the clearance
+        cp = 2.0 * c
+        palm_y = max(g.palm_width_m, g.finger_width_m) / 2 + cp
+        palm_back = -half_l - g.palm_depth_m - cfg.approach_check_m - cp
+        palm = (ax <= outer) & (y <= palm_y) & (z < -half_l + cp) & (z >= palm_back)
         ok &= ~palm.any(1)
         # the palm's approach against the far points, most confident orientation first
         for k in np.argsort(-np.where(ok, conf, -1.0), kind="stable"):
@@ -619,7 +625,7 @@ class SingleContactProposer:
                 xf = far @ B[k] - centre[k]
                 zf = far @ A[k] - z0[k, 0]
                 yf = np.abs(far @ Y[k])
-                hit = (np.abs(xf) <= outer) & (yf <= palm_y) & (zf < -half_l + c) & (zf >= palm_back)
+                hit = (np.abs(xf) <= outer) & (yf <= palm_y) & (zf < -half_l + cp) & (zf >= palm_back)
                 if hit.any():
                     continue
             return int(k), float(centre[k]), float(width[k]), float(conf[k])
