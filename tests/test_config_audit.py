@@ -210,8 +210,8 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "record.compression": ("zstd", "lz4", "none"),
 }
 
-SECTIONS = ("stereo", "observation", "fof", "svgp", "cubature", "reconstruction", "freespace", "grasp", "daemon",
-            "topics", "queues", "record")  # fmt: skip
+SECTIONS = ("stereo", "observation", "fof", "svgp", "cubature", "reconstruction", "freespace", "grasp",
+            "daemon", "topics", "queues", "record")  # fmt: skip
 
 # keys whose accepted edge needs a companion setting to pass the section's cross-key check:
 # max_depth_m must exceed min_depth_m > 0, so its smallest accepted value is two steps above 0
