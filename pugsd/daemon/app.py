@@ -32,7 +32,7 @@ import re
 import sys
 import threading
 import time
-from collections import OrderedDict, deque
+from collections import deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
@@ -41,22 +41,13 @@ import numpy as np
 import zenoh
 
 from pugsd.config import config_warnings
-from pugsd.core.camera import StereoRig
-from pugsd.core.geometry import compose_pose_cov
 from pugsd.core.types import DepthFrame, ScoredGrasps, StereoFrame
-from pugsd.daemon.health import Health
+from pugsd.daemon.health import Health, Reporter
 from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier, watchdog_interval_s
-from pugsd.daemon.timesync import (
-    ExactPairer,
-    FrameRateLimit,
-    PoseBuffer,
-    PoseGate,
-    PoseSample,
-    carried_cov,
-    default_pose_cov,
-)
 from pugsd.errors import DecodeError, EmptyCloudError, PugsdError
+from pugsd.stream.assembler import FrameAssembler, InputRejected, expected_type, log_nth, reason_class
+from pugsd.stream.schedule import StreamingSchedule
 from pugsd.wire import codec
 from pugsd.wire.attachment import SequenceTracker
 from pugsd.wire.keys import parse_key
@@ -65,22 +56,15 @@ from pugsd.wire.session import close_session, open_session
 from pugsd.wire.topics import (
     INPUT_ROLES,
     OUTPUT_ROLES,
-    POSE_TYPES,
     graph_tokens_enabled,
     key_for,
     ros_graph_tokens,
     subscribe_key_for,
 )
-from pugsd.wire.types import CAMERA_INFO, IMAGE
 
 log = logging.getLogger(__name__)
 
 R = TypeVar("R")
-
-STEREO_ENCODINGS = codec.STEREO_ENCODINGS
-DEPTH_ENCODINGS = ("32FC1", "16UC1")
-MASK_ENCODINGS = codec.MASK_ENCODINGS
-
 
 class Pipeline(Protocol):
     """What the daemon needs from :class:`pugsd.core.pipeline.PugsPipeline`."""
@@ -133,50 +117,6 @@ def apply_malloc_arena_max(n: int) -> bool:
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
     mallopt.restype = ctypes.c_int
     return bool(mallopt(_M_ARENA_MAX, n))
-
-
-def require_size(img: codec.ImageMsg, shape: tuple[int, int], what: str, role: str | None = None) -> None:
-    """InputRejected ``wrong_size`` unless ``img`` is ``shape`` (height, width) pixels."""
-    if img.array.shape[:2] != shape:
-        msg = f"{what} is {img.array.shape[:2]}, camera expects {shape}"
-        raise InputRejected("wrong_size", msg, role)
-
-
-class InputRejected(PugsdError):
-    """A rejection whose countable class is fixed by the code, not read from the message (which
-    may quote text from the wire); ``role``, when set, is the input it is charged to (a frame
-    combines several inputs)."""
-
-    def __init__(self, reason: str, message: str, role: str | None = None) -> None:
-        super().__init__(message)
-        self.reason = reason
-        self.role = role
-
-
-def reason_class(exc: BaseException) -> str:
-    """A short, countable class for a rejection (the full reason goes to the log)."""
-    if isinstance(exc, InputRejected):
-        return exc.reason
-    if isinstance(exc, DecodeError) and exc.reason:  # a message that quotes the wire
-        return exc.reason
-    text = str(exc).lower()
-    for key, words in (
-        ("out_of_map_range", ("voxel hash",)),
-        ("beyond_any_map", ("too far for any voxel index",)),
-        ("too_small_for_stereo", ("too small for the disparity search",)),
-        ("malformed_cdr", ("malformed cdr", "truncated cdr", "cdr encapsulation", "not bytes")),
-        ("wrong_type", ("not accepted (expected", "unsupported pose type", "rmw_zenoh key")),
-        ("no_camera_info", ("no camerainfo",)),
-        ("non_psd_covariance", ("semi-definite", "not symmetric", "non-finite covariance")),
-        ("bad_pose", ("non-finite pose", "quaternion", "rigid", "orthonormal", "t_w_c")),
-        ("wrong_encoding", ("encoding",)),
-        ("wrong_size", ("data has", "step", "size", "shape", "mismatch", "expects", "empty image")),
-        ("bad_camera_info", ("camerainfo", "baseline", "intrinsics", "rectified")),
-        ("bad_stamp", ("stamp",)),
-    ):
-        if any(w in text for w in words):
-            return key
-    return type(exc).__name__
 
 
 @dataclass(frozen=True, slots=True)
@@ -241,6 +181,10 @@ class Daemon:
         self._own_session = session is None
         self._session = session
         self.health = Health(d.stall_timeout_s, d.max_consecutive_failures)
+        self.report = Reporter(self.health)
+        self.frames = FrameAssembler(
+            d, q, self.report, self._on_frame, time.monotonic, expire_before=self._expire_before
+        )
         self.stereo_box: Mailbox[tuple[StereoFrame, float]] = Mailbox(
             "stereo", q.stereo, Overflow.DROP_OLDEST
         )
@@ -252,35 +196,12 @@ class Daemon:
         self.arm: Any = None  # pugsd.arm.controller.ArmController when [arm] enabled
         self.arm_report: dict[str, Any] | None = None
         self._arm_stop_tasks: set[asyncio.Task[None]] = set()  # arm/stop requests being sent
-        self._last_train_s = 0.0  # time.monotonic() of the last training step
-        default_cov = default_pose_cov(d.pose_std_translation_m, d.pose_std_rotation_rad)
-        self._pose_stamped_cov = default_cov
-        self._T_B_C = d.T_B_C  # the camera's mount on the body whose pose comes in (None: none)
-        self._pose_publisher: bytes | None = None  # the GID poses are taken from (pose_publisher_hold_s)
-        self._pose_publisher_s = 0.0  # time.monotonic() it was last heard
-        self._slow_pose_source_warned = False  # its poses came further apart than the hold
+        self.schedule = StreamingSchedule(d)  # on time.monotonic()
         self._publishers_reported: dict[str, int] = {}  # inputs logged with several publishers
-        self.poses = PoseBuffer(q.poses, int(d.pose_max_gap_s * 1e9), default_cov)
-        self.gate: PoseGate[tuple[str, Any, float]] = PoseGate(self.poses, d.pose_wait_s, q.pose_wait)
-        self.pairer: ExactPairer[codec.ImageMsg, codec.ImageMsg] = ExactPairer(q.unpaired)
-        self.frame_rate = FrameRateLimit(d.max_frame_rate_hz)  # frames thinned before the pose gate
         # (time, frames pushed out of the stereo and depth queues, frames emitted, integrated) at
         # the start of the overload warning's window, and when it was last logged
         self._overload_mark: tuple[float, int, int, int] | None = None
         self._overload_logged_s = -math.inf
-        self._masks: OrderedDict[int, np.ndarray] = OrderedDict()
-        self._stds: OrderedDict[int, np.ndarray] = OrderedDict()
-        self._infos: dict[str, codec.CameraInfoMsg] = {}
-        self._rig: StereoRig | None = None
-        self._last_mask_s: float | None = None
-        self._last_std_s: float | None = None
-        # whether a side topic (mask, depth std) is undecided: no frame has yet waited its
-        # side_image_wait_s for one in vain since the daemon started or since one last arrived.
-        # Undecided, a frame waits for its own: a first frame's images can arrive before its mask
-        # (zenoh does not order different keys), and one frame integrated without its mask puts
-        # the whole background into the store (15 000 points instead of 1 100 in a bench run)
-        self._side_undecided = {"mask": True, "depth_std": True}
-        self._frame_id = d.world_frame
         self.ingress = IngressGate(d.ingress_limit)
         # receive times of the poses handed to the loop and not yet handled (appended by the zenoh
         # thread, popped by the loop): while one that came before a frame's deadline is still
@@ -312,7 +233,6 @@ class Daemon:
         self._sub_graph_keys: list[str] = []
         self.recorder: Any = None  # pugsd.record.recorder.Recorder when [record] enabled
         self._stopping = False
-        self._retry_train_at = 0.0
         self._generation = 0  # bumped by reset: frames from before it are not integrated
         # from that bump until the map is cleared (the reset may wait for the model thread), no
         # grasp computation starts: it would snapshot the old map under the new generation
@@ -334,18 +254,8 @@ class Daemon:
         self.elbo: float | None = None
         self.ready = False
         self.was_ready = False  # ready at least once since the start or the last reset
-        self._changed = False  # model changed since the last compute
-        self._frame_unpublished = False  # a frame was integrated since the last compute started
-        self._grasps_urgent = False  # computing grasps for a newly integrated frame
-        self._last_cloud_published_s = -math.inf
-        self._steps_since_frame = 0  # training steps since the newest frame was integrated
-        self._idle_steps = 0  # idle steps of a ready model since then (their learning rates decay)
-        self._last_frame_s: float | None = None  # monotonic time of the last integrated frame
         self._newest_recv_s: float | None = None  # receive time of the newest integrated frame
         self._last_recv_s: dict[str, float] = {}  # monotonic receive time per input stream
-        # a frame's stamp minus the newest pose stamp when it arrived (s), the latest 200: shows a
-        # clock offset between camera and pose source (frames then drop waiting for a pose)
-        self._stamp_skew_s: deque[float] = deque(maxlen=200)
         self._stale_reported: set[str] = set()  # streams logged as stale and not yet resumed
         # the outputs' stamp: written and read under _model_lock (with the map it labels)
         self._newest_stamp_ns = 0
@@ -578,7 +488,7 @@ class Daemon:
                         f"is refused until {self.key('arm/release')}",
                     )
             except Exception as exc:  # a bug: count and log, answer, keep serving
-                self._internal_error("errors.query.arm_stop", "stopping the arm", exc)
+                self.report.internal_error("errors.query.arm_stop", "stopping the arm", exc)
                 if query is not None:
                     with contextlib.suppress(Exception):
                         query.reply_err(f"internal error: {type(exc).__name__}")
@@ -745,7 +655,7 @@ class Daemon:
         (``bridge_errors`` in the status) and logged, the first five then every 100th."""
         with self._bridge_lock:
             n = self.bridge_errors[role] = self.bridge_errors.get(role, 0) + 1
-        if _log_nth(n):
+        if log_nth(n):
             log.error("%s sample lost in the zenoh callback (#%d): %s: %s", role, n, type(exc).__name__, exc)
 
     def _bridge_query(self, kind: str) -> Callable[[Any], None]:
@@ -834,7 +744,7 @@ class Daemon:
                     except PugsdError as exc:
                         if not isinstance(exc, InputRejected):
                             exc = InputRejected("refused", str(exc))
-                        self._reject("arm", exc)
+                        self.report.reject("arm", exc)
                         query.reply_err(f"rejected: {exc}")
                 elif kind == "arm_release":
                     try:
@@ -842,7 +752,7 @@ class Daemon:
                     except PugsdError as exc:
                         if not isinstance(exc, InputRejected):
                             exc = InputRejected("refused", str(exc))
-                        self._reject("arm", exc)
+                        self.report.reject("arm", exc)
                         query.reply_err(f"rejected: {exc}")
                 elif kind == "reset":
                     if self._offer_command(Command("reset", None)):
@@ -850,14 +760,14 @@ class Daemon:
                     else:
                         query.reply_err(f"rejected: {self.commands.reject_reason()}")
             except Exception as exc:  # a bug: count and log, answer, keep serving
-                self._internal_error(f"errors.query.{kind}", f"answering a {kind} query", exc)
+                self.report.internal_error(f"errors.query.{kind}", f"answering a {kind} query", exc)
                 with contextlib.suppress(Exception):
                     query.reply_err(f"internal error: {type(exc).__name__}")
 
     def _refuse_wildcard(self, kind: str, asked: str) -> None:
         source = "arm" if kind.startswith("arm_") else kind
         msg = f"{kind} needs exactly {self.key(_QUERY_KEYS[kind])!r}, not {asked[:200]!r}"
-        self._reject(source, InputRejected("wildcard_key", msg))
+        self.report.reject(source, InputRejected("wildcard_key", msg))
 
     def _offer_command(self, cmd: Command) -> bool:
         ok = self.commands.offer(cmd)
@@ -865,52 +775,9 @@ class Daemon:
             reason = "queue full" if not self._stopping else "shutting down"
             self.health.reject("commands", reason)
             n = self.health.rejected[f"commands: {reason}"]
-            if _log_nth(n):
+            if log_nth(n):
                 log.warning("command %s rejected (#%d): %s", cmd.name, n, self.commands.reject_reason())
         return ok
-
-    def _reject(self, role: str, exc: BaseException) -> None:
-        """Count a rejection of ``role`` (or of the input ``exc`` is charged to) by its class and
-        log it with the reason: the first five per key, then every 100th."""
-        if isinstance(exc, InputRejected) and exc.role:
-            role = exc.role
-        cls = reason_class(exc)
-        self.health.reject(role, cls)
-        n = self.health.rejected[f"{role}: {cls}"]
-        if _log_nth(n):
-            log.warning("rejected %s input (%s, #%d): %s", role, cls, n, exc)
-
-    def _follow_pose_publisher(self, item: Inbound) -> None:
-        """Take poses from one publisher at a time (``daemon.pose_publisher_hold_s``): a pose of
-        another publisher while the followed one was heard within the hold is refused
-        (InputRejected ``second_publisher``); after that silence the newcomer is followed."""
-        hold_s, gid = self.cfg.daemon.pose_publisher_hold_s, item.publisher
-        if hold_s <= 0 or gid is None:
-            return
-        cur, silent_s = self._pose_publisher, item.recv_s - self._pose_publisher_s
-        if cur is not None and gid != cur and silent_s <= hold_s:
-            raise InputRejected(
-                "second_publisher",
-                f"a pose from publisher {gid.hex()[:12]} while publisher {cur.hex()[:12]}, whose poses "
-                f"are taken, was heard {max(silent_s, 0.0):.2f} s ago: ignored (two nodes publish on "
-                f"{item.key}? daemon.pose_publisher_hold_s = 0 takes every publisher's poses)",
-            )
-        if gid == cur and silent_s > hold_s and not self._slow_pose_source_warned:
-            self._slow_pose_source_warned = True  # once: a second publisher would take turns
-            log.warning(
-                "pose: %.1f s between two poses of the followed publisher, more than "
-                "daemon.pose_publisher_hold_s = %g s: a second publisher on %s would be followed in "
-                "such gaps (an outage of the source, or its period: if the source publishes this "
-                "slowly, raise the hold above its period; logged once)",
-                silent_s, hold_s, item.key,
-            )  # fmt: skip
-        if cur is not None and gid != cur:
-            self.health.count("pose_publisher_switches")
-            log.warning(
-                "pose: publisher %s silent for %.1f s; following publisher %s",
-                cur.hex()[:12], silent_s, gid.hex()[:12],
-            )  # fmt: skip
-        self._pose_publisher, self._pose_publisher_s = gid, max(self._pose_publisher_s, item.recv_s)
 
     def _report_publishers(self, concurrent: dict[str, int]) -> None:
         """Log an input once when several publishers send on it at the same time (and again when
@@ -925,25 +792,6 @@ class Daemon:
         for role in set(self._publishers_reported) - set(concurrent):
             del self._publishers_reported[role]
 
-    def _drop(self, stage: str, reason: str, n: int = 1) -> None:
-        """Count ``n`` drops under the reason's stable head and log the full reason (with its
-        numbers): the first five per key, then every 100th."""
-        head = _short(reason)
-        self.health.drop(stage, head, n)
-        total = self.health.dropped[f"{stage}: {head}"]
-        if total - n < 5 or total // 100 != (total - n) // 100:
-            log.info("dropped %d at %s (#%d): %s", n, stage, total, reason)
-
-    def _internal_error(self, key: str, what: str, exc: BaseException) -> None:
-        """A bug, not bad input: count it under ``key``; log the traceback the first time, then
-        one line for the 2nd to 5th and every 100th."""
-        self.health.count(key)
-        n = self.health.counts[key]
-        if n == 1:
-            log.error("%s failed: %s", what, exc, exc_info=exc)
-        elif _log_nth(n):
-            log.error("%s failed (#%d): %s: %s", what, n, type(exc).__name__, exc)
-
     def dropped_total(self) -> int:
         """Everything the daemon itself dropped: the stereo and depth mailboxes (drop oldest, and
         reset), the ingress bound, unpaired stereo halves, and the counted drops (pose wait,
@@ -952,7 +800,7 @@ class Daemon:
             self.stereo_box.dropped
             + self.depth_box.dropped
             + self.ingress.dropped
-            + self.pairer.unpaired_dropped
+            + self.frames.pairer.unpaired_dropped
             + self.health.counts.get("dropped", 0)
         )
 
@@ -970,7 +818,7 @@ class Daemon:
         if item.lost_before:  # counted by self.upstream; logged like rejections
             self.health.count(f"upstream_gaps.{item.role}")
             n = self.health.counts[f"upstream_gaps.{item.role}"]
-            if _log_nth(n):
+            if log_nth(n):
                 log.warning(
                     "%s: %d message(s) lost before pugsd (rmw_zenoh sequence gap #%d): the "
                     "publisher's congestion control or the link dropped them",
@@ -981,9 +829,9 @@ class Daemon:
         try:
             self._dispatch(item)
         except PugsdError as exc:
-            self._reject(item.role, exc)
+            self.report.reject(item.role, exc)
         except Exception as exc:  # a bug, not bad input: count and log, keep serving
-            self._internal_error(f"errors.input.{item.role}", f"handling {item.role} input", exc)
+            self.report.internal_error(f"errors.input.{item.role}", f"handling {item.role} input", exc)
 
     def _msg_type(self, item: Inbound, default: str) -> str:
         if self.cfg.topics.key_style == "rmw_zenoh":
@@ -994,257 +842,20 @@ class Daemon:
         return default
 
     def _dispatch(self, item: Inbound) -> None:
-        role, data = item.role, item.payload
-        if role in ("left_image", "right_image"):
-            self._expect_type(item, IMAGE)
-            img = codec.decode_image(data, STEREO_ENCODINGS)
-            self._check_size(role, img)
-            dups = self.pairer.duplicates
-            pair = (
-                self.pairer.add_left(img.stamp_ns, img)
-                if role == "left_image"
-                else self.pairer.add_right(img.stamp_ns, img)
-            )
-            if self.pairer.duplicates != dups:  # the waiting half with this stamp was replaced
-                self._drop("unpaired", f"duplicate_stamp (a second {role} for stamp {img.stamp_ns})")
-            if pair is not None:
-                self.health.count("paired")
-                self._admit(img.stamp_ns, ("stereo", pair, item.recv_s), item.recv_s)
-        elif role in ("left_info", "right_info", "depth_info"):
-            self._expect_type(item, CAMERA_INFO)
-            info = codec.decode_camera_info(data)
-            self._infos[role] = info
-            if role != "depth_info":
-                self._rig = None  # rebuilt lazily from both infos
-            self._poll_gate()
-        elif role == "pose":
-            typename = self._msg_type(item, POSE_TYPES[self.cfg.topics.pose_type])
-            if typename not in POSE_TYPES.values():
-                raise InputRejected("wrong_type", f"pose: type {typename[:100]!r} not accepted")
-            pm = codec.decode_pose(data, typename, self._pose_stamped_cov)
-            self._follow_pose_publisher(item)
-            T_W_C, cov = pm.T, carried_cov(pm.cov)
-            if self._T_B_C is not None:  # the pose of the body carrying the camera
-                T_W_C, cov = compose_pose_cov(T_W_C, cov, self._T_B_C)
-            jumps, strays = self.poses.jumps_back, self.poses.strays
-            self.poses.add(PoseSample(pm.stamp_ns, T_W_C, cov))
-            n = self.poses.jumps_back
-            if n != jumps and _log_nth(n):  # a source flapping between clocks would log each
-                log.warning(
-                    "pose: stamps went back by more than daemon.pose_max_gap_s (a restarted source "
-                    "or a stepped clock); the pose buffer starts afresh at %d ns (#%d)",
-                    pm.stamp_ns, n,
-                )  # fmt: skip
-            if self.poses.strays != strays:  # found out now, by the pose after it
-                self._reject("pose", InputRejected("stray_stamp", (
-                    f"a pose stamped {self.poses.last_stray_ns} ns, more than daemon.pose_max_gap_s "
-                    "off the pose timeline, was a stray (the poses after it went on with the "
-                    "timeline): ignored"
-                )))  # fmt: skip
-            if pm.frame_id:
-                self._frame_id = pm.frame_id
-            self.health.count("poses")
-            self._poll_gate()
-        elif role == "mask":
-            self._expect_type(item, IMAGE)
-            m = codec.decode_image(data, MASK_ENCODINGS)
-            _bounded_put(self._masks, m.stamp_ns, m.array > 0, self.cfg.queues.side_images)
-            self._last_mask_s = item.recv_s
-            self._side_undecided["mask"] = True
-            self._poll_gate()
-        elif role == "depth_std":
-            self._expect_type(item, IMAGE)
-            s = codec.decode_image(data, ("32FC1",))
-            _bounded_put(self._stds, s.stamp_ns, s.array.astype(np.float32), self.cfg.queues.side_images)
-            self._last_std_s = item.recv_s
-            self._side_undecided["depth_std"] = True
-            self._poll_gate()
-        elif role == "depth":
-            self._expect_type(item, IMAGE)
-            img = codec.decode_image(data, DEPTH_ENCODINGS)
-            self._check_size(role, img)
-            self._admit(img.stamp_ns, ("depth", img, item.recv_s), item.recv_s)
+        typename = self._msg_type(item, expected_type(item.role, self.cfg.topics.pose_type))
+        self.frames.feed(item.role, item.payload, item.recv_s, typename, item.publisher, item.key)
 
-    def _check_size(self, role: str, img: codec.ImageMsg) -> None:
-        """Reject an image of another size than its camera on arrival, so that it neither takes
-        (or replaces) a good waiting stereo half of its stamp nor pushes good frames out of the
-        pose gate. Without a usable camera (no or inconsistent CameraInfo) the frame is judged
-        when it is emitted, as before."""
-        if role == "depth":
-            info = self._infos.get("depth_info")
-            if info is None:
-                return
-            cam = info.camera
-        else:
-            try:
-                cam = self._stereo_rig().left
-            except PugsdError:
-                return
-        what = "depth image" if role == "depth" else f"{role}: image"
-        require_size(img, (cam.height, cam.width), what, role)
-
-    def _expect_type(self, item: Inbound, typename: str) -> None:
-        got = self._msg_type(item, typename)
-        if got != typename:
-            msg = f"{item.role}: type {got[:100]!r} not accepted (expected {typename})"
-            raise InputRejected("wrong_type", msg)
-
-    def _admit(self, stamp_ns: int, entry: tuple[str, Any, float], now_s: float) -> None:
-        if not self.frame_rate.accept(stamp_ns):  # daemon.max_frame_rate_hz: skipped, not dropped
-            self.health.count("frames.skipped_rate")
-            self._masks.pop(stamp_ns, None)
-            self._stds.pop(stamp_ns, None)
-            return
-        newest = self.poses.newest_ns
-        if newest is not None:
-            self._stamp_skew_s.append((stamp_ns - newest) / 1e9)
-        for _, reason in self.gate.add(stamp_ns, entry, now_s):
-            self._drop("pose_wait", reason)
-        self._poll_gate()
-
-    def _pending(self, entry: tuple[str, Any, float], now_s: float) -> str | None:
-        """Why a pose-ready frame must still wait (missing CameraInfo, a mask on its way)."""
-        kind, payload, recv_s = entry
-        if kind == "stereo":
-            if "left_info" not in self._infos or "right_info" not in self._infos:
-                return "no CameraInfo for both cameras yet"
-            stamp = payload[0].stamp_ns
-        else:
-            if "depth_info" not in self._infos:
-                return "no CameraInfo for the depth image yet"
-            stamp = payload.stamp_ns
-            if self._side_missing("depth_std", self._std_active(now_s), stamp in self._stds, recv_s, now_s):
-                return "depth std image not here yet"
-        if self._side_missing("mask", self._mask_active(now_s), stamp in self._masks, recv_s, now_s):
-            return "mask not here yet"
-        return None
-
-    def _side_missing(self, role: str, active: bool, here: bool, recv_s: float, now_s: float) -> bool:
-        """Whether a frame must still wait for its ``role`` image: while that topic is active or
-        undecided, up to ``side_image_wait_s``. An undecided wait that ends in vain (its time is
-        up, or the next frame is here) decides the topic (no such publisher, for now): later
-        frames go on."""
-        if here or not (active or self._side_undecided[role]):
-            return False
-        d = self.cfg.daemon
-        # undecided, the wait must end before the pose gate's deadline (pose_wait_s), or a rig
-        # without masks would lose every frame there and never decide; and it ends when the next
-        # frame is already here: keys are reordered by far less than a frame period, and frames
-        # held back together would overflow the stereo mailbox when released
-        limit_s = d.side_image_wait_s if active else min(d.side_image_wait_s, 0.5 * d.pose_wait_s)
-        if now_s - recv_s < limit_s and (active or len(self.gate) <= 1):
-            return True
-        if not active:
-            self._side_undecided[role] = False
-        return False
-
-    def _mask_active(self, now_s: float) -> bool:
-        return self._last_mask_s is not None and now_s - self._last_mask_s < _SIDE_ACTIVE_S
-
-    def _std_active(self, now_s: float) -> bool:
-        return self._last_std_s is not None and now_s - self._last_std_s < _SIDE_ACTIVE_S
-
-    def _poll_gate(self) -> None:
-        """Release the frames whose pose is ready; a frame that fails is counted (a rejection,
-        charged to the input at fault, or an internal error) and the others still go on."""
-        now_s = time.monotonic()
-        # a frame's deadline counts as passed only before the oldest pose still queued for the
-        # loop came in: after a stall of the loop that pose is handled next and may be the frame's
+    def _expire_before(self, now_s: float) -> float:
+        """A frame's deadline counts as passed only before the oldest pose still queued for the
+        loop came in: after a stall of the loop that pose is handled next and may be the frame's."""
         backlog = self._pose_backlog_s
-        expire_s = min(now_s, backlog[0]) if backlog else now_s
-        ready, dropped = self.gate.poll(now_s, self._pending, expire_s)
-        for _, reason in dropped:
-            self._drop("pose_wait", reason)
-        for (kind, payload, recv_s), stamp_ns, T, cov in ready:
-            try:
-                if kind == "stereo":
-                    self._emit_stereo(payload, stamp_ns, T, cov, recv_s)
-                else:
-                    self._emit_depth(payload, stamp_ns, T, cov, recv_s)
-            except PugsdError as exc:
-                self._reject("left_image" if kind == "stereo" else "depth", exc)
-            except Exception as exc:  # a bug, not bad input: the gate worker must go on
-                self._internal_error(f"errors.frames.{kind}", f"emitting a {kind} frame", exc)
+        return min(now_s, backlog[0]) if backlog else now_s
 
-    def _stereo_rig(self) -> StereoRig:
-        if self._rig is None:
-            left, right = self._infos.get("left_info"), self._infos.get("right_info")
-            if left is None or right is None:
-                raise DecodeError("stereo: no CameraInfo for both cameras yet")
-            # (a disparity search short of min_depth_m is logged by the stereo stage, once per rig)
-            self._rig = codec.stereo_rig_from_infos(left, right)
-        return self._rig
-
-    def _emit_stereo(
-        self,
-        pair: tuple[codec.ImageMsg, codec.ImageMsg],
-        stamp_ns: int,
-        T: np.ndarray,
-        cov: np.ndarray,
-        recv_s: float,
-    ) -> None:
-        left, right = pair
-        mask_in = self._masks.pop(stamp_ns, None)  # taken even if the frame is rejected
-        try:
-            rig = self._stereo_rig()
-        except PugsdError as exc:
-            raise InputRejected(reason_class(exc), str(exc), "camera_info") from None
-        shape = (rig.left.height, rig.left.width)
-        for role, img in (("left_image", left), ("right_image", right)):
-            require_size(img, shape, f"{role}: image", role)
-        if left.encoding != right.encoding:
-            msg = f"stereo pair encoding mismatch: {left.encoding} vs {right.encoding}"
-            raise InputRejected("wrong_encoding", msg, "right_image")
-        mask = self._side_image("mask", mask_in, shape)
-        try:
-            frame = StereoFrame(
-                stamp_ns=stamp_ns,
-                left=left.rgb_or_mono(),
-                right=right.rgb_or_mono(),
-                rig=rig,
-                T_W_C=T,
-                pose_cov=cov,
-                mask=mask,
-            )
-        except PugsdError as exc:  # the images and the mask are checked: the pose is at fault
-            raise InputRejected(reason_class(exc), str(exc), "pose") from None
-        self.health.count("frames.stereo")
-        self.stereo_box.offer((frame, recv_s))
-
-    def _emit_depth(
-        self, img: codec.ImageMsg, stamp_ns: int, T: np.ndarray, cov: np.ndarray, recv_s: float
-    ) -> None:
-        std_in, mask_in = self._stds.pop(stamp_ns, None), self._masks.pop(stamp_ns, None)
-        info = self._infos.get("depth_info")
-        if info is None:
-            raise DecodeError("depth: no CameraInfo for the depth image yet")
-        shape = (info.camera.height, info.camera.width)
-        require_size(img, shape, "depth image")
-        sigma = self._side_image("depth_std", std_in, shape)
-        mask = self._side_image("mask", mask_in, shape)
-        try:
-            frame = DepthFrame(
-                stamp_ns=stamp_ns,
-                depth_m=img.depth_m(),
-                camera=info.camera,
-                T_W_C=T,
-                pose_cov=cov,
-                sigma_m=sigma,
-                mask=mask,
-            )
-        except PugsdError as exc:  # the images are checked: the pose is at fault
-            raise InputRejected(reason_class(exc), str(exc), "pose") from None
-        self.health.count("frames.depth")
-        self.depth_box.offer((frame, recv_s))
-
-    def _side_image(self, role: str, arr: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | None:
-        """A frame's mask or depth std image; one of another size than the frame is rejected
-        (counted under ``role``) and the frame goes on without it."""
-        if arr is None or arr.shape == shape:
-            return arr
-        msg = f"{role} is {arr.shape}, camera expects {shape}; frame used without it"
-        self._reject(role, InputRejected("wrong_size", msg))
-        return None
+    def _on_frame(self, frame: StereoFrame | DepthFrame, recv_s: float) -> None:
+        if isinstance(frame, StereoFrame):
+            self.stereo_box.offer((frame, recv_s))
+        else:
+            self.depth_box.offer((frame, recv_s))
 
     # --- workers ----------------------------------------------------------------------------------
 
@@ -1280,7 +891,7 @@ class Daemon:
         try:
             out = await coro
         except PugsdError as exc:
-            self._reject(stage, exc)
+            self.report.reject(stage, exc)
             if reason_class(exc) in _MAP_AT_FAULT:  # every later frame fails alike: not input's fault
                 self.health.failed(stage)
         except Exception as exc:
@@ -1290,7 +901,7 @@ class Daemon:
             n = self.health.counts[key]
             if n == 1:
                 log.exception("%s stage failed; continuing", stage)
-            elif _log_nth(n):
+            elif log_nth(n):
                 log.error("%s stage failed (#%d): %s: %s", stage, n, type(exc).__name__, exc)
         else:
             self.health.succeeded(stage)
@@ -1309,53 +920,28 @@ class Daemon:
                 self.depth_box.offer((depth, recv_s))
 
     async def _train(self, steps: int, idle: bool = False) -> None:
-        """Up to ``steps`` SVGP steps, one per offload, yielding as soon as a frame is waiting:
-        ingest has priority, so frames are not dropped while the model trains (measured in
-        docs/performance.md: 10 Hz went from 15-26 of 100 frames integrated to 100 of 100).
-        One step is forced when the last is older than ``min_train_interval_s``, so sustained
-        overload cannot starve the model (it then drops frames instead, counted). Idle rounds
-        (``idle``) also stop while grasps for a newly integrated frame are being computed: on two
-        cores the SVGP steps and the grasp proposal slow each other down. Idle steps of a ready
-        model run at learning rates that decay with the number of such steps since the last frame
-        (``idle_rate_decay_steps``: what is published settles); steps after a frame, and idle
-        steps before the model is ready (nothing published yet to settle, readiness not to be
-        slowed), run at the configured rates."""
-        tau = self.cfg.daemon.idle_rate_decay_steps
+        """Up to ``steps`` SVGP steps, one per offload, as the schedule allows each."""
+        s = self.schedule
         for _ in range(steps):
-            overdue = time.monotonic() - self._last_train_s > self.cfg.daemon.min_train_interval_s
-            if self._stopping or (len(self.depth_box) > 0 and not overdue):
+            if self._stopping or not s.may_step(time.monotonic(), len(self.depth_box), idle):
                 break
-            if idle and self._grasps_urgent:
-                break
-            self._last_train_s = time.monotonic()
-            decaying = idle and tau > 0 and self.ready
-            scale = 1.0 / (1.0 + self._idle_steps / tau) if decaying else 1.0
-            stats = await self._guard(
-                "train", self._offload("train", self._train_step_locked, scale)
-            )
+            s.last_train_s = time.monotonic()
+            decaying = s.decaying(idle, self.ready)
+            step = self._offload("train", self._train_step_locked, s.rate_scale(decaying))
+            stats = await self._guard("train", step)
             if stats is None:
                 break
             self._note_train(stats, 1)
-            self._changed = True
-            self._steps_since_frame += 1
-            if decaying:
-                self._idle_steps += 1
+            s.stepped(decaying)
 
     async def _model_worker(self) -> None:
-        d = self.cfg.daemon
+        d, s = self.cfg.daemon, self.schedule
         while not self._stopping:
-            idle = (
-                self._last_frame_s is not None
-                and d.idle_train_steps > 0
-                and time.monotonic() - self._last_frame_s < d.idle_train_s
-            )
+            idle = s.idle(time.monotonic())
             item = await self.depth_box.take_within(0.02 if idle else 0.5)
             if item is not None:
                 depth, recv_s = item
-                n = await self._guard(
-                    "integrate",
-                    self._offload("integrate", self._integrate_locked, depth),
-                )
+                n = await self._guard("integrate", self._offload("integrate", self._integrate_locked, depth))
                 if n is None:
                     continue
                 self.health.count("integrated")
@@ -1363,24 +949,13 @@ class Daemon:
                     log.info("first frame integrated (%d points)", n)
                 self.health.count("points", n)
                 self.health.observe("frame_age_at_integrate", time.monotonic() - recv_s)
-                self._last_frame_s = time.monotonic()
+                s.frame_integrated(time.monotonic())
                 self._newest_recv_s = recv_s
-                self._changed = True
-                self._frame_unpublished = True
-                self._steps_since_frame = 0
-                self._idle_steps = 0
                 if d.train_steps_per_frame > 0 and not self._stopping:
                     await self._train(d.train_steps_per_frame)
-            elif (
-                idle
-                and not self._stopping
-                and not self._grasps_urgent
-                and time.monotonic() >= self._retry_train_at
-            ):
+            elif idle and not self._stopping and s.idle_round_due(time.monotonic()):
                 await self._train(d.idle_train_steps, idle=True)
-                k = self.health.failures.get("train", 0)
-                # a failing model is retried with exponential backoff (0.1 s .. 5 s)
-                self._retry_train_at = time.monotonic() + (min(0.1 * 2 ** (k - 1), 5.0) if k else 0.0)
+                s.round_ended(time.monotonic(), self.health.failures.get("train", 0))
 
     def _integrate_locked(self, depth: DepthFrame) -> int:
         """On the model thread: integrate ``depth`` and advance the outputs' stamp under the same
@@ -1469,7 +1044,7 @@ class Daemon:
         for role, data in payloads.items():
             self._put_output(role, data)
         if "cloud" in payloads:
-            self._last_cloud_published_s = time.monotonic()
+            self.schedule.last_cloud_published_s = time.monotonic()
         if "grasps" not in payloads:
             # the cloud of the latest grasps' round: the same grasps, with sigma^2_occ over the
             # whole query cloud (the demo draws it); a cloud of another round changes nothing
@@ -1477,7 +1052,7 @@ class Daemon:
             if result is not None and latest is not None and result.grasps is latest.grasps:
                 self.latest_result = result
             return
-        self._grasps_urgent = False  # the grasps are out: idle training need not wait for the cloud
+        self.schedule.grasps_urgent = False  # the grasps are out: idle training need not wait for the cloud
         self.latest_grasps = payloads["grasps"]
         self.latest_result = result
         self.model_version = int(result.model_version)
@@ -1516,78 +1091,30 @@ class Daemon:
             self.health.count(f"publish_failed.{role}")
             n = self.health.failed("publish")
             of_role = self.health.counts[f"publish_failed.{role}"]
-            if _log_nth(of_role, first=10):  # the first ten of a role, then every 100th
+            if log_nth(of_role, first=10):  # the first ten of a role, then every 100th
                 log.warning("publishing %s failed (%d so far, %d puts in a row): %s", role, of_role, n, exc)
             return False
         self.health.succeeded("publish")
         return True
 
-    def _streaming(self, now: float) -> bool:
-        """Frames are coming: one is queued, or the last came less than ``pause_publish_s`` ago."""
-        return len(self.depth_box) > 0 or (
-            self._last_frame_s is not None and now - self._last_frame_s < self.cfg.daemon.pause_publish_s
-        )
-
     def _cloud_gives_way(self) -> bool:
-        """A frame was integrated since the running grasp computation began and the input has
-        paused: fresh grasps now matter more than that computation's cloud, as long as a cloud
-        was published within ``cloud_interval_s``. (Without that bound a camera slower than
-        1 / pause_publish_s, whose every gap looks like a pause, would never let a cloud finish.)
-        Called from the grasp thread; reads values that only the loop writes. At shutdown it
-        gives way at once: the cloud would not outlive the session, and would hold the exit."""
-        if self._stopping:
-            return True
-        now = time.monotonic()
-        return (
-            self._frame_unpublished
-            and not self._streaming(now)
-            and now - self._last_cloud_published_s < self.cfg.daemon.cloud_interval_s
-        )
-
-    def _grasps_due(self, now: float, last_start: float) -> bool:
-        """Every 1 / grasp_rate_hz while the model changes; and at once when the input pauses:
-        the newest frame has had its training steps and no frame came for ``pause_publish_s``
-        (then at most twice the configured rate)."""
-        d = self.cfg.daemon
-        period = 1.0 / d.grasp_rate_hz
-        if now - last_start >= period:
-            return True
-        return (
-            d.pause_publish_s > 0
-            and self._frame_unpublished
-            and self._last_frame_s is not None
-            and not self._streaming(now)
-            and self._steps_since_frame >= d.train_steps_per_frame
-            and now - last_start >= 0.5 * period
-        )
+        """Whether the running computation's cloud gives way to fresh grasps (the schedule's
+        ``cloud_gives_way``), and at shutdown at once: the cloud would not outlive the session,
+        and would hold the exit. Called from the grasp thread; reads values only the loop writes."""
+        return self._stopping or self.schedule.cloud_gives_way(time.monotonic(), len(self.depth_box))
 
     async def _grasp_worker(self) -> None:
-        loop = asyncio.get_running_loop()
-        last_start = last_cloud = -math.inf
+        loop, s = asyncio.get_running_loop(), self.schedule
         while not self._stopping:
             await asyncio.sleep(0.02)
             publishable = self.ready or (self.cfg.daemon.ready_latch and self.was_ready)
-            if not (publishable and self._changed) or self._stopping or self._resetting or self._reset_failed:
+            if not (publishable and s.changed) or self._stopping or self._resetting or self._reset_failed:
                 continue
-            now = time.monotonic()
-            if not self._grasps_due(now, last_start):
+            now, queued = time.monotonic(), len(self.depth_box)
+            if not s.grasps_due(now, s.grasps_started_s, queued):
                 continue
-            last_start = now
-            self._changed = False
-            # grasps for a frame not yet published: idle training waits for them (less contention)
-            self._grasps_urgent = self._frame_unpublished
-            self._frame_unpublished = False
+            with_cloud = s.start_grasps(now, queued)
             newest_recv = self._newest_recv_s
-            # the whole cloud's Algorithm 1 costs about as much as the grasps and occupies the
-            # grasp thread: while frames stream, at most every cloud_interval_s (the first one too)
-            d = self.cfg.daemon
-            streaming = self._streaming(now)
-            if streaming and last_cloud == -math.inf:
-                last_cloud = now
-            with_cloud = d.publish_cloud and (not streaming or now - last_cloud >= d.cloud_interval_s)
-            if with_cloud:
-                last_cloud = now
-
             generation = self._generation
 
             def hand_over(
@@ -1604,14 +1131,14 @@ class Daemon:
                     self._offload(
                         "grasps",
                         self._compute_and_encode,
-                        self._frame_id,
+                        self.frames.frame_id,
                         generation,
                         hand_over,
                         with_cloud,
                     ),
                 )
             finally:
-                self._grasps_urgent = False
+                s.grasps_urgent = False
             if outcome == "discarded":
                 self.health.count("grasps_discarded")
                 log.info("grasp computation discarded: the map was reset while it ran")
@@ -1644,11 +1171,11 @@ class Daemon:
         cleared_stamp_ns = self._newest_stamp_ns  # the old map's time line (and its transforms)
         self.stereo_box.clear()  # counted by the mailboxes
         self.depth_box.clear()
-        waiting, unpaired = self.gate.clear(), self.pairer.clear()
+        waiting, unpaired = self.frames.clear()
         if waiting:
-            self._drop("reset", "frames waiting for a pose", waiting)
+            self.report.drop("reset", "frames waiting for a pose", waiting)
         if unpaired:
-            self._drop("reset", "unpaired stereo halves", unpaired)
+            self.report.drop("reset", "unpaired stereo halves", unpaired)
         if await self._guard("reset", self._offload("reset", self._reset_locked)):
             # a run of integrate failures belonged to the old map (out_of_map_range: its anchor)
             self.health.succeeded("integrate")
@@ -1660,9 +1187,7 @@ class Daemon:
         self.latest_result = None
         self.ready = False
         self.was_ready = False
-        self._changed = False
-        self._frame_unpublished = False
-        self._last_frame_s = None
+        self.schedule.reset()
         self._newest_recv_s = None
         self.elbo = None
         self.model_version = None  # the cleared map's: no grasps of it are served any more
@@ -1678,11 +1203,11 @@ class Daemon:
         z = np.zeros(0)
         empty = ScoredGrasps(np.zeros((0, 4, 4)), np.zeros((0, 3)), z, z, z, z, np.zeros(0, np.int64))
         payloads = {
-            "grasps": codec.encode_grasp_array(empty, self._frame_id, stamp_ns),
-            "markers": codec.encode_grasp_markers(empty, self._frame_id, stamp_ns, top_k=0),
+            "grasps": codec.encode_grasp_array(empty, self.frames.frame_id, stamp_ns),
+            "markers": codec.encode_grasp_markers(empty, self.frames.frame_id, stamp_ns, top_k=0),
         }
         if self.cfg.daemon.publish_cloud:
-            payloads["cloud"] = codec.encode_cloud(np.zeros((0, 3)), stamp_ns, self._frame_id)
+            payloads["cloud"] = codec.encode_cloud(np.zeros((0, 3)), stamp_ns, self.frames.frame_id)
         for role, data in payloads.items():
             if role in self._publishers:  # a failed put is counted and does not fail the reset
                 self._put_output(role, data)
@@ -1694,24 +1219,9 @@ class Daemon:
         recording, a stepped clock: the same test the pose buffer restarts on); a reset starts
         afresh."""
         newest = self._newest_stamp_ns
-        if stamp_ns >= newest or newest - stamp_ns > self.poses.max_gap_ns:
+        if stamp_ns >= newest or newest - stamp_ns > self.frames.poses.max_gap_ns:
             return stamp_ns
         return newest
-
-    def _skew_summary(self) -> dict[str, float | int]:
-        """The latest frames' stamp minus the newest pose stamp when each arrived, in seconds:
-        near zero or a pose period below it with synchronised clocks; a constant far from zero
-        is an offset between the camera's clock and the pose source's (or a pose source lagging
-        by that much), which ``pose_max_gap_s`` and ``pose_wait_s`` cannot bridge."""
-        if not self._stamp_skew_s:
-            return {"n": 0}
-        a = np.fromiter(self._stamp_skew_s, dtype=np.float64)
-        return {
-            "n": int(a.size),
-            "p50": round(float(np.median(a)), 4),
-            "min": round(float(a.min()), 4),
-            "max": round(float(a.max()), 4),
-        }
 
     def input_ages_s(self, now: float | None = None) -> dict[str, float]:
         """Seconds since each input stream (left/right image, depth, pose) last sent."""
@@ -1750,6 +1260,7 @@ class Daemon:
             pstats = {"error": str(exc)}
         snap = self.health.snapshot()
         problems = self.problems()
+        f = self.frames
         return {
             "node": self.cfg.daemon.node_name,
             "stamp_ns": time.time_ns(),
@@ -1772,21 +1283,21 @@ class Daemon:
             "inputs": {
                 "age_s": self.input_ages_s(),
                 "stale": self.stale_inputs(),
-                "frame_minus_newest_pose_s": self._skew_summary(),
+                "frame_minus_newest_pose_s": self.frames.skew_summary(),
             },
             "upstream": {
                 **self.upstream.snapshot(),
                 "active_publishers": self.upstream.active(_PUBLISHERS_WINDOW_S),
                 "concurrent_publishers": self.upstream.concurrent(_PUBLISHERS_WINDOW_S),
-                "pose_publisher": None if self._pose_publisher is None else self._pose_publisher.hex()[:12],
+                "pose_publisher": None if (gid := self.frames.pose_publisher) is None else gid.hex()[:12],
             },
             "waiting": {
-                "pose_gate": len(self.gate),
-                "unpaired": self.pairer.pending(),
-                "unpaired_dropped": self.pairer.unpaired_dropped,
-                "poses": len(self.poses),
-                "pose_clock_jumps_back": self.poses.jumps_back,
-                "pose_strays": self.poses.strays,
+                "pose_gate": len(f.gate),
+                "unpaired": f.pairer.pending(),
+                "unpaired_dropped": f.pairer.unpaired_dropped,
+                "poses": len(f.poses),
+                "pose_clock_jumps_back": f.poses.jumps_back,
+                "pose_strays": f.poses.strays,
             },
             "pipeline": pstats,
             "recorder": None if self.recorder is None else self.recorder.stats.as_dict(),
@@ -1799,7 +1310,7 @@ class Daemon:
             try:
                 self._status_round()
             except Exception as exc:  # a bug: count and log; the daemon keeps serving
-                self._internal_error("errors.status", "the status round", exc)
+                self.report.internal_error("errors.status", "the status round", exc)
 
     def _status_round(self) -> None:
         st = self.status()
@@ -1864,7 +1375,7 @@ class Daemon:
                 self.health.tick()
                 problems: list[str] | None = self.problems()
             except Exception as exc:  # a bug: no verdict this round, so no ping; the daemon serves on
-                self._internal_error("errors.watchdog", "the watchdog round", exc)
+                self.report.internal_error("errors.watchdog", "the watchdog round", exc)
                 problems = None
             if problems is None:
                 pass
@@ -1884,11 +1395,11 @@ class Daemon:
         """Expire frames whose pose never came (deadlines pass without new input)."""
         while not self._stopping:
             await asyncio.sleep(0.05)
-            if len(self.gate):
+            if len(self.frames.gate):
                 try:
-                    self._poll_gate()
+                    self.frames.poll()
                 except Exception as exc:  # a bug in the lookup itself: keep the worker alive
-                    self._internal_error("errors.gate", "polling the pose gate", exc)
+                    self.report.internal_error("errors.gate", "polling the pose gate", exc)
 
 
 # rejections whose cause is the map, not the frame: the point store's voxel hash is anchored at
@@ -1897,7 +1408,6 @@ class Daemon:
 # until a reset. They count as failures too, so that a run of them makes the daemon unhealthy
 # (the watchdog restarts it) rather than healthy and never integrating again.
 _MAP_AT_FAULT = frozenset({"out_of_map_range"})
-_SIDE_ACTIVE_S = 2.0  # a mask/std topic counts as active this long after its last message
 _PUBLISHERS_WINDOW_S = 5.0  # status upstream.active_publishers: publishers heard this recently
 _STREAM_ROLES = ("left_image", "right_image", "depth", "pose")  # inputs that flow continuously
 _UNHEALTHY_RELOG_S = 300.0  # an unchanged unhealthy state is logged again this often
@@ -1908,12 +1418,6 @@ def _endpoints(zenoh_cfg: Any, what: str) -> str:
     if isinstance(value, dict):  # per mode
         value = [e for lst in value.values() if isinstance(lst, list) for e in lst]
     return ", ".join(str(e) for e in value) if isinstance(value, list) and value else "none"
-
-
-def _log_nth(n: int, first: int = 5) -> bool:
-    """Whether the ``n``-th (1-based) of a repeated event is logged: the first ``first``, then
-    every 100th (each is counted regardless)."""
-    return n <= first or n % 100 == 0
 
 
 _GRASPS_LOG_S = 60.0  # published grasps are logged at most this often (the first ones at once)
@@ -1945,18 +1449,6 @@ _QUERY_KEYS = {
 # mid-grasp or change anything else: these act on a query for exactly their key
 _STATE_CHANGING = frozenset({"reset", "arm_execute", "arm_stop", "arm_release"})
 
-
-
-def _bounded_put(d: OrderedDict[int, np.ndarray], key: int, value: np.ndarray, cap: int) -> None:
-    d[key] = value
-    d.move_to_end(key)
-    while len(d) > cap:
-        d.popitem(last=False)
-
-
-def _short(reason: str) -> str:
-    """Drop counters keyed by the reason's stable head (no numbers)."""
-    return reason.split(" (", 1)[0]
 
 
 def _jsonable(obj: Any) -> Any:

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from collections import Counter, deque
 from collections.abc import Iterator
@@ -10,6 +11,10 @@ from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
+
+from pugsd.stream.assembler import InputRejected, log_nth, reason_class
+
+log = logging.getLogger(__name__)
 
 
 class LatencyWindow:
@@ -118,3 +123,49 @@ class Health:
             "busy": sorted(self._busy_since),
             "failing": dict(self.failures),
         }
+
+
+class Reporter:
+    """Counts rejections, drops and internal errors in ``health`` and logs each with its reason:
+    the first few per key, then every 100th."""
+
+    def __init__(self, health: Health) -> None:
+        self.health = health
+
+    def count(self, key: str, n: int = 1) -> None:
+        self.health.count(key, n)
+
+    def reject(self, role: str, exc: BaseException) -> None:
+        """Count a rejection of ``role`` (or of the input ``exc`` is charged to) by its class and
+        log it with the reason: the first five per key, then every 100th."""
+        if isinstance(exc, InputRejected) and exc.role:
+            role = exc.role
+        cls = reason_class(exc)
+        self.health.reject(role, cls)
+        n = self.health.rejected[f"{role}: {cls}"]
+        if log_nth(n):
+            log.warning("rejected %s input (%s, #%d): %s", role, cls, n, exc)
+
+    def drop(self, stage: str, reason: str, n: int = 1) -> None:
+        """Count ``n`` drops under the reason's stable head and log the full reason (with its
+        numbers): the first five per key, then every 100th."""
+        head = reason_head(reason)
+        self.health.drop(stage, head, n)
+        total = self.health.dropped[f"{stage}: {head}"]
+        if total - n < 5 or total // 100 != (total - n) // 100:
+            log.info("dropped %d at %s (#%d): %s", n, stage, total, reason)
+
+    def internal_error(self, key: str, what: str, exc: BaseException) -> None:
+        """A bug, not bad input: count it under ``key``; log the traceback the first time, then
+        one line for the 2nd to 5th and every 100th."""
+        self.health.count(key)
+        n = self.health.counts[key]
+        if n == 1:
+            log.error("%s failed: %s", what, exc, exc_info=exc)
+        elif log_nth(n):
+            log.error("%s failed (#%d): %s: %s", what, n, type(exc).__name__, exc)
+
+
+def reason_head(reason: str) -> str:
+    """Drop counters keyed by the reason's stable head (no numbers)."""
+    return reason.split(" (", 1)[0]

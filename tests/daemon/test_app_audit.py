@@ -17,19 +17,10 @@ import numpy as np
 import pytest
 
 from pugsd.config import load_config_dict
-from pugsd.daemon.app import (
-    Command,
-    Daemon,
-    Inbound,
-    IngressGate,
-    InputRejected,
-    _jsonable,
-    _log_nth,
-    _short,
-    reason_class,
-    require_size,
-)
+from pugsd.daemon.app import Command, Daemon, Inbound, IngressGate, _jsonable
+from pugsd.daemon.health import reason_head
 from pugsd.errors import DecodeError, PugsdError
+from pugsd.stream.assembler import InputRejected, log_nth, reason_class, require_size
 from pugsd.wire import codec
 from pugsd.wire.topics import key_for
 from tests.daemon.conftest import RIG, FakePipeline, daemon_config_dict
@@ -140,14 +131,14 @@ def test_ingress_gate_admits_up_to_its_limit_and_counts_each_refusal() -> None:
 
 
 def test_log_nth_logs_the_first_five_then_every_hundredth() -> None:
-    assert [n for n in range(1, 1001) if _log_nth(n)] == [1, 2, 3, 4, 5, *range(100, 1001, 100)]
-    assert [n for n in range(1, 201) if _log_nth(n, first=2)] == [1, 2, 100, 200]
+    assert [n for n in range(1, 1001) if log_nth(n)] == [1, 2, 3, 4, 5, *range(100, 1001, 100)]
+    assert [n for n in range(1, 201) if log_nth(n, first=2)] == [1, 2, 100, 200]
 
 
 def test_short_keeps_the_head_before_the_first_parenthesis_after_a_space() -> None:
-    assert _short("duplicate_stamp (a second left_image for stamp 5)") == "duplicate_stamp"
-    assert _short("f(x) (12 ms) (more)") == "f(x)"
-    assert _short("no pose") == "no pose"
+    assert reason_head("duplicate_stamp (a second left_image for stamp 5)") == "duplicate_stamp"
+    assert reason_head("f(x) (12 ms) (more)") == "f(x)"
+    assert reason_head("no pose") == "no pose"
 
 
 def test_jsonable_stringifies_keys_and_unknown_objects() -> None:
@@ -162,17 +153,17 @@ def test_jsonable_stringifies_keys_and_unknown_objects() -> None:
 def test_drops_count_under_the_reasons_head_and_log_the_first_five_then_each_hundred_crossed(
     port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     d = _daemon(port)
     for i in range(1, 206):
-        d._drop("unpaired", f"duplicate_stamp (a second left_image for stamp {i})")
+        d.report.drop("unpaired", f"duplicate_stamp (a second left_image for stamp {i})")
     assert dict(d.health.dropped) == {"unpaired: duplicate_stamp": 205}
     lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("dropped 1 at unpaired")]
     assert [int(ln.split("(#")[1].split(")")[0]) for ln in lines] == [1, 2, 3, 4, 5, 100, 200]
     assert lines[-1] == "dropped 1 at unpaired (#200): duplicate_stamp (a second left_image for stamp 200)"
     caplog.clear()
     for _ in range(40):  # drops of 3: totals 3, 6, ..., 120; logged while under 5 before, and at 102
-        d._drop("pose_wait", "no pose (waited 0.5 s)", 3)
+        d.report.drop("pose_wait", "no pose (waited 0.5 s)", 3)
     lines = [r.getMessage() for r in caplog.records if "at pose_wait" in r.getMessage()]
     assert lines == [
         "dropped 3 at pose_wait (#3): no pose (waited 0.5 s)",
@@ -185,11 +176,11 @@ def test_drops_count_under_the_reasons_head_and_log_the_first_five_then_each_hun
 def test_a_rejection_is_charged_to_the_input_at_fault_and_logged_rate_limited(
     port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = _daemon(port)
     for _ in range(105):
-        d._reject("left_image", InputRejected("wrong_size", "right is small", "right_image"))
-    d._reject("left_image", PugsdError("bad stamp"))
+        d.report.reject("left_image", InputRejected("wrong_size", "right is small", "right_image"))
+    d.report.reject("left_image", PugsdError("bad stamp"))
     assert dict(d.health.rejected) == {"right_image: wrong_size": 105, "left_image: bad_stamp": 1}
     assert d.health.counts["rejected"] == 106
     lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("rejected")]
@@ -201,10 +192,10 @@ def test_a_rejection_is_charged_to_the_input_at_fault_and_logged_rate_limited(
 def test_an_internal_error_logs_its_traceback_once_then_one_line_rate_limited(
     port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.ERROR, logger="pugsd.daemon.app")
+    caplog.set_level(logging.ERROR, logger="pugsd")
     d = _daemon(port)
     for i in range(100):
-        d._internal_error("errors.input.pose", "handling pose input", ValueError(f"boom {i}"))
+        d.report.internal_error("errors.input.pose", "handling pose input", ValueError(f"boom {i}"))
     recs = [r for r in caplog.records if r.getMessage().startswith("handling pose input failed")]
     assert [r.getMessage() for r in recs] == [
         "handling pose input failed: boom 0",
@@ -227,8 +218,8 @@ def test_dropped_total_sums_every_kind_of_drop(port: int) -> None:
         assert d.ingress.enter()
         _feed(d, "left_image", codec.encode_image(small, (i + 1) * 10**9, "left"))
     assert d.ingress.enter()  # one sample handed over, not yet handled
-    d._drop("pose_wait", "no pose", 11)
-    assert (d.stereo_box.dropped, d.depth_box.dropped, d.pairer.unpaired_dropped) == (2, 3, 7)
+    d.report.drop("pose_wait", "no pose", 11)
+    assert (d.stereo_box.dropped, d.depth_box.dropped, d.frames.pairer.unpaired_dropped) == (2, 3, 7)
     st = d.status()
     assert d.dropped_total() == st["dropped_total"] == 2 + 3 + 5 + 7 + 11
     assert st["ingress"] == {"pending": 1, "dropped": 5}
@@ -246,17 +237,17 @@ def test_inbound_accounting_received_gaps_ages_backlog_and_no_handling_when_stop
     assert d.ingress.pending == 0
     assert list(d._pose_backlog_s) == [2.0]
     assert d.health.counts["received.pose"] == 1 and d.health.counts["upstream_gaps.pose"] == 1
-    assert d.health.counts["poses"] == 1 and len(d.poses) == 1
-    assert d._frame_id == "odom"  # the outputs' frame follows the poses'
+    assert d.health.counts["poses"] == 1 and len(d.frames.poses) == 1
+    assert d.frames.frame_id == "odom"  # the outputs' frame follows the poses'
     _feed(d, "pose", _pose(2 * 10**9, ""))
-    assert d._frame_id == "odom" and "upstream_gaps.pose" in d.health.counts
+    assert d.frames.frame_id == "odom" and "upstream_gaps.pose" in d.health.counts
     assert d.health.counts["upstream_gaps.pose"] == 1
     li, ri = codec.encode_stereo_infos(RIG, 0)
     _feed(d, "left_info", li)
     assert sorted(d._last_recv_s) == ["pose"]  # CameraInfo is not a stream
     d._stopping = True
     _feed(d, "right_info", ri)
-    assert d.health.counts["received.right_info"] == 1 and "right_info" not in d._infos
+    assert d.health.counts["received.right_info"] == 1 and "right_info" not in d.frames.infos
     assert "rejected" not in d.health.counts
 
 
@@ -266,15 +257,15 @@ def test_a_frame_whose_infos_came_late_charges_the_bad_half_and_the_good_frames_
     """Images before any CameraInfo are judged when the frame is released: a right half of the
     wrong size is charged to ``right_image`` (not the frame's default, ``left_image``), and so is
     a right half of another encoding than its left."""
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = _daemon(port, side_image_wait_s=0.0)
     s1, s2, s3 = 10**9, 2 * 10**9, 3 * 10**9
     _feed(d, "pose", _pose(s1))
     _feed(d, "left_image", codec.encode_image(IMG, s1, "left"))
     _feed(d, "right_image", codec.encode_image(np.ascontiguousarray(IMG[:, : W // 2]), s1, "right"))
-    assert not d.health.rejected and len(d.gate) == 1  # waiting for CameraInfo
+    assert not d.health.rejected and len(d.frames.gate) == 1  # waiting for CameraInfo
     _infos(d)  # releases the frame
-    assert dict(d.health.rejected) == {"right_image: wrong_size": 1} and len(d.gate) == 0
+    assert dict(d.health.rejected) == {"right_image: wrong_size": 1} and len(d.frames.gate) == 0
     (line,) = [r.getMessage() for r in caplog.records if r.getMessage().startswith("rejected")]
     assert line == (
         f"rejected right_image input (wrong_size, #1): right_image: image is ({H}, {W // 2}), "
@@ -294,9 +285,9 @@ def test_a_frame_whose_infos_came_late_charges_the_bad_half_and_the_good_frames_
 def test_a_new_right_camera_info_rebuilds_the_rig(port: int) -> None:
     d = _daemon(port)
     _infos(d)
-    assert d._stereo_rig().baseline_m == pytest.approx(0.05)
+    assert d.frames.stereo_rig().baseline_m == pytest.approx(0.05)
     _feed(d, "right_info", codec.encode_camera_info(RIG.right, 0, "right", 0.1))
-    assert d._stereo_rig().baseline_m == pytest.approx(0.1)
+    assert d.frames.stereo_rig().baseline_m == pytest.approx(0.1)
 
 
 def test_a_frame_waiting_for_its_mask_goes_on_when_the_mask_comes_and_uses_it(port: int) -> None:
@@ -308,7 +299,7 @@ def test_a_frame_waiting_for_its_mask_goes_on_when_the_mask_comes_and_uses_it(po
     _feed(d, "pose", _pose(s))
     _feed(d, "left_image", codec.encode_image(IMG, s, "left"))
     _feed(d, "right_image", codec.encode_image(IMG, s, "right"))
-    assert d.health.counts.get("frames.stereo", 0) == 0 and len(d.gate) == 1
+    assert d.health.counts.get("frames.stereo", 0) == 0 and len(d.frames.gate) == 1
     mask = np.zeros((H, W), np.uint8)
     mask[:, W // 2 :] = 7
     _feed(d, "mask", codec.encode_image(mask, s, "left", "mono8"))
@@ -325,7 +316,7 @@ def test_a_depth_frame_waiting_for_its_std_goes_on_when_the_std_comes(port: int)
     _feed(d, "pose", _pose(s))
     _feed(d, "mask", codec.encode_image(np.full((H, W), 255, np.uint8), s, "left", "mono8"))
     _feed(d, "depth", codec.encode_image(np.full((H, W), 0.5, np.float32), s, "depth"))
-    assert d.health.counts.get("frames.depth", 0) == 0 and len(d.gate) == 1
+    assert d.health.counts.get("frames.depth", 0) == 0 and len(d.frames.gate) == 1
     std = np.full((H, W), 0.01, np.float32)
     _feed(d, "depth_std", codec.encode_image(std, s, "depth", "32FC1"))
     assert d.health.counts["frames.depth"] == 1
@@ -342,7 +333,7 @@ def test_frames_skipped_by_the_rate_limit_let_their_std_images_go(port: int) -> 
         _feed(d, "depth_std", codec.encode_image(np.full((H, W), 0.01, np.float32), s, "depth", "32FC1"))
         _feed(d, "depth", codec.encode_image(np.full((H, W), 0.5, np.float32), s, "depth"))
     assert d.health.counts["frames.skipped_rate"] == 6 and d.health.counts["frames.depth"] == 3
-    assert not d._stds, "the std images of skipped frames are let go"
+    assert not d.frames.stds, "the std images of skipped frames are let go"
 
 
 # --- the status message ---------------------------------------------------------------------------
@@ -392,7 +383,7 @@ def test_input_ages_and_staleness_at_a_given_time(port: int) -> None:
 def test_a_refused_command_is_counted_as_queue_full_or_as_shutting_down(
     port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = _daemon(port)
     n = d.cfg.queues.commands
     assert all(d._offer_command(Command("reset", None)) for _ in range(n))
@@ -413,17 +404,17 @@ def test_a_second_half_of_a_waiting_stamp_is_a_counted_duplicate_drop(port: int)
     _feed(d, "left_image", codec.encode_image(IMG, 10**9, "left"))
     _feed(d, "left_image", codec.encode_image(IMG, 10**9, "left"))
     assert dict(d.health.dropped) == {"unpaired: duplicate_stamp": 1}
-    assert d.pairer.pending() == 1 and d.dropped_total() == 1
+    assert d.frames.pairer.pending() == 1 and d.dropped_total() == 1
 
 
 @pytest.mark.parametrize("role", ["mask", "depth_std"])
 def test_a_side_image_of_another_size_is_charged_to_its_own_input_and_left_out(port: int, role: str) -> None:
     d = _daemon(port)
     same = np.ones((H, W), np.float32)
-    assert d._side_image(role, same, (H, W)) is same
-    assert d._side_image(role, None, (H, W)) is None
+    assert d.frames.side_image(role, same, (H, W)) is same
+    assert d.frames.side_image(role, None, (H, W)) is None
     small = np.ones((H // 2, W), np.float32)
-    assert d._side_image(role, small, (H, W)) is None  # the frame goes on without it
+    assert d.frames.side_image(role, small, (H, W)) is None  # the frame goes on without it
     assert dict(d.health.rejected) == {f"{role}: wrong_size": 1}
 
 
@@ -440,7 +431,7 @@ def test_frames_pushed_out_of_the_full_pose_wait_queue_are_counted_oldest_first(
     for i in range(1, 5):  # no pose comes: four frames for a queue of two
         _feed(d, "depth", codec.encode_image(np.full((H, W), 0.5, np.float32), i * 10**9, "depth"))
     assert dict(d.health.dropped) == {"pose_wait: pose wait queue full": 2}
-    assert len(d.gate) == 2
+    assert len(d.frames.gate) == 2
 
 
 @pytest.mark.parametrize("kind", ["stereo", "depth"])
@@ -452,7 +443,7 @@ def test_a_frame_the_core_refuses_for_its_pose_is_charged_to_the_pose(
     def refuse(**_: Any) -> None:
         raise PugsdError("pose covariance is not positive semi-definite")
 
-    monkeypatch.setattr(f"pugsd.daemon.app.{kind.capitalize()}Frame", refuse)
+    monkeypatch.setattr(f"pugsd.stream.assembler.{kind.capitalize()}Frame", refuse)
     d = _daemon(port, side_image_wait_s=0.0)
     s = 10**9
     if kind == "stereo":

@@ -13,19 +13,20 @@ import numpy as np
 
 from pugsd.config import CoreConfig
 from pugsd.core.pipeline import PugsPipeline
-from pugsd.daemon.app import _bounded_put, _jsonable
+from pugsd.daemon.app import _jsonable
+from pugsd.stream.assembler import bounded_put
 
 
 def test_side_images_keep_exactly_the_newest_cap() -> None:
     d: OrderedDict[int, np.ndarray] = OrderedDict()
     for stamp in range(1, 6):
-        _bounded_put(d, stamp, np.full(2, stamp), 3)
+        bounded_put(d, stamp, np.full(2, stamp), 3)
     assert list(d) == [3, 4, 5]
-    _bounded_put(d, 3, np.full(2, 30), 3)  # a second image of a waiting stamp replaces it
+    bounded_put(d, 3, np.full(2, 30), 3)  # a second image of a waiting stamp replaces it
     assert list(d) == [4, 5, 3] and d[3].tolist() == [30, 30]
-    _bounded_put(d, 6, np.full(2, 6), 3)
+    bounded_put(d, 6, np.full(2, 6), 3)
     assert list(d) == [5, 3, 6]
-    _bounded_put(d, 7, np.full(2, 7), 1)
+    bounded_put(d, 7, np.full(2, 7), 1)
     assert list(d) == [7]
 
 

@@ -180,7 +180,7 @@ def test_a_command_refused_in_a_flood_is_logged_for_the_first_five_then_every_10
 ) -> None:
     d = _daemon()
     d.commands = type(d.commands)("commands", 1, d.commands.policy)
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     oks = [d._offer_command(Command("reset", None)) for _ in range(201)]
     assert oks == [True] + [False] * 200
     lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("command reset rejected")]
@@ -212,7 +212,7 @@ def test_the_wildcard_refusal_names_the_key_and_truncates_what_was_asked(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     d = _daemon()
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d._refuse_wildcard("arm_release", "pugs/" + "x" * 400)
     (line,) = [r.getMessage() for r in caplog.records]
     asked = ("pugs/" + "x" * 400)[:200]
@@ -226,7 +226,7 @@ def test_an_error_while_answering_is_counted_and_answered_with_its_type(
 ) -> None:
     d = _daemon()
     d.latest_grasps = b"g"
-    caplog.set_level(logging.ERROR, logger="pugsd.daemon.app")
+    caplog.set_level(logging.ERROR, logger="pugsd")
     for _ in range(2):
         q = FakeQuery("pugs/grasps/latest", fail_reply=True)
         d._on_query("latest", q)
@@ -407,7 +407,7 @@ def test_an_arm_stop_without_an_arm_or_with_a_failing_one_is_still_answered(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     d = _daemon()
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     q_none, q_fail = FakeQuery("pugs/arm/stop"), FakeQuery("pugs/arm/stop")
 
     async def main() -> None:
@@ -563,7 +563,7 @@ def test_note_train_counts_steps_latches_readiness_and_hides_a_non_finite_elbo(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     d = _daemon()
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     stats = types.SimpleNamespace
     d._note_train(stats(elbo=np.float32(-2.5), ready=False), 3)
     assert (d.elbo, d.ready, d.was_ready) == (-2.5, False, False)
@@ -646,7 +646,7 @@ def test_a_reset_discards_the_computation_before_scoring_or_after_the_grasps() -
 
 def test_results_of_an_older_map_are_counted_and_not_published(caplog: pytest.LogCaptureFixture) -> None:
     d = _daemon()
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     result = FakePipeline().compute()
     d._generation = 2
     d._publish_outputs(result, {"grasps": b"g", "markers": b"m"}, None, 1)
@@ -659,18 +659,18 @@ def test_results_of_an_older_map_are_counted_and_not_published(caplog: pytest.Lo
 
 def test_a_published_cloud_alone_changes_no_grasp_state_and_grasps_end_the_urgency() -> None:
     d = _daemon()
-    d._grasps_urgent = True
-    before = d._last_cloud_published_s
+    d.schedule.grasps_urgent = True
+    before = d.schedule.last_cloud_published_s
     d._publish_outputs(None, {"cloud": b"c"}, None, d._generation)
-    assert _puts(d, "cloud") == [b"c"] and d._last_cloud_published_s > before
-    assert d._grasps_urgent and d.latest_grasps is None and d.grasps_published == 0
+    assert _puts(d, "cloud") == [b"c"] and d.schedule.last_cloud_published_s > before
+    assert d.schedule.grasps_urgent and d.latest_grasps is None and d.grasps_published == 0
     assert "grasps_published" not in d.health.counts
     result = FakePipeline().compute()
     result.model_version = np.int64(12)  # type: ignore[assignment]
-    t0 = d._last_cloud_published_s
+    t0 = d.schedule.last_cloud_published_s
     d._publish_outputs(result, {"grasps": b"g", "markers": b"m"}, time.monotonic(), d._generation)
-    assert d._last_cloud_published_s == t0  # no cloud in this hand-over
-    assert not d._grasps_urgent and d.latest_grasps == b"g" and d.latest_result is result
+    assert d.schedule.last_cloud_published_s == t0  # no cloud in this hand-over
+    assert not d.schedule.grasps_urgent and d.latest_grasps == b"g" and d.latest_result is result
     assert d.model_version == 12 and type(d.model_version) is int
     assert (_puts(d, "grasps"), _puts(d, "markers")) == ([b"g"], [b"m"])
     assert d.health.counts["grasps_published"] == 1 and "newest_frame_to_grasps" in d.health.latency
@@ -705,7 +705,7 @@ def test_a_failed_put_is_logged_for_the_first_ten_of_a_role_then_every_100th(
 
     d = _daemon()
     d._publishers["cloud"] = Refusing()  # type: ignore[assignment]
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     assert [d._put_output("cloud", b"c") for _ in range(200)] == [False] * 200
     counts = [int(r.getMessage().split("(")[1].split(" ")[0]) for r in caplog.records]
     assert counts == [*range(1, 11), 100, 200]
@@ -718,52 +718,54 @@ def test_a_failed_put_is_logged_for_the_first_ten_of_a_role_then_every_100th(
 
 def test_streaming_means_a_frame_queued_or_one_within_pause_publish_s() -> None:
     d = _daemon(pause_publish_s=0.25)
-    assert not d._streaming(100.0)
-    d._last_frame_s = 100.0
-    assert d._streaming(100.24) and not d._streaming(100.25)
+    sch, box = d.schedule, d.depth_box
+    assert not sch.streaming(100.0, len(box))
+    d.schedule.last_frame_s = 100.0
+    assert sch.streaming(100.24, len(box)) and not sch.streaming(100.25, len(box))
     d.depth_box.offer((_depth(1), 0.0))
-    assert d._streaming(500.0)
+    assert sch.streaming(500.0, len(box))
 
 
 def test_the_cloud_gives_way_only_to_a_newer_frame_after_a_pause_within_the_cloud_interval() -> None:
     d = _daemon(pause_publish_s=0.1, cloud_interval_s=5.0)
     now = time.monotonic()
-    d._last_frame_s = now - 10.0  # paused
-    d._last_cloud_published_s = now - 1.0
+    d.schedule.last_frame_s = now - 10.0  # paused
+    d.schedule.last_cloud_published_s = now - 1.0
     assert not d._cloud_gives_way()  # no newer frame
-    d._frame_unpublished = True
+    d.schedule.frame_unpublished = True
     assert d._cloud_gives_way()
-    d._last_cloud_published_s = now - 60.0  # clouds overdue: this one finishes
+    d.schedule.last_cloud_published_s = now - 60.0  # clouds overdue: this one finishes
     assert not d._cloud_gives_way()
-    d._last_cloud_published_s = now - 1.0
-    d._last_frame_s = now + 60.0  # streaming: the grasps are not due at once
+    d.schedule.last_cloud_published_s = now - 1.0
+    d.schedule.last_frame_s = now + 60.0  # streaming: the grasps are not due at once
     assert not d._cloud_gives_way()
-    d._frame_unpublished = False
+    d.schedule.frame_unpublished = False
     d._stopping = True  # shutdown: always
     assert d._cloud_gives_way()
 
 
 def test_grasps_are_due_every_period_and_at_once_after_a_pause() -> None:
     d = _daemon(grasp_rate_hz=2.0, pause_publish_s=0.1, train_steps_per_frame=4)
+    sch, box = d.schedule, d.depth_box
     last = 100.0
-    assert d._grasps_due(100.5, last) and not d._grasps_due(100.49, last)
-    d._frame_unpublished = True
-    d._last_frame_s = 100.1
-    d._steps_since_frame = 4
-    assert d._grasps_due(100.25, last)  # paused 0.15 s after its steps: half a period suffices
-    assert not d._grasps_due(100.249, last)  # not yet half a period
-    assert not d._grasps_due(100.19, last)  # 0.09 s after the frame: still streaming
-    d._steps_since_frame = 3
-    assert not d._grasps_due(100.3, last)  # the newest frame's training steps are not done
-    d._steps_since_frame = 4
-    d._frame_unpublished = False
-    assert not d._grasps_due(100.3, last)
-    d._frame_unpublished = True
-    d._last_frame_s = None
-    assert not d._grasps_due(100.3, last)
+    assert sch.grasps_due(100.5, last, len(box)) and not sch.grasps_due(100.49, last, len(box))
+    d.schedule.frame_unpublished = True
+    d.schedule.last_frame_s = 100.1
+    d.schedule.steps_since_frame = 4
+    assert sch.grasps_due(100.25, last, len(box))  # paused 0.15 s after its steps: half a period suffices
+    assert not sch.grasps_due(100.249, last, len(box))  # not yet half a period
+    assert not sch.grasps_due(100.19, last, len(box))  # 0.09 s after the frame: still streaming
+    d.schedule.steps_since_frame = 3
+    assert not sch.grasps_due(100.3, last, len(box))  # the newest frame's training steps are not done
+    d.schedule.steps_since_frame = 4
+    d.schedule.frame_unpublished = False
+    assert not sch.grasps_due(100.3, last, len(box))
+    d.schedule.frame_unpublished = True
+    d.schedule.last_frame_s = None
+    assert not sch.grasps_due(100.3, last, len(box))
     off = _daemon(grasp_rate_hz=2.0, pause_publish_s=0.0, train_steps_per_frame=4)
-    off._frame_unpublished, off._last_frame_s, off._steps_since_frame = True, 100.1, 4
-    assert not off._grasps_due(100.3, last)
+    off.schedule.frame_unpublished, off.schedule.last_frame_s, off.schedule.steps_since_frame = True, 100.1, 4
+    assert not off.schedule.grasps_due(100.3, last, 0)
 
 
 def _grasp_rounds(d: Daemon, until: Any, timeout_s: float = 5.0) -> None:
@@ -785,28 +787,28 @@ def _grasp_rounds(d: Daemon, until: Any, timeout_s: float = 5.0) -> None:
 
 def test_the_grasp_worker_publishes_a_changed_ready_model_once_with_its_cloud() -> None:
     d = _daemon(grasp_rate_hz=50.0, markers_top_k=1)
-    d.ready = d._changed = True
-    d._frame_id = "odom"
+    d.ready = d.schedule.changed = True
+    d.frames.frame_id = "odom"
     d._newest_stamp_ns = 42
     _grasp_rounds(d, lambda: len(_puts(d, "cloud")) >= 1)
     assert (len(_puts(d, "grasps")), len(_puts(d, "markers")), len(_puts(d, "cloud"))) == (1, 1, 1)
-    assert d.grasps_published == 1 and not d._changed
+    assert d.grasps_published == 1 and not d.schedule.changed
     assert codec.decode_cloud(_puts(d, "cloud")[0]).frame_id == "odom"
     assert _stamp_ns(_puts(d, "grasps")[0], GRASP_ARRAY) == 42
 
 
 def test_the_grasp_worker_publishes_no_cloud_when_it_is_off_and_nothing_unready_without_the_latch() -> None:
     d = _daemon(grasp_rate_hz=50.0, publish_cloud=False)
-    d.ready = d._changed = True
+    d.ready = d.schedule.changed = True
     _grasp_rounds(d, lambda: d.grasps_published >= 1)
     assert d.grasps_published == 1 and _puts(d, "cloud") == []
     unlatched = _daemon(grasp_rate_hz=50.0, ready_latch=False)
-    unlatched.was_ready = unlatched._changed = True
+    unlatched.was_ready = unlatched.schedule.changed = True
     t_end = time.monotonic() + 0.3  # an observation window (about 15 rounds), not a synchronisation
     _grasp_rounds(unlatched, lambda: time.monotonic() > t_end)
     assert unlatched.grasps_published == 0 and _puts(unlatched, "grasps") == []
     latched = _daemon(grasp_rate_hz=50.0, publish_cloud=False)
-    latched.was_ready = latched._changed = True
+    latched.was_ready = latched.schedule.changed = True
     _grasp_rounds(latched, lambda: latched.grasps_published >= 1)
     assert latched.grasps_published == 1
 
@@ -817,10 +819,10 @@ def test_the_grasp_worker_publishes_no_cloud_when_it_is_off_and_nothing_unready_
 def test_a_reset_clears_the_model_state_and_publishes_empties_on_the_old_time_line() -> None:
     d = _daemon(publish_cloud=False)
     d._newest_stamp_ns = 3 * 10**9
-    d._frame_id = "odom"
+    d.frames.frame_id = "odom"
     d.latest_grasps, d.latest_result = b"g", FakePipeline().compute()
-    d.ready = d.was_ready = d._changed = d._frame_unpublished = True
-    d.elbo, d._last_frame_s, d._newest_recv_s = -1.0, 5.0, 4.0
+    d.ready = d.was_ready = d.schedule.changed = d.schedule.frame_unpublished = True
+    d.elbo, d.schedule.last_frame_s, d._newest_recv_s = -1.0, 5.0, 4.0
     d.health.failed("integrate")
     d._grasps_logged_s = 10.0
 
@@ -832,9 +834,10 @@ def test_a_reset_clears_the_model_state_and_publishes_empties_on_the_old_time_li
             _shutdown(d)
 
     asyncio.run(main())
-    assert (d.latest_grasps, d.latest_result, d._changed) == (None, None, False)
+    assert (d.latest_grasps, d.latest_result, d.schedule.changed) == (None, None, False)
     assert (d.ready, d.was_ready) == (False, False)
-    assert (d._frame_unpublished, d._last_frame_s, d._newest_recv_s, d.elbo) == (False, None, None, None)
+    sch = d.schedule
+    assert (sch.frame_unpublished, sch.last_frame_s, d._newest_recv_s, d.elbo) == (False, None, None, None)
     assert d._grasps_logged_s == -math.inf and d.health.counts["resets"] == 1
     assert "integrate" not in d.health.failures and d._newest_stamp_ns == 0 and not d._resetting
     assert _puts(d, "cloud") == []  # publish_cloud off
@@ -864,9 +867,9 @@ def test_cleared_outputs_skip_roles_without_a_publisher_and_survive_a_failed_put
 
 def test_the_skew_summary_is_median_min_max_in_seconds_rounded() -> None:
     d = _daemon()
-    assert d._skew_summary() == {"n": 0}
-    d._stamp_skew_s.extend([0.123456, -0.20034, 0.30006, 0.05])
-    assert d._skew_summary() == {"n": 4, "p50": 0.0867, "min": -0.2003, "max": 0.3001}
+    assert d.frames.skew_summary() == {"n": 0}
+    d.frames.stamp_skew_s.extend([0.123456, -0.20034, 0.30006, 0.05])
+    assert d.frames.skew_summary() == {"n": 4, "p50": 0.0867, "min": -0.2003, "max": 0.3001}
 
 
 def test_input_ages_and_staleness(caplog: pytest.LogCaptureFixture) -> None:
@@ -877,7 +880,7 @@ def test_input_ages_and_staleness(caplog: pytest.LogCaptureFixture) -> None:
     assert d.stale_inputs(10.0) == ["left_image"]  # depth exactly at the limit: not stale
     assert d.stale_inputs(12.1) == ["depth", "left_image", "pose"]
     assert _daemon(input_stale_s=0.0).stale_inputs(1e9) == []
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     now = time.monotonic()
     d._last_recv_s = {"pose": now - 3.0, "left_image": now - 5.0}
     d._report_stale(["left_image"])
@@ -901,7 +904,7 @@ def test_status_reports_its_counters_and_survives_a_failing_pipeline() -> None:
     d.query_ingress.dropped = 3
     d.deletes_ignored = 4
     d.bridge_errors["pose"] = 2
-    d._pose_publisher = bytes(range(16))
+    d.frames.pose_publisher = bytes(range(16))
     d.model_version, d.elbo, d.grasps_published = 7, -1.5, 9
     st = d.status()
     assert st["pipeline"] == {"error": "cuda gone"}
@@ -964,7 +967,7 @@ def test_close_stops_the_recorder_and_names_the_last_five_files(caplog: pytest.L
     d = _daemon(shutdown_timeout_s=3.5)
     d._own_session = False
     d.recorder = Rec()
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     d._close()
     assert stopped == [3.5] and d.recorder is None
     files = "f3.mcap, f4.mcap, f5.mcap, f6.mcap, f7.mcap (and 2 earlier)"
@@ -1010,7 +1013,7 @@ def test_the_grasp_worker_counts_each_outcome_of_a_round(caplog: pytest.LogCaptu
             return None
 
     d = _daemon(Preempting(), grasp_rate_hz=50.0)
-    d.ready = d._changed = True
+    d.ready = d.schedule.changed = True
     _grasp_rounds(d, lambda: d.health.counts["clouds_preempted"] >= 1)
     assert d.health.counts["clouds_preempted"] == 1 and _puts(d, "cloud") == []
     assert d.grasps_published == 1 and "clouds_discarded" not in d.health.counts
@@ -1026,7 +1029,7 @@ def test_the_grasp_worker_counts_each_outcome_of_a_round(caplog: pytest.LogCaptu
     pipe = ResetDuringCloud()
     d = _daemon(pipe, grasp_rate_hz=50.0)
     pipe.daemon = d
-    d.ready = d._changed = True
+    d.ready = d.schedule.changed = True
     _grasp_rounds(d, lambda: d.health.counts["clouds_discarded"] >= 1)
     assert d.health.counts["clouds_discarded"] == 1 and _puts(d, "cloud") == []
     # (its grasps were handed over before the reset: the loop may have published them before the
@@ -1043,8 +1046,8 @@ def test_the_grasp_worker_counts_each_outcome_of_a_round(caplog: pytest.LogCaptu
     pipe2 = ResetBeforeScoring()
     d = _daemon(pipe2, grasp_rate_hz=50.0)
     pipe2.daemon = d
-    d.ready = d._changed = True
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    d.ready = d.schedule.changed = True
+    caplog.set_level(logging.INFO, logger="pugsd")
     _grasp_rounds(d, lambda: d.health.counts["grasps_discarded"] >= 1)
     assert d.health.counts["grasps_discarded"] == 1 and d.grasps_published == 0
     assert all(_puts(d, r) == [] for r in ROLES)
@@ -1066,7 +1069,7 @@ def test_a_grasp_round_handed_over_after_a_reset_publishes_nothing() -> None:
     pipe = ResetAfterScoring()
     d = _daemon(pipe, grasp_rate_hz=50.0)
     pipe.daemon = d
-    d.ready = d._changed = True
+    d.ready = d.schedule.changed = True
     _grasp_rounds(d, lambda: d.health.counts["grasps_discarded"] >= 1)
     assert d.health.counts["grasps_discarded"] == 1
     assert d.grasps_published == 0 and _puts(d, "grasps") == [] and d.latest_grasps is None
@@ -1075,7 +1078,7 @@ def test_a_grasp_round_handed_over_after_a_reset_publishes_nothing() -> None:
 def test_while_frames_stream_the_first_cloud_waits_for_the_cloud_interval() -> None:
     """Streaming (a frame queued): grasps go out, the whole cloud not before cloud_interval_s."""
     d = _daemon(grasp_rate_hz=50.0, cloud_interval_s=60.0)
-    d.ready = d._changed = True
+    d.ready = d.schedule.changed = True
     d.depth_box.offer((_depth(1), 0.0))  # a frame waits: the input streams
     _grasp_rounds(d, lambda: d.grasps_published >= 1)
     assert d.grasps_published == 1 and _puts(d, "cloud") == []
@@ -1083,11 +1086,11 @@ def test_while_frames_stream_the_first_cloud_waits_for_the_cloud_interval() -> N
 
 def test_no_grasp_round_starts_while_a_reset_is_in_progress() -> None:
     d = _daemon(grasp_rate_hz=50.0)
-    d.ready = d._changed = True
+    d.ready = d.schedule.changed = True
     d._resetting = True
     t_end = time.monotonic() + 0.3  # an observation window (about 15 rounds), not a synchronisation
     _grasp_rounds(d, lambda: time.monotonic() > t_end)
-    assert d.grasps_published == 0 and d._changed and _puts(d, "grasps") == []
+    assert d.grasps_published == 0 and d.schedule.changed and _puts(d, "grasps") == []
 
 
 def test_the_grasp_worker_marks_grasps_for_a_new_frame_urgent_while_they_are_computed() -> None:
@@ -1100,15 +1103,15 @@ def test_the_grasp_worker_marks_grasps_for_a_new_frame_urgent_while_they_are_com
 
         def propose(self, inp: int) -> int:
             assert self.daemon is not None
-            seen.append(self.daemon._grasps_urgent)
+            seen.append(self.daemon.schedule.grasps_urgent)
             return inp
 
     pipe = Watching()
     d = _daemon(pipe, grasp_rate_hz=50.0, publish_cloud=False)
     pipe.daemon = d
-    d.ready = d._changed = d._frame_unpublished = True
+    d.ready = d.schedule.changed = d.schedule.frame_unpublished = True
     _grasp_rounds(d, lambda: d.grasps_published >= 1)
-    assert seen == [True] and not d._grasps_urgent and not d._frame_unpublished
+    assert seen == [True] and not d.schedule.grasps_urgent and not d.schedule.frame_unpublished
 
 
 def test_a_status_query_with_numpy_values_and_nan_is_answered_in_strict_json() -> None:
@@ -1176,7 +1179,7 @@ def test_a_failed_reset_withholds_grasps_and_makes_the_daemon_unhealthy_until_on
     st = d.status()
     assert st["healthy"] is False and st["problems"] == [problem] and d.problems() == [problem]
     cleared = len(_puts(d, "grasps"))  # the empty GraspArray of the reset
-    d.ready = d._changed = True  # the old map's model trains on and is ready again
+    d.ready = d.schedule.changed = True  # the old map's model trains on and is ready again
     t_end = time.monotonic() + 0.3  # an observation window (about 15 rounds), not a synchronisation
     _grasp_rounds(d, lambda: time.monotonic() > t_end)
     assert d.grasps_published == 0 and len(_puts(d, "grasps")) == cleared
@@ -1186,6 +1189,6 @@ def test_a_failed_reset_withholds_grasps_and_makes_the_daemon_unhealthy_until_on
     d._depth_exec, d._model_exec, d._grasp_exec = (concurrent.futures.ThreadPoolExecutor(1) for _ in range(3))
     asyncio.run(reset())
     assert pipe.resets == 1 and d.problems() == [] and d.status()["healthy"] is True
-    d.ready = d._changed = True
+    d.ready = d.schedule.changed = True
     _grasp_rounds(d, lambda: d.grasps_published >= 1)
     assert d.grasps_published == 1

@@ -41,7 +41,7 @@ def test_a_recorder_that_raises_on_start_leaves_the_daemon_serving(
         base(f)
 
     notifier.on_send = on_send
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     asyncio.run(asyncio.wait_for(d.run(stop), 10.0))
     assert "READY=1" in notifier.sent
     (st,) = seen

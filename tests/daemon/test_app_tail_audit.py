@@ -147,7 +147,7 @@ def test_guard_logs_the_first_failure_with_its_traceback_then_2_to_5_and_every_1
     async def main() -> list[Any]:
         return [await d._guard("grasps", bad(i)) for i in range(1, 206)]
 
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     try:
         assert asyncio.run(main()) == [None] * 205
     finally:
@@ -184,7 +184,7 @@ def test_guard_counts_per_stage_and_a_rejection_is_not_an_error(caplog: pytest.L
         await d._guard("train", rejected())
         await d._guard("integrate", off_map())  # every later frame fails alike: a failure too
 
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     try:
         asyncio.run(main())
     finally:
@@ -207,7 +207,7 @@ def test_bridge_errors_are_all_counted_per_input_and_logged_rate_limited(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     d = _daemon()
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     try:
         for i in range(1, 206):
             d._bridge_error("pose", ValueError(f"bad attachment {i}"))
@@ -226,7 +226,7 @@ def test_bridge_errors_are_all_counted_per_input_and_logged_rate_limited(
 def test_upstream_gaps_are_all_counted_and_logged_rate_limited(caplog: pytest.LogCaptureFixture) -> None:
     d = _daemon()
     d._stopping = True  # counted and logged on arrival; nothing is dispatched
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     try:
         for i in range(1, 106):
             assert d.ingress.enter()
@@ -313,7 +313,7 @@ def test_close_names_five_files_and_counts_the_rest_only_past_five(
     d = _daemon()
     d._own_session = False
     d.recorder = _Rec(n)
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     try:
         d._close()
     finally:

@@ -23,7 +23,7 @@ def _grasp_lines(caplog: pytest.LogCaptureFixture) -> list[str]:
 def test_published_grasps_are_not_logged_once_per_publication(
     port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     pipe = FakePipeline()
     d = Daemon(load_config_dict(daemon_config_dict(port)), pipe)
     d._publishers = {r: RecordingPublisher() for r in ("grasps", "markers", "cloud", "status")}

@@ -27,7 +27,7 @@ class _Recorder:
 def test_the_shutdown_line_does_not_grow_with_the_recorded_files(
     port: int, n: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     d = Daemon(load_config_dict(daemon_config_dict(port)), FakePipeline())
     rec = d.recorder = _Recorder(n)
     d._close()

@@ -64,7 +64,7 @@ def test_a_second_localiser_is_refused_while_the_first_is_heard(
     """Two localisers at 10 Hz, the second on another clock (stamps 5 s behind) and with another
     estimate: before, every pose of both went into the buffer, which restarted on each change of
     clock; now only the first one's poses are taken, and each of the second's is counted."""
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = _daemon(port)
     f = Feed(d)
     for i in range(50):
@@ -86,7 +86,7 @@ def test_a_second_localiser_is_refused_while_the_first_is_heard(
         in status_lines(st)
     )
     # the buffer holds the first localiser's estimate only
-    s = d.poses.lookup(T0 + 25 * 10**8 + 5 * 10**7)
+    s = d.frames.poses.lookup(T0 + 25 * 10**8 + 5 * 10**7)
     assert s.state == "ready" and s.T_W_C is not None
     assert s.T_W_C[0, 3] == pytest.approx(0.255)
     logged = [r.getMessage() for r in caplog.records if "second_publisher" in r.getMessage()]
@@ -97,7 +97,7 @@ def test_a_second_localiser_is_refused_while_the_first_is_heard(
 def test_a_restarted_localiser_is_followed_after_the_hold(
     port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = _daemon(port, pose_publisher_hold_s=1.0)
     f = Feed(d)
     for i in range(10):
@@ -145,7 +145,7 @@ def test_a_malformed_pose_does_not_claim_the_topic(port: int) -> None:
 def test_status_counts_the_publishers_heard_lately_and_logs_a_second_one(
     port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = _daemon(port)
     t = d.upstream
     for k in range(4):  # two camera drivers, each at 1 Hz, half a second apart
@@ -187,7 +187,7 @@ def test_a_pose_source_slower_than_the_hold_is_warned_of_once(
     """A 0.5 Hz pose source with the 1 s hold: in each of its gaps a second publisher would be
     followed, so the daemon says once that the hold is shorter than the source's period. A source
     faster than the hold gets no warning."""
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = _daemon(port, pose_publisher_hold_s=1.0)
     f = Feed(d)
     for i in range(10):  # 10 Hz: no warning

@@ -40,7 +40,7 @@ def test_grasps_scored_across_a_reset_are_not_published() -> None:
     d._publishers = pubs  # type: ignore[assignment]
 
     async def main() -> tuple[int, int]:
-        d.ready = d.was_ready = d._changed = True
+        d.ready = d.was_ready = d.schedule.changed = True
         async with running_worker(d, d._grasp_worker()):
             # the computation is inside score (model lock held)
             assert await asyncio.to_thread(pipe.scoring.wait, 10.0)
@@ -90,7 +90,7 @@ def test_a_reset_during_idle_training_rejects_nothing() -> None:
     d._publishers = {role: RecordingPublisher() for role in ("grasps", "markers", "cloud", "status")}  # type: ignore[assignment]
 
     async def main() -> None:
-        d._last_frame_s = time.monotonic()  # a frame was integrated: idle training rounds run
+        d.schedule.last_frame_s = time.monotonic()  # a frame was integrated: idle training rounds run
         async with running_worker(d, d._model_worker()):
             assert await asyncio.to_thread(pipe.training.wait, 10.0)  # a step holds the model lock
             reset = asyncio.create_task(d._reset())  # bumps the generation, waits for the lock

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from pugsd.daemon.timesync import (
+from pugsd.stream.timesync import (
     ExactPairer,
     PoseBuffer,
     PoseGate,

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pugsd.daemon.timesync import (
+from pugsd.stream.timesync import (
     ExactPairer,
     PoseBuffer,
     PoseGate,
