@@ -42,6 +42,7 @@ import zenoh
 
 from pugsd.config import config_warnings
 from pugsd.core.types import DepthFrame, ScoredGrasps, StereoFrame
+from pugsd.daemon.arm_bridge import ArmBridge
 from pugsd.daemon.health import Health, Reporter
 from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier, watchdog_interval_s
@@ -190,12 +191,7 @@ class Daemon:
         )
         self.depth_box: Mailbox[tuple[DepthFrame, float]] = Mailbox("depth", q.depth, Overflow.DROP_OLDEST)
         self.commands: Mailbox[Command] = Mailbox("commands", q.commands, Overflow.REJECT)
-        # one arm motion at a time; a second request is rejected, never queued behind the first
-        # (grasps, grasp id, width, the map generation they belong to)
-        self.arm_box: Mailbox[tuple[Any, int, float | None, int]] = Mailbox("arm", 1, Overflow.REJECT)
-        self.arm: Any = None  # pugsd.arm.controller.ArmController when [arm] enabled
-        self.arm_report: dict[str, Any] | None = None
-        self._arm_stop_tasks: set[asyncio.Task[None]] = set()  # arm/stop requests being sent
+        self.arm = ArmBridge(self)
         self.schedule = StreamingSchedule(d)  # on time.monotonic()
         self._publishers_reported: dict[str, int] = {}  # inputs logged with several publishers
         # (time, frames pushed out of the stereo and depth queues, frames emitted, integrated) at
@@ -323,12 +319,12 @@ class Daemon:
                     "status": tg.create_task(self._status_worker(), name="status"),
                     "watchdog": tg.create_task(self._watchdog_worker(), name="watchdog"),
                     "gate": tg.create_task(self._gate_worker(), name="gate"),
-                    "arm": tg.create_task(self._arm_worker(), name="arm"),
+                    "arm": tg.create_task(self.arm.worker(), name="arm"),
                 }
                 tg.create_task(self._supervise(stop, workers), name="supervisor")
         finally:
             self.notifier.send("STOPPING=1")
-            await self._stop_arm()
+            await self.arm.close()
             self._close()
             for ex in (self._depth_exec, self._model_exec, self._grasp_exec):
                 ex.shutdown(wait=False, cancel_futures=True)
@@ -349,7 +345,7 @@ class Daemon:
         log.info("shutdown: stopping intake")
         self._stopping = True
         self._undeclare_subscribers()
-        for box in (self.stereo_box, self.depth_box, self.commands, self.arm_box):
+        for box in (self.stereo_box, self.depth_box, self.commands, self.arm.box):
             box.close()
         busy: list[asyncio.Task[None]] = []
         for name, task in workers.items():
@@ -376,11 +372,7 @@ class Daemon:
             log.warning(
                 "shutdown: left unprocessed: %s", ", ".join(f"{n} in the {k} queue" for k, n in left.items())
             )
-        why = "the daemon shut down before the motion started"
-        while (item := self.arm_box.take_nowait()) is not None:
-            grasp_id = item[1]
-            log.warning("arm: grasp %d not executed: %s", grasp_id, why)
-            self._publish_arm_report({"grasp_id": grasp_id, "ok": False, "error": why})
+        self.arm.cancel_queued()
 
     def _undeclare_subscribers(self) -> None:
         for tok in self._sub_graph_tokens:
@@ -397,143 +389,18 @@ class Daemon:
             log.debug("undeclare failed: %s", exc)
 
     async def _start_arm(self) -> None:
-        """Connect to the arm when the config enables it; motion only on explicit requests."""
-        if not self.cfg.arm.enabled:
+        """Connect to the arm when the config enables it and declare its keys."""
+        if not await self.arm.start():
             return
-        from pugsd.arm.controller import ArmController  # only when the arm is enabled
-
-        self.arm = ArmController(self.cfg.arm)
-        await self.arm.start()
         s = self.session
         for kind in ("arm_execute", "arm_stop", "arm_release"):
             self._entities.append(s.declare_queryable(self.key(_QUERY_KEYS[kind]), self._bridge_query(kind)))
-        on_put = self._bridge_control_put(self._on_arm_stop_put, self.stop_ingress)
+        on_put = self._bridge_control_put(self.arm.on_stop_put, self.stop_ingress)
         self._entities.append(s.declare_subscriber(self.key("arm/stop"), on_put))
         log.info(
             "arm enabled (%s); execute on %s, stop on %s, release on %s",
-            self.cfg.arm.transport,
-            self.key("arm/execute"),
-            self.key("arm/stop"),
-            self.key("arm/release"),
-        )
-
-    async def _stop_arm(self) -> None:
-        if self.arm is None:
-            return
-        try:
-            await self.arm.close()  # sends zero velocity and the safe mode
-        except Exception as exc:
-            log.error("arm: stop on shutdown failed: %s", exc)
-        self.arm = None
-
-    def _on_arm_execute(self, query: Any) -> str:
-        """Validate an ``<prefix>/arm/execute`` request and queue it; returns the reply text."""
-        from pugsd.arm.controller import parse_execute_request
-
-        if self.arm is None:
-            raise InputRejected("disabled", "arm disabled: set [arm] enabled = true to allow motion")
-        payload = query.payload.to_bytes() if query.payload is not None else b""
-        try:
-            grasp_id, width_m = parse_execute_request(payload)
-        except PugsdError as exc:
-            raise InputRejected("bad_request", str(exc)[:300]) from None
-        except (RecursionError, OverflowError, ValueError) as exc:  # deep nesting, huge numbers
-            msg = f"arm/execute: unreadable request ({type(exc).__name__})"
-            raise InputRejected("bad_request", msg) from None
-        if self._stopping:  # the arm box is closed: "busy" would mislead
-            raise InputRejected("shutting_down", "the daemon is shutting down")
-        if self.arm.stop_latched is not None:
-            msg = f"stopped ({self.arm.stop_latched}): query {self.key('arm/release')} first"
-            raise InputRejected("stopped", msg[:300])
-        if self._resetting:  # latest_result is the map being cleared
-            raise InputRejected("resetting", "no grasps: the map is being reset")
-        result = self.latest_result
-        if result is None:
-            raise InputRejected("not_ready", "no grasps yet: model not ready")
-        if grasp_id not in {int(g) for g in result.grasps.grasp_id}:
-            raise InputRejected("unknown_grasp", f"grasp id {grasp_id} is not among the latest grasps")
-        item = (result.grasps, grasp_id, width_m, self._generation)
-        if self._busy.get("arm") or not self.arm_box.offer(item):
-            raise InputRejected("busy", "busy: an arm motion is in progress")
-        return f"accepted: grasp {grasp_id}"
-
-    def _arm_stop(self, source: str, query: Any = None) -> None:
-        """``<prefix>/arm/stop`` (query or put): stop the arm at once, here on the event loop, not
-        through the arm mailbox, so it never waits behind a running motion; the stop latches
-        (execute is refused until ``<prefix>/arm/release``). The reply follows once it is sent."""
-        self.health.count("arm.stops")
-        log.warning("arm: stop requested (%s)", source)
-        if len(self._arm_stop_tasks) >= 8:  # a flood of stops: those on their way do the job
-            if query is not None:
-                with query, contextlib.suppress(Exception):
-                    query.reply(self.key("arm/stop"), "stopping: a stop is already being sent")
-            return
-        task = asyncio.get_running_loop().create_task(self._arm_stop_send(source, query), name="arm-stop")
-        self._arm_stop_tasks.add(task)
-        task.add_done_callback(self._arm_stop_tasks.discard)
-
-    async def _arm_stop_send(self, source: str, query: Any) -> None:
-        key = self.key("arm/stop")
-        with query if query is not None else contextlib.nullcontext():
-            try:
-                if self.arm is None:
-                    if query is not None:
-                        query.reply_err("rejected: arm disabled or shut down")
-                    return
-                await self.arm.stop(reason=f"{key} ({source})")
-                if query is not None:
-                    query.reply(
-                        key,
-                        f"stopped: zero velocity and {self.cfg.arm.safety.safe_mode} sent; motion "
-                        f"is refused until {self.key('arm/release')}",
-                    )
-            except Exception as exc:  # a bug: count and log, answer, keep serving
-                self.report.internal_error("errors.query.arm_stop", "stopping the arm", exc)
-                if query is not None:
-                    with contextlib.suppress(Exception):
-                        query.reply_err(f"internal error: {type(exc).__name__}")
-
-    def _on_arm_release(self) -> str:
-        """``<prefix>/arm/release`` (exact key only): clear a latched stop; returns the reply."""
-        if self.arm is None:
-            raise InputRejected("disabled", "arm disabled: set [arm] enabled = true to allow motion")
-        was = self.arm.release_stop()
-        self.health.count("arm.releases")
-        log.warning("arm: stop released (was: %s)", was)
-        return f"released (was: {was})" if was is not None else "not stopped: nothing to release"
-
-    def _on_arm_stop_put(self, key_expr: str) -> None:
-        if key_expr == self.key("arm/stop"):
-            self._arm_stop("put")
-        else:  # a put on a wildcard (``pugs/**``) is data for someone else, not a stop request
-            self._refuse_wildcard("arm_stop", key_expr)
-
-    async def _arm_worker(self) -> None:
-        while not self._stopping:
-            grasps, grasp_id, width_m, generation = await self.arm_box.take()
-            self._busy["arm"] = True
-            try:
-                async with self._motion_lock:
-                    if generation != self._generation:  # a reset ran while it waited for the lock
-                        raise InputRejected("reset", "the map was reset since the request")
-                    rep = await self.arm.execute_grasp_id(grasps, grasp_id, width_m)
-                report = _jsonable(rep.to_dict())
-            except PugsdError as exc:
-                log.warning("arm: grasp %d refused or failed: %s", grasp_id, exc)
-                report = {"grasp_id": grasp_id, "ok": False, "error": str(exc)}
-            except Exception as exc:  # keep serving; the controller has already stopped the arm
-                log.error("arm: grasp %d failed: %s", grasp_id, exc)
-                report = {"grasp_id": grasp_id, "ok": False, "error": repr(exc)}
-            finally:
-                self._busy["arm"] = False
-            self._publish_arm_report(report)
-
-    def _publish_arm_report(self, report: dict[str, Any]) -> None:
-        self.arm_report = report
-        try:
-            self.session.put(self.key("arm/report"), json.dumps(report))
-        except Exception as exc:
-            log.warning("arm: could not publish the report: %s", exc)
+            self.cfg.arm.transport, self.key("arm/execute"), self.key("arm/stop"), self.key("arm/release"),
+        )  # fmt: skip
 
     def _start_recorder(self) -> None:
         if not self.cfg.record.enabled:
@@ -722,7 +589,7 @@ class Daemon:
         reply."""
         key = self.key(_QUERY_KEYS[kind])
         if kind == "arm_stop" and str(query.key_expr) == key:
-            self._arm_stop("query", query)  # answered by the stop task once the stop is sent
+            self.arm.stop("query", query)  # answered by the stop task once the stop is sent
             return
         with query:
             try:
@@ -740,7 +607,7 @@ class Daemon:
                     query.reply(key, json.dumps(_jsonable(self.status())))
                 elif kind == "arm_execute":
                     try:
-                        query.reply(key, self._on_arm_execute(query))
+                        query.reply(key, self.arm.on_execute(query))
                     except PugsdError as exc:
                         if not isinstance(exc, InputRejected):
                             exc = InputRejected("refused", str(exc))
@@ -748,7 +615,7 @@ class Daemon:
                         query.reply_err(f"rejected: {exc}")
                 elif kind == "arm_release":
                     try:
-                        query.reply(key, self._on_arm_release())
+                        query.reply(key, self.arm.on_release())
                     except PugsdError as exc:
                         if not isinstance(exc, InputRejected):
                             exc = InputRejected("refused", str(exc))

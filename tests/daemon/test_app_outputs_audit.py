@@ -193,7 +193,7 @@ def test_a_command_refused_in_a_flood_is_logged_for_the_first_five_then_every_10
 @pytest.mark.parametrize("kind", ["reset", "arm_execute", "arm_release", "arm_stop"])
 def test_a_state_changing_queryable_refuses_a_wildcard_query(kind: str) -> None:
     d = _daemon()
-    d.arm = StopArm(was="tripped")
+    d.arm.controller = StopArm(was="tripped")
     d.latest_result = FakePipeline().compute()
     q = FakeQuery("pugs/**", b"1")
     d._on_query(kind, q)
@@ -204,7 +204,7 @@ def test_a_state_changing_queryable_refuses_a_wildcard_query(kind: str) -> None:
     assert q.errors == [f"rejected: pugs/{key[kind]} acts only on a query for exactly that key"]
     source = "reset" if kind == "reset" else "arm"
     assert dict(d.health.rejected) == {f"{source}: wildcard_key": 1}
-    assert len(d.commands) == 0 and len(d.arm_box) == 0 and "arm.stops" not in d.health.counts
+    assert len(d.commands) == 0 and len(d.arm.box) == 0 and "arm.stops" not in d.health.counts
     assert "arm.releases" not in d.health.counts
 
 
@@ -256,7 +256,7 @@ def test_arm_execute_refusals_and_the_queued_request() -> None:
 
     assert ask(b"1").errors == ["rejected: arm disabled: set [arm] enabled = true to allow motion"]
     arm = StopArm()
-    d.arm = arm
+    d.arm.controller = arm
     arm.stop_latched = "operator"
     assert ask(b"1").errors == ["rejected: stopped (operator): query pugs/arm/release first"]
     arm.stop_latched = None
@@ -264,12 +264,12 @@ def test_arm_execute_refusals_and_the_queued_request() -> None:
     d.latest_result = FakePipeline().compute()
     d._busy["arm"] = True  # the worker took the last request: the mailbox is empty
     assert ask(b"1").errors == ["rejected: busy: an arm motion is in progress"]
-    assert len(d.arm_box) == 0
+    assert len(d.arm.box) == 0
     d._busy["arm"] = False
     d._generation = 3
     q = ask(b'{"grasp_id": 2, "width_m": 0.04}')
     assert q.replies == [("pugs/arm/execute", "accepted: grasp 2")] and q.errors == []
-    grasps, gid, width_m, gen = d.arm_box.take_nowait()  # type: ignore[misc]
+    grasps, gid, width_m, gen = d.arm.box.take_nowait()  # type: ignore[misc]
     assert (gid, width_m, gen) == (2, 0.04, 3) and grasps is d.latest_result.grasps
     assert dict(d.health.rejected) == {
         "arm: disabled": 1,
@@ -283,10 +283,10 @@ def test_arm_execute_during_shutdown_is_refused_as_such_not_as_busy() -> None:
     """The arm mailbox closes at shutdown: a request then was answered "busy: an arm motion is
     in progress" although no motion ran."""
     d = _daemon()
-    d.arm = StopArm()  # type: ignore[assignment]
+    d.arm.controller = StopArm()  # type: ignore[assignment]
     d.latest_result = FakePipeline().compute()
     d._stopping = True
-    d.arm_box.close()
+    d.arm.box.close()
     q = FakeQuery("pugs/arm/execute", b"1")
     d._on_query("arm_execute", q)
     assert q.errors == ["rejected: the daemon is shutting down"] and q.replies == []
@@ -328,7 +328,7 @@ def test_shutdown_reports_what_was_left_queued_and_answers_an_accepted_arm_reque
     depth = DepthFrame(1, np.ones((RIG.left.height, RIG.left.width), np.float32), RIG.left, np.eye(4))
     assert d.depth_box.offer((depth, 0.0)) and d.depth_box.offer((depth, 0.1))
     assert d.commands.offer(Command("reset", None))
-    assert d.arm_box.offer((None, 4, None, 0))
+    assert d.arm.box.offer((None, 4, None, 0))
     with caplog.at_level(logging.WARNING, logger="pugsd"):
         d._report_unprocessed()
     text = caplog.text
@@ -337,7 +337,7 @@ def test_shutdown_reports_what_was_left_queued_and_answers_an_accepted_arm_reque
     assert d.health.counts["shutdown_unprocessed"] == 3
     report = {"grasp_id": 4, "ok": False, "error": "the daemon shut down before the motion started"}
     assert [(k, json.loads(v)) for k, v in session.puts] == [("pugs/arm/report", report)]
-    assert d.arm_report == report and len(d.arm_box) == 0
+    assert d.arm.report == report and len(d.arm.box) == 0
     assert "arm: grasp 4 not executed: the daemon shut down before the motion started" in text
 
 
@@ -349,11 +349,11 @@ def test_shutdown_with_empty_queues_says_nothing_and_a_failed_report_put_is_logg
     with caplog.at_level(logging.WARNING, logger="pugsd"):
         d._report_unprocessed()
     assert caplog.text == "" and "shutdown_unprocessed" not in d.health.counts
-    assert d.arm_box.offer((None, 7, 0.03, 0))
+    assert d.arm.box.offer((None, 7, 0.03, 0))
     with caplog.at_level(logging.WARNING, logger="pugsd"):
         d._report_unprocessed()  # the put fails: logged, no raise, the report is still kept
     assert "arm: could not publish the report: session closed" in caplog.text
-    assert d.arm_report is not None and d.arm_report["grasp_id"] == 7
+    assert d.arm.report is not None and d.arm.report["grasp_id"] == 7
 
 
 def test_arm_release_replies_and_counts() -> None:
@@ -367,7 +367,7 @@ def test_arm_release_replies_and_counts() -> None:
     q = release()
     assert q.errors == ["rejected: arm disabled: set [arm] enabled = true to allow motion"]
     arm = StopArm(was="pugs/arm/stop (put)")
-    d.arm = arm
+    d.arm.controller = arm
     assert release().replies == [("pugs/arm/release", "released (was: pugs/arm/stop (put))")]
     arm.was = None
     assert release().replies == [("pugs/arm/release", "not stopped: nothing to release")]
@@ -383,24 +383,24 @@ def test_a_flood_of_arm_stops_sends_eight_and_answers_every_one() -> None:
     no task; each of the eight is answered once its stop was sent, naming the safe mode."""
     d = _daemon()
     arm = StopArm()
-    d.arm = arm
+    d.arm.controller = arm
     queries = [FakeQuery("pugs/arm/stop") for _ in range(9)]
 
     async def main() -> None:
         for q in queries:
             d._on_query("arm_stop", q)
-        assert len(d._arm_stop_tasks) == 8
+        assert len(d.arm.stop_tasks) == 8
         assert queries[8].replies == [("pugs/arm/stop", "stopping: a stop is already being sent")]
         await asyncio.sleep(0)
         arm.go.set()
-        await asyncio.gather(*list(d._arm_stop_tasks))
+        await asyncio.gather(*list(d.arm.stop_tasks))
 
     asyncio.run(main())
     assert d.health.counts["arm.stops"] == 9 and arm.stops == ["pugs/arm/stop (query)"] * 8
     text = "stopped: zero velocity and disable sent; motion is refused until pugs/arm/release"
     for q in queries[:8]:
         assert q.replies == [("pugs/arm/stop", text)] and q.errors == [] and q.closed == 1
-    assert queries[8].closed == 1 and not d._arm_stop_tasks
+    assert queries[8].closed == 1 and not d.arm.stop_tasks
 
 
 def test_an_arm_stop_without_an_arm_or_with_a_failing_one_is_still_answered(
@@ -412,10 +412,10 @@ def test_an_arm_stop_without_an_arm_or_with_a_failing_one_is_still_answered(
 
     async def main() -> None:
         d._on_query("arm_stop", q_none)
-        await asyncio.gather(*list(d._arm_stop_tasks))
-        d.arm = StopArm(fail=True)
+        await asyncio.gather(*list(d.arm.stop_tasks))
+        d.arm.controller = StopArm(fail=True)
         d._on_query("arm_stop", q_fail)
-        await asyncio.gather(*list(d._arm_stop_tasks))
+        await asyncio.gather(*list(d.arm.stop_tasks))
 
     asyncio.run(main())
     assert q_none.errors == ["rejected: arm disabled or shut down"] and q_none.replies == []
@@ -429,13 +429,13 @@ def test_an_arm_stop_put_acts_only_on_its_exact_key() -> None:
     d = _daemon()
     arm = StopArm()
     arm.go.set()
-    d.arm = arm
+    d.arm.controller = arm
 
     async def main() -> None:
-        d._on_arm_stop_put("pugs/**")
-        assert not d._arm_stop_tasks
-        d._on_arm_stop_put("pugs/arm/stop")
-        await asyncio.gather(*list(d._arm_stop_tasks))
+        d.arm.on_stop_put("pugs/**")
+        assert not d.arm.stop_tasks
+        d.arm.on_stop_put("pugs/arm/stop")
+        await asyncio.gather(*list(d.arm.stop_tasks))
 
     asyncio.run(main())
     assert arm.stops == ["pugs/arm/stop (put)"]

@@ -885,17 +885,17 @@ def test_the_arm_worker_reports_each_outcome_on_the_report_key_and_clears_busy(
     session = PutSession()
     d._session = session  # type: ignore[assignment]
     arm = ScriptedArm(d, {3: PugsdError("out of reach"), 4: ValueError("bad joint")})
-    d.arm = arm
+    d.arm.controller = arm
     d._generation = 2
 
     async def main() -> list[dict[str, Any] | None]:
         kept: list[dict[str, Any] | None] = []
-        task = asyncio.create_task(d._arm_worker())
+        task = asyncio.create_task(d.arm.worker())
         try:
             for i, (gid, gen) in enumerate([(1, 2), (2, 1), (3, 2), (4, 2)]):
-                assert d.arm_box.offer(("grasps", gid, 0.04, gen))
+                assert d.arm.box.offer(("grasps", gid, 0.04, gen))
                 await _until(lambda i=i: len(session.puts) == i + 1, f"report {i}")  # type: ignore[misc]
-                kept.append(d.arm_report)
+                kept.append(d.arm.report)
                 assert d._busy["arm"] is False
         finally:
             task.cancel()
@@ -947,14 +947,14 @@ def test_the_arm_and_command_workers_end_by_themselves_after_a_call_during_shutd
 
     async def main() -> None:
         arm = SlowArm()
-        d.arm = arm
-        task = asyncio.create_task(d._arm_worker())
-        assert d.arm_box.offer(("grasps", 1, None, 0))
+        d.arm.controller = arm
+        task = asyncio.create_task(d.arm.worker())
+        assert d.arm.box.offer(("grasps", 1, None, 0))
         await asyncio.wait_for(arm.started.wait(), 5.0)
         d._stopping = True
         arm.go.set()
         await asyncio.wait_for(task, 2.0)  # ended by itself
-        assert d.arm_report == {"grasp_id": 1, "ok": True}
+        assert d.arm.report == {"grasp_id": 1, "ok": True}
         d._stopping = False
         task = asyncio.create_task(d._command_worker())
         d.commands.offer(Command("reset", None))
@@ -1023,7 +1023,7 @@ def test_the_arm_starts_only_when_enabled_and_declares_its_keys(monkeypatch: pyt
     off = _daemon()
     off._session = DeclSession()  # type: ignore[assignment]
     asyncio.run(off._start_arm())
-    assert off.arm is None and off._entities == [] and FakeController.instances == []
+    assert off.arm.controller is None and off._entities == [] and FakeController.instances == []
     _shutdown(off)
 
     s = DeclSession()
@@ -1035,7 +1035,7 @@ def test_the_arm_starts_only_when_enabled_and_declares_its_keys(monkeypatch: pyt
 
     asyncio.run(start())
     (arm,) = FakeController.instances
-    assert d.arm is arm and arm.started == 1 and arm.cfg is d.cfg.arm
+    assert d.arm.controller is arm and arm.started == 1 and arm.cfg is d.cfg.arm
     assert s.log == [
         "queryable pugs/arm/execute",
         "queryable pugs/arm/stop",
@@ -1051,18 +1051,18 @@ def test_stopping_the_arm_closes_it_once_and_a_failing_close_is_logged_not_raise
 ) -> None:
     caplog.set_level(logging.ERROR, logger="pugsd")
     d = _daemon()
-    asyncio.run(d._stop_arm())  # no arm: nothing to do
+    asyncio.run(d.arm.close())  # no arm: nothing to do
     ok, bad = FakeController(None), FakeController(None)
-    d.arm = ok
-    asyncio.run(d._stop_arm())
-    assert ok.closed == 1 and d.arm is None
-    d.arm = bad
+    d.arm.controller = ok
+    asyncio.run(d.arm.close())
+    assert ok.closed == 1 and d.arm.controller is None
+    d.arm.controller = bad
     FakeController.close_error = RuntimeError("link down")
     try:
-        asyncio.run(d._stop_arm())
+        asyncio.run(d.arm.close())
     finally:
         FakeController.close_error = None
-    assert bad.closed == 1 and d.arm is None
+    assert bad.closed == 1 and d.arm.controller is None
     assert [r.getMessage() for r in caplog.records] == ["arm: stop on shutdown failed: link down"]
     _shutdown(d)
 
@@ -1115,7 +1115,7 @@ def test_shutdown_lets_the_worker_in_a_call_finish_and_cancels_the_others(worker
     assert finished == [worker] and not tasks[worker].cancelled()
     assert all(t.cancelled() for n, t in tasks.items() if n != worker)
     assert undeclared == [1] and d._subscribers == []
-    assert all(b.closed for b in (d.stereo_box, d.depth_box, d.commands, d.arm_box))
+    assert all(b.closed for b in (d.stereo_box, d.depth_box, d.commands, d.arm.box))
 
 
 def test_shutdown_abandons_a_call_that_outlasts_the_timeout_then_reports_what_was_left(

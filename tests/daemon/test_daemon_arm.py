@@ -117,12 +117,12 @@ def test_arm_execute_query(port: int, client: zenoh.Session, sim_process: int) -
         assert got.wait(30.0), "no arm report for the refused grasp"
         rep = reports[-1]
         assert rep["ok"] is False and rep["grasp_id"] == 8 and "unreachable" in rep["error"], rep
-        assert dt.daemon.arm_report == rep
+        assert dt.daemon.arm.report == rep
         assert not dt.daemon._busy.get("arm")
     finally:
         sub.undeclare()
         dt.stop(15.0)
-    assert dt.daemon.arm is None  # closed (zero velocity + safe mode sent) on shutdown
+    assert dt.daemon.arm.controller is None  # closed (zero velocity + safe mode sent) on shutdown
 
 
 def test_arm_execute_refused_when_disabled(port: int, client: zenoh.Session) -> None:
@@ -146,7 +146,7 @@ def test_arm_stop_and_release(port: int, client: zenoh.Session, sim_process: int
     dt, reports, got, sub = _start_arm_daemon(port, client, sim_process, slow)
     try:
         wait_for(lambda: _try(client, "pugs/arm/release", "", 0.5) is not None, 10.0, "queryable")
-        arm = dt.daemon.arm
+        arm = dt.daemon.arm.controller
         dt.daemon.latest_result = Result(_grasps(), np.zeros((1, 3)), np.zeros(1), np.zeros(1), 1)
         ok, text = _ask(client, "pugs/arm/execute", "7")
         assert ok, text
@@ -201,7 +201,7 @@ def test_a_reset_waits_for_the_arm_motion(port: int, client: zenoh.Session, sim_
         wait_for(lambda: _try(client, "pugs/reset", "", 0.5) is not None, 10.0, "queryable")
         resets = lambda: dt.daemon.health.counts.get("resets", 0)  # noqa: E731 (counted when done)
         wait_for(lambda: resets() == 1, 5.0, "the readiness probe's reset")
-        arm = dt.daemon.arm
+        arm = dt.daemon.arm.controller
         dt.daemon.latest_result = Result(_grasps(), np.zeros((1, 3)), np.zeros(1), np.zeros(1), 1)
         ok, text = _ask(client, "pugs/arm/execute", "7")
         assert ok, text
