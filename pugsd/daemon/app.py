@@ -43,7 +43,7 @@ import zenoh
 from pugsd.config import config_warnings
 from pugsd.core.types import DepthFrame, ScoredGrasps, StereoFrame
 from pugsd.daemon.arm_bridge import ArmBridge
-from pugsd.daemon.health import Health, Reporter
+from pugsd.daemon.health import Health, InputWatch, OverloadWatch, Reporter, jsonable, status_of
 from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier, watchdog_interval_s
 from pugsd.errors import DecodeError, EmptyCloudError, PugsdError
@@ -193,11 +193,9 @@ class Daemon:
         self.commands: Mailbox[Command] = Mailbox("commands", q.commands, Overflow.REJECT)
         self.arm = ArmBridge(self)
         self.schedule = StreamingSchedule(d)  # on time.monotonic()
-        self._publishers_reported: dict[str, int] = {}  # inputs logged with several publishers
         # (time, frames pushed out of the stereo and depth queues, frames emitted, integrated) at
         # the start of the overload warning's window, and when it was last logged
-        self._overload_mark: tuple[float, int, int, int] | None = None
-        self._overload_logged_s = -math.inf
+        self.overload = OverloadWatch()
         self.ingress = IngressGate(d.ingress_limit)
         # receive times of the poses handed to the loop and not yet handled (appended by the zenoh
         # thread, popped by the loop): while one that came before a frame's deadline is still
@@ -251,8 +249,7 @@ class Daemon:
         self.ready = False
         self.was_ready = False  # ready at least once since the start or the last reset
         self._newest_recv_s: float | None = None  # receive time of the newest integrated frame
-        self._last_recv_s: dict[str, float] = {}  # monotonic receive time per input stream
-        self._stale_reported: set[str] = set()  # streams logged as stale and not yet resumed
+        self.inputs = InputWatch(d.input_stale_s)
         # the outputs' stamp: written and read under _model_lock (with the map it labels)
         self._newest_stamp_ns = 0
         self.grasps_published = 0
@@ -604,7 +601,7 @@ class Daemon:
                     else:
                         query.reply(key, self.latest_grasps)
                 elif kind == "status":
-                    query.reply(key, json.dumps(_jsonable(self.status())))
+                    query.reply(key, json.dumps(jsonable(self.status())))
                 elif kind == "arm_execute":
                     try:
                         query.reply(key, self.arm.on_execute(query))
@@ -646,19 +643,6 @@ class Daemon:
                 log.warning("command %s rejected (#%d): %s", cmd.name, n, self.commands.reject_reason())
         return ok
 
-    def _report_publishers(self, concurrent: dict[str, int]) -> None:
-        """Log an input once when several publishers send on it at the same time (and again when
-        their number grows)."""
-        for role, n in sorted(concurrent.items()):
-            if n > 1 and n > self._publishers_reported.get(role, 1):
-                log.warning(
-                    "%s: %d publishers sending at the same time within the last %.1f s (a node "
-                    "launched twice? two drivers on one topic?)", role, n, _PUBLISHERS_WINDOW_S,
-                )  # fmt: skip
-            self._publishers_reported[role] = n
-        for role in set(self._publishers_reported) - set(concurrent):
-            del self._publishers_reported[role]
-
     def dropped_total(self) -> int:
         """Everything the daemon itself dropped: the stereo and depth mailboxes (drop oldest, and
         reset), the ingress bound, unpaired stereo halves, and the counted drops (pose wait,
@@ -676,12 +660,7 @@ class Daemon:
         if item.role == "pose" and self._pose_backlog_s:
             self._pose_backlog_s.popleft()
         self.health.count(f"received.{item.role}")
-        if item.role in _STREAM_ROLES:
-            now = time.monotonic()
-            if item.role in self._stale_reported:
-                self._stale_reported.discard(item.role)
-                log.info("%s: input resumed after %.1f s", item.role, now - self._last_recv_s[item.role])
-            self._last_recv_s[item.role] = now
+        self.inputs.received(item.role, time.monotonic())
         if item.lost_before:  # counted by self.upstream; logged like rejections
             self.health.count(f"upstream_gaps.{item.role}")
             n = self.health.counts[f"upstream_gaps.{item.role}"]
@@ -1091,27 +1070,10 @@ class Daemon:
         return newest
 
     def input_ages_s(self, now: float | None = None) -> dict[str, float]:
-        """Seconds since each input stream (left/right image, depth, pose) last sent."""
-        t = time.monotonic() if now is None else now
-        return {r: round(t - t0, 3) for r, t0 in sorted(self._last_recv_s.items())}
+        return self.inputs.ages_s(time.monotonic() if now is None else now)
 
     def stale_inputs(self, now: float | None = None) -> list[str]:
-        """The streams that sent before and have been silent for ``daemon.input_stale_s``."""
-        limit = self.cfg.daemon.input_stale_s
-        if limit <= 0:
-            return []
-        return [r for r, age in self.input_ages_s(now).items() if age > limit]
-
-    def _report_stale(self, stale: list[str]) -> None:
-        """Log each stream once when it goes stale (``_on_inbound`` logs its return)."""
-        ages = self.input_ages_s()
-        new = [r for r in stale if r not in self._stale_reported]
-        if new:
-            self._stale_reported.update(new)
-            log.warning(
-                "input silent: %s (daemon.input_stale_s = %.1f s)",
-                ", ".join(f"{r} for {ages[r]:.1f} s" for r in new), self.cfg.daemon.input_stale_s,
-            )  # fmt: skip
+        return self.inputs.stale(time.monotonic() if now is None else now)
 
     def problems(self) -> list[str]:
         """Why the daemon is unhealthy (empty: healthy): the health monitor's and a failed reset."""
@@ -1121,54 +1083,7 @@ class Daemon:
         return out
 
     def status(self) -> dict[str, Any]:
-        try:
-            pstats = self.pipeline.stats()
-        except Exception as exc:  # stats are best effort
-            pstats = {"error": str(exc)}
-        snap = self.health.snapshot()
-        problems = self.problems()
-        f = self.frames
-        return {
-            "node": self.cfg.daemon.node_name,
-            "stamp_ns": time.time_ns(),
-            "healthy": not problems,  # the watchdog's verdict: WATCHDOG=1 pings go out while true
-            "problems": problems,
-            "ready": self.ready,
-            "was_ready": self.was_ready,
-            "model_version": self.model_version,
-            "elbo": self.elbo,
-            "grasps_published": self.grasps_published,
-            **snap,
-            "dropped_total": self.dropped_total(),  # counts.dropped and the queues' own, below
-            "mailboxes": {b.name: b.stats() for b in (self.stereo_box, self.depth_box, self.commands)},
-            "ingress": {"pending": self.ingress.pending, "dropped": self.ingress.dropped},
-            "query_ingress": {"pending": self.query_ingress.pending, "dropped": self.query_ingress.dropped},
-            # arm/stop queries and puts beyond the eight on their way (those do the stopping)
-            "stop_ingress": {"pending": self.stop_ingress.pending, "dropped": self.stop_ingress.dropped},
-            "deletes_ignored": self.deletes_ignored,
-            "bridge_errors": dict(self.bridge_errors),
-            "inputs": {
-                "age_s": self.input_ages_s(),
-                "stale": self.stale_inputs(),
-                "frame_minus_newest_pose_s": self.frames.skew_summary(),
-            },
-            "upstream": {
-                **self.upstream.snapshot(),
-                "active_publishers": self.upstream.active(_PUBLISHERS_WINDOW_S),
-                "concurrent_publishers": self.upstream.concurrent(_PUBLISHERS_WINDOW_S),
-                "pose_publisher": None if (gid := self.frames.pose_publisher) is None else gid.hex()[:12],
-            },
-            "waiting": {
-                "pose_gate": len(f.gate),
-                "unpaired": f.pairer.pending(),
-                "unpaired_dropped": f.pairer.unpaired_dropped,
-                "poses": len(f.poses),
-                "pose_clock_jumps_back": f.poses.jumps_back,
-                "pose_strays": f.poses.strays,
-            },
-            "pipeline": pstats,
-            "recorder": None if self.recorder is None else self.recorder.stats.as_dict(),
-        }
+        return status_of(self)
 
     async def _status_worker(self) -> None:
         period = 1.0 / self.cfg.daemon.status_rate_hz
@@ -1182,11 +1097,11 @@ class Daemon:
     def _status_round(self) -> None:
         st = self.status()
         self.latest_status = st
-        self._put_output("status", codec.encode_status(_jsonable(st)))
+        self._put_output("status", codec.encode_status(jsonable(st)))
         c = st["counts"]
         stale = st["inputs"]["stale"]
-        self._report_stale(stale)
-        self._report_publishers(st["upstream"]["concurrent_publishers"])
+        self.inputs.report_stale(stale, time.monotonic())
+        self.inputs.report_publishers(st["upstream"]["concurrent_publishers"])
         self._report_overload(time.monotonic())
         self.notifier.send(
             f"STATUS=frames {c.get('frames.stereo', 0) + c.get('frames.depth', 0)}, "
@@ -1196,41 +1111,14 @@ class Daemon:
         )
 
     def _report_overload(self, now_s: float) -> None:
-        """Warn when newer frames pushed older ones out of the stereo or depth queue (not a reset's
-        clearing) within a window of ``_OVERLOAD_WINDOW_S``, at least ``_OVERLOAD_MIN_DROPS`` and
-        ``_OVERLOAD_MIN_FRAC`` of the frames: the input comes faster than the daemon integrates,
-        so frames are lost and the ones integrated have waited in the queue. At most once per
-        ``_OVERLOAD_LOG_S``; the status message has the counts all along."""
-        c = self.health.counts
-        mark = (
+        c, age = self.health.counts, self.health.latency.get("frame_age_at_integrate")
+        self.overload.check(
             now_s,
             self.stereo_box.overflowed + self.depth_box.overflowed,
             c.get("frames.stereo", 0) + c.get("frames.depth", 0),
             c.get("integrated", 0),
+            age.summary().get("p50_ms") if age is not None else None,
         )
-        prev = self._overload_mark
-        if prev is None or now_s - prev[0] >= _OVERLOAD_WINDOW_S:
-            self._overload_mark = mark
-        if prev is None or now_s - prev[0] < _OVERLOAD_WINDOW_S:
-            return
-        dropped, emitted = mark[1] - prev[1], mark[2] - prev[2]
-        # a frame or two pushed out now and then is a hiccup (counted in the status), not a rate
-        if dropped < max(_OVERLOAD_MIN_DROPS, _OVERLOAD_MIN_FRAC * emitted):
-            return
-        if now_s - self._overload_logged_s < _OVERLOAD_LOG_S:
-            return
-        self._overload_logged_s = now_s
-        dt = now_s - prev[0]
-        age = self.health.latency.get("frame_age_at_integrate")
-        age_p50 = age.summary().get("p50_ms") if age is not None else None
-        log.warning(
-            "input faster than the daemon integrates: %d frames dropped at the stereo and depth "
-            "queues in the last %.0f s (%.1f frames/s in, %.1f integrated; frames waited %s before "
-            "fusion). Set daemon.max_frame_rate_hz below the integrated rate to keep the output "
-            "fresh (docs/deploy.md, Tuning)",
-            dropped, dt, emitted / dt, (mark[3] - prev[3]) / dt,
-            "?" if age_p50 is None else f"{age_p50 / 1e3:.2f} s (median)",
-        )  # fmt: skip
 
     async def _watchdog_worker(self) -> None:
         interval = watchdog_interval_s()
@@ -1275,8 +1163,6 @@ class Daemon:
 # until a reset. They count as failures too, so that a run of them makes the daemon unhealthy
 # (the watchdog restarts it) rather than healthy and never integrating again.
 _MAP_AT_FAULT = frozenset({"out_of_map_range"})
-_PUBLISHERS_WINDOW_S = 5.0  # status upstream.active_publishers: publishers heard this recently
-_STREAM_ROLES = ("left_image", "right_image", "depth", "pose")  # inputs that flow continuously
 _UNHEALTHY_RELOG_S = 300.0  # an unchanged unhealthy state is logged again this often
 def _endpoints(zenoh_cfg: Any, what: str) -> str:
     """The ``[zenoh] <what>.endpoints`` for the serving line ("none" when empty or not given)."""
@@ -1288,10 +1174,6 @@ def _endpoints(zenoh_cfg: Any, what: str) -> str:
 
 
 _GRASPS_LOG_S = 60.0  # published grasps are logged at most this often (the first ones at once)
-_OVERLOAD_WINDOW_S = 10.0  # the overload warning looks at queue overflows over this long
-_OVERLOAD_LOG_S = 60.0  # and is logged at most this often
-_OVERLOAD_MIN_DROPS = 5  # when at least this many frames were pushed out in the window
-_OVERLOAD_MIN_FRAC = 0.05  # and at least this share of the frames that came in it
 _NUMBER = re.compile(r"\d+(?:\.\d+)?")
 
 # the stages (``_busy`` keys, health stages) each worker task runs its calls under
@@ -1315,21 +1197,3 @@ _QUERY_KEYS = {
 # a wildcard query (``pugs/**``, to read the status or discover the API) must not stop the arm
 # mid-grasp or change anything else: these act on a query for exactly their key
 _STATE_CHANGING = frozenset({"reset", "arm_execute", "arm_stop", "arm_release"})
-
-
-
-def _jsonable(obj: Any) -> Any:
-    """Plain JSON types: numpy scalars unwrapped, NaN and inf as None (strict JSON)."""
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not np.isfinite(obj):
-        return None
-    if obj is None or isinstance(obj, (bool, int, float, str)):
-        return obj
-    return str(obj)

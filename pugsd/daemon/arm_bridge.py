@@ -10,6 +10,7 @@ import json
 import logging
 from typing import TYPE_CHECKING, Any
 
+from pugsd.daemon.health import jsonable
 from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.errors import PugsdError
 from pugsd.stream.assembler import InputRejected
@@ -175,21 +176,3 @@ class ArmBridge:
         except Exception as exc:
             log.warning("arm: could not publish the report: %s", exc)
 
-
-def jsonable(obj: Any) -> Any:
-    """Plain JSON types: numpy scalars unwrapped, NaN and inf as None (strict JSON)."""
-    import numpy as np
-
-    if isinstance(obj, dict):
-        return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not np.isfinite(obj):
-        return None
-    if obj is None or isinstance(obj, (bool, int, float, str)):
-        return obj
-    return str(obj)

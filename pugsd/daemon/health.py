@@ -4,15 +4,19 @@
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import Counter, deque
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from pugsd.stream.assembler import InputRejected, log_nth, reason_class
+
+if TYPE_CHECKING:
+    from pugsd.daemon.app import Daemon
 
 log = logging.getLogger(__name__)
 
@@ -169,3 +173,173 @@ class Reporter:
 def reason_head(reason: str) -> str:
     """Drop counters keyed by the reason's stable head (no numbers)."""
     return reason.split(" (", 1)[0]
+
+
+STREAM_ROLES = ("left_image", "right_image", "depth", "pose")  # inputs that flow continuously
+PUBLISHERS_WINDOW_S = 5.0  # status upstream.active_publishers: publishers heard this recently
+
+
+class InputWatch:
+    """When each input stream last sent, which went silent for ``stale_s`` (0: never), and
+    inputs on which several publishers send at once; each logged once until it changes."""
+
+    def __init__(self, stale_s: float) -> None:
+        self.stale_s = stale_s
+        self.last_recv_s: dict[str, float] = {}  # monotonic receive time per input stream
+        self.stale_reported: set[str] = set()  # streams logged as stale and not yet resumed
+        self.publishers_reported: dict[str, int] = {}  # inputs logged with several publishers
+
+    def received(self, role: str, now: float) -> None:
+        if role not in STREAM_ROLES:
+            return
+        if role in self.stale_reported:
+            self.stale_reported.discard(role)
+            log.info("%s: input resumed after %.1f s", role, now - self.last_recv_s[role])
+        self.last_recv_s[role] = now
+
+    def ages_s(self, now: float) -> dict[str, float]:
+        """Seconds since each input stream (left/right image, depth, pose) last sent."""
+        return {r: round(now - t0, 3) for r, t0 in sorted(self.last_recv_s.items())}
+
+    def stale(self, now: float) -> list[str]:
+        """The streams that sent before and have been silent for ``stale_s``."""
+        if self.stale_s <= 0:
+            return []
+        return [r for r, age in self.ages_s(now).items() if age > self.stale_s]
+
+    def report_stale(self, stale: list[str], now: float) -> None:
+        """Log each stream once when it goes stale (``received`` logs its return)."""
+        ages = self.ages_s(now)
+        new = [r for r in stale if r not in self.stale_reported]
+        if new:
+            self.stale_reported.update(new)
+            log.warning(
+                "input silent: %s (daemon.input_stale_s = %.1f s)",
+                ", ".join(f"{r} for {ages[r]:.1f} s" for r in new), self.stale_s,
+            )  # fmt: skip
+
+    def report_publishers(self, concurrent: dict[str, int]) -> None:
+        """Log an input once when several publishers send on it at the same time (and again when
+        their number grows)."""
+        for role, n in sorted(concurrent.items()):
+            if n > 1 and n > self.publishers_reported.get(role, 1):
+                log.warning(
+                    "%s: %d publishers sending at the same time within the last %.1f s (a node "
+                    "launched twice? two drivers on one topic?)", role, n, PUBLISHERS_WINDOW_S,
+                )  # fmt: skip
+            self.publishers_reported[role] = n
+        for role in set(self.publishers_reported) - set(concurrent):
+            del self.publishers_reported[role]
+
+
+OVERLOAD_WINDOW_S = 10.0  # the overload warning looks at queue overflows over this long
+OVERLOAD_LOG_S = 60.0  # and is logged at most this often
+OVERLOAD_MIN_DROPS = 5  # when at least this many frames were pushed out in the window
+OVERLOAD_MIN_FRAC = 0.05  # and at least this share of the frames that came in it
+
+
+class OverloadWatch:
+    """Warns when newer frames pushed older ones out of the stereo or depth queue (not a reset's
+    clearing) within a window of ``OVERLOAD_WINDOW_S``, at least ``OVERLOAD_MIN_DROPS`` and
+    ``OVERLOAD_MIN_FRAC`` of the frames: the input comes faster than the daemon integrates, so
+    frames are lost and the ones integrated have waited in the queue. At most once per
+    ``OVERLOAD_LOG_S``; the status message has the counts all along."""
+
+    def __init__(self) -> None:
+        # (time, frames pushed out of the queues, frames emitted, integrated) at the start of the
+        # window, and when the warning was last logged
+        self.mark: tuple[float, int, int, int] | None = None
+        self.logged_s = -math.inf
+
+    def check(self, now_s: float, overflowed: int, emitted: int, integrated: int, age_p50_ms: Any) -> None:
+        mark = (now_s, overflowed, emitted, integrated)
+        prev = self.mark
+        if prev is None or now_s - prev[0] >= OVERLOAD_WINDOW_S:
+            self.mark = mark
+        if prev is None or now_s - prev[0] < OVERLOAD_WINDOW_S:
+            return
+        dropped, frames = mark[1] - prev[1], mark[2] - prev[2]
+        # a frame or two pushed out now and then is a hiccup (counted in the status), not a rate
+        if dropped < max(OVERLOAD_MIN_DROPS, OVERLOAD_MIN_FRAC * frames):
+            return
+        if now_s - self.logged_s < OVERLOAD_LOG_S:
+            return
+        self.logged_s = now_s
+        dt = now_s - prev[0]
+        log.warning(
+            "input faster than the daemon integrates: %d frames dropped at the stereo and depth "
+            "queues in the last %.0f s (%.1f frames/s in, %.1f integrated; frames waited %s before "
+            "fusion). Set daemon.max_frame_rate_hz below the integrated rate to keep the output "
+            "fresh (docs/deploy.md, Tuning)",
+            dropped, dt, frames / dt, (mark[3] - prev[3]) / dt,
+            "?" if age_p50_ms is None else f"{age_p50_ms / 1e3:.2f} s (median)",
+        )  # fmt: skip
+
+
+def jsonable(obj: Any) -> Any:
+    """Plain JSON types: numpy scalars unwrapped, NaN and inf as None (strict JSON)."""
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    if obj is None or isinstance(obj, (bool, int, float, str)):
+        return obj
+    return str(obj)
+
+
+def status_of(d: Daemon) -> dict[str, Any]:
+    """The daemon's status message: health, queues, inputs, upstream, pipeline, recorder."""
+    try:
+        pstats = d.pipeline.stats()
+    except Exception as exc:  # stats are best effort
+        pstats = {"error": str(exc)}
+    snap = d.health.snapshot()
+    problems = d.problems()
+    f = d.frames
+    return {
+        "node": d.cfg.daemon.node_name,
+        "stamp_ns": time.time_ns(),
+        "healthy": not problems,  # the watchdog's verdict: WATCHDOG=1 pings go out while true
+        "problems": problems,
+        "ready": d.ready,
+        "was_ready": d.was_ready,
+        "model_version": d.model_version,
+        "elbo": d.elbo,
+        "grasps_published": d.grasps_published,
+        **snap,
+        "dropped_total": d.dropped_total(),  # counts.dropped and the queues' own, below
+        "mailboxes": {b.name: b.stats() for b in (d.stereo_box, d.depth_box, d.commands)},
+        "ingress": {"pending": d.ingress.pending, "dropped": d.ingress.dropped},
+        "query_ingress": {"pending": d.query_ingress.pending, "dropped": d.query_ingress.dropped},
+        # arm/stop queries and puts beyond the eight on their way (those do the stopping)
+        "stop_ingress": {"pending": d.stop_ingress.pending, "dropped": d.stop_ingress.dropped},
+        "deletes_ignored": d.deletes_ignored,
+        "bridge_errors": dict(d.bridge_errors),
+        "inputs": {
+            "age_s": d.input_ages_s(),
+            "stale": d.stale_inputs(),
+            "frame_minus_newest_pose_s": d.frames.skew_summary(),
+        },
+        "upstream": {
+            **d.upstream.snapshot(),
+            "active_publishers": d.upstream.active(PUBLISHERS_WINDOW_S),
+            "concurrent_publishers": d.upstream.concurrent(PUBLISHERS_WINDOW_S),
+            "pose_publisher": None if (gid := d.frames.pose_publisher) is None else gid.hex()[:12],
+        },
+        "waiting": {
+            "pose_gate": len(f.gate),
+            "unpaired": f.pairer.pending(),
+            "unpaired_dropped": f.pairer.unpaired_dropped,
+            "poses": len(f.poses),
+            "pose_clock_jumps_back": f.poses.jumps_back,
+            "pose_strays": f.poses.strays,
+        },
+        "pipeline": pstats,
+        "recorder": None if d.recorder is None else d.recorder.stats.as_dict(),
+    }

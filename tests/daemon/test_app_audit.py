@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 from pugsd.config import load_config_dict
-from pugsd.daemon.app import Command, Daemon, Inbound, IngressGate, _jsonable
+from pugsd.daemon.app import Command, Daemon, Inbound, IngressGate
+from pugsd.daemon.health import jsonable as _jsonable
 from pugsd.daemon.health import reason_head
 from pugsd.errors import DecodeError, PugsdError
 from pugsd.stream.assembler import InputRejected, log_nth, reason_class, require_size
@@ -244,7 +245,7 @@ def test_inbound_accounting_received_gaps_ages_backlog_and_no_handling_when_stop
     assert d.health.counts["upstream_gaps.pose"] == 1
     li, ri = codec.encode_stereo_infos(RIG, 0)
     _feed(d, "left_info", li)
-    assert sorted(d._last_recv_s) == ["pose"]  # CameraInfo is not a stream
+    assert sorted(d.inputs.last_recv_s) == ["pose"]  # CameraInfo is not a stream
     d._stopping = True
     _feed(d, "right_info", ri)
     assert d.health.counts["received.right_info"] == 1 and "right_info" not in d.frames.infos
@@ -371,12 +372,12 @@ def test_status_carries_its_counters(port: int) -> None:
 
 def test_input_ages_and_staleness_at_a_given_time(port: int) -> None:
     d = _daemon(port, input_stale_s=5.0)
-    d._last_recv_s.update({"pose": 100.0, "depth": 105.0})
+    d.inputs.last_recv_s.update({"pose": 100.0, "depth": 105.0})
     assert d.input_ages_s(110.1234) == {"depth": 5.123, "pose": 10.123}
     assert d.stale_inputs(110.0) == ["pose"]  # depth is exactly 5 s old: not yet stale
     assert d.stale_inputs(110.001) == ["depth", "pose"]
     off = _daemon(port, input_stale_s=0.0)
-    off._last_recv_s["pose"] = 0.0
+    off.inputs.last_recv_s["pose"] = 0.0
     assert off.stale_inputs(1e6) == []
 
 
@@ -421,7 +422,7 @@ def test_a_side_image_of_another_size_is_charged_to_its_own_input_and_left_out(p
 def test_the_status_lists_the_inputs_silent_for_longer_than_input_stale_s(port: int) -> None:
     d = _daemon(port, input_stale_s=5.0)
     now = time.monotonic()
-    d._last_recv_s.update({"pose": now - 60.0, "left_image": now - 1.0})  # one long silent, one fresh
+    d.inputs.last_recv_s.update({"pose": now - 60.0, "left_image": now - 1.0})  # one long silent, one fresh
     assert d.status()["inputs"]["stale"] == ["pose"]
 
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from pugsd.config import CoreConfig
 from pugsd.core.pipeline import PugsPipeline
-from pugsd.daemon.app import _jsonable
+from pugsd.daemon.health import jsonable as _jsonable
 from pugsd.stream.assembler import bounded_put
 
 

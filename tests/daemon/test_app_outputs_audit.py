@@ -874,7 +874,7 @@ def test_the_skew_summary_is_median_min_max_in_seconds_rounded() -> None:
 
 def test_input_ages_and_staleness(caplog: pytest.LogCaptureFixture) -> None:
     d = _daemon(input_stale_s=2.0)
-    d._last_recv_s = {"pose": 9.87654, "left_image": 7.5, "depth": 8.0}
+    d.inputs.last_recv_s = {"pose": 9.87654, "left_image": 7.5, "depth": 8.0}
     assert d.input_ages_s(10.0) == {"depth": 2.0, "left_image": 2.5, "pose": 0.123}
     assert list(d.input_ages_s(10.0)) == ["depth", "left_image", "pose"]
     assert d.stale_inputs(10.0) == ["left_image"]  # depth exactly at the limit: not stale
@@ -882,16 +882,16 @@ def test_input_ages_and_staleness(caplog: pytest.LogCaptureFixture) -> None:
     assert _daemon(input_stale_s=0.0).stale_inputs(1e9) == []
     caplog.set_level(logging.WARNING, logger="pugsd")
     now = time.monotonic()
-    d._last_recv_s = {"pose": now - 3.0, "left_image": now - 5.0}
-    d._report_stale(["left_image"])
-    d._report_stale(["left_image", "pose"])
-    d._report_stale(["left_image", "pose"])
+    d.inputs.last_recv_s = {"pose": now - 3.0, "left_image": now - 5.0}
+    d.inputs.report_stale(["left_image"], time.monotonic())
+    d.inputs.report_stale(["left_image", "pose"], time.monotonic())
+    d.inputs.report_stale(["left_image", "pose"], time.monotonic())
     msgs = [r.getMessage() for r in caplog.records]
     assert msgs == [
         "input silent: left_image for 5.0 s (daemon.input_stale_s = 2.0 s)",
         "input silent: pose for 3.0 s (daemon.input_stale_s = 2.0 s)",
     ]
-    assert d._stale_reported == {"left_image", "pose"}
+    assert d.inputs.stale_reported == {"left_image", "pose"}
 
 
 def test_status_reports_its_counters_and_survives_a_failing_pipeline() -> None:

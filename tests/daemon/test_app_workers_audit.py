@@ -28,6 +28,7 @@ import pugsd.daemon.app as app_mod
 from pugsd.config import load_config_dict
 from pugsd.core.types import DepthFrame, StereoFrame
 from pugsd.daemon.app import Command, Daemon
+from pugsd.daemon.health import jsonable
 from pugsd.daemon.notify import Notifier
 from pugsd.errors import EmptyCloudError, PugsdError
 from pugsd.record.recorder import default_record_keys
@@ -625,7 +626,7 @@ def test_the_status_worker_publishes_the_status_and_the_status_line(sleeps: list
     d.health.reject("pose", "stale")
     d.health.drop("pose_wait", "no pose", 2)
     d.grasps_published, d.ready = 7, True
-    d._last_recv_s["pose"] = time.monotonic() - 100.0  # silent for longer than input_stale_s
+    d.inputs.last_recv_s["pose"] = time.monotonic() - 100.0  # silent for longer than input_stale_s
 
     try:
         asyncio.run(asyncio.wait_for(d._status_worker(), 10.0))
@@ -636,10 +637,10 @@ def test_the_status_worker_publishes_the_status_and_the_status_line(sleeps: list
     ]
     assert sleeps == [0.25]  # one period of 1 / status_rate_hz before each status
     st = d.latest_status
-    assert st["inputs"]["stale"] == ["pose"] and d._stale_reported == {"pose"}  # logged once
+    assert st["inputs"]["stale"] == ["pose"] and d.inputs.stale_reported == {"pose"}  # logged once
     pub = d._publishers["status"]
     assert isinstance(pub, RecordingPublisher)
-    assert pub.puts == [codec.encode_status(app_mod._jsonable(st))]
+    assert pub.puts == [codec.encode_status(jsonable(st))]
 
 
 def test_a_status_round_that_raises_is_counted_and_the_worker_goes_on(

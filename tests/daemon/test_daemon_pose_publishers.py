@@ -159,10 +159,10 @@ def test_status_counts_the_publishers_heard_lately_and_logs_a_second_one(
     assert t.active(5.0, now_s=108.2) == {"left_image": 1}  # A's last image 5.2 s ago
     assert t.concurrent(5.0, now_s=108.2) == {}
     assert t.active(5.0, now_s=109.0) == {}
-    d._report_publishers({"left_image": 2})
-    d._report_publishers({"left_image": 2})  # unchanged: not logged again
-    d._report_publishers({})
-    d._report_publishers({"left_image": 2})  # two at once again: logged again
+    d.inputs.report_publishers({"left_image": 2})
+    d.inputs.report_publishers({"left_image": 2})  # unchanged: not logged again
+    d.inputs.report_publishers({})
+    d.inputs.report_publishers({"left_image": 2})  # two at once again: logged again
     msgs = [r.getMessage() for r in caplog.records if "at the same time" in r.getMessage()]
     assert msgs == ["left_image: 2 publishers sending at the same time within the last 5.0 s (a node "
                     "launched twice? two drivers on one topic?)"] * 2  # fmt: skip
