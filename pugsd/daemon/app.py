@@ -32,9 +32,7 @@ import re
 import sys
 import threading
 import time
-from collections import deque
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
 
 import numpy as np
@@ -43,6 +41,7 @@ import zenoh
 from pugsd.config import config_warnings
 from pugsd.core.types import DepthFrame, ScoredGrasps, StereoFrame
 from pugsd.daemon.arm_bridge import ArmBridge
+from pugsd.daemon.bridge import Bridge, Command, Inbound
 from pugsd.daemon.health import Health, InputWatch, OverloadWatch, Reporter, jsonable, status_of
 from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier, watchdog_interval_s
@@ -50,7 +49,6 @@ from pugsd.errors import DecodeError, EmptyCloudError, PugsdError
 from pugsd.stream.assembler import FrameAssembler, InputRejected, expected_type, log_nth, reason_class
 from pugsd.stream.schedule import StreamingSchedule
 from pugsd.wire import codec
-from pugsd.wire.attachment import SequenceTracker
 from pugsd.wire.keys import parse_key
 from pugsd.wire.publisher import Publisher
 from pugsd.wire.session import close_session, open_session
@@ -120,50 +118,6 @@ def apply_malloc_arena_max(n: int) -> bool:
     return bool(mallopt(_M_ARENA_MAX, n))
 
 
-@dataclass(frozen=True, slots=True)
-class Inbound:
-    """One zenoh sample as handed to the loop: role, key, payload copy, receive time."""
-
-    role: str
-    key: str
-    payload: bytes
-    recv_s: float  # time.monotonic()
-    lost_before: int = 0  # messages of the same publisher missing just before this one
-    publisher: bytes | None = None  # the rmw_zenoh publisher GID (None: no valid attachment)
-
-
-@dataclass(frozen=True, slots=True)
-class Command:
-    name: str
-    query: Any | None  # a zenoh Query to answer, or None for a put
-
-
-class IngressGate:
-    """Thread-safe count of samples scheduled on the loop but not handled; bounds that backlog."""
-
-    def __init__(self, limit: int) -> None:
-        self.limit = limit
-        self._pending = 0
-        self._lock = threading.Lock()
-        self.dropped = 0
-
-    def enter(self) -> bool:
-        with self._lock:
-            if self._pending >= self.limit:
-                self.dropped += 1
-                return False
-            self._pending += 1
-            return True
-
-    def leave(self) -> None:
-        with self._lock:
-            self._pending -= 1
-
-    @property
-    def pending(self) -> int:
-        return self._pending
-
-
 class Daemon:
     """Owns the zenoh entities, mailboxes and workers; ``run(stop)`` serves until ``stop``."""
 
@@ -196,20 +150,7 @@ class Daemon:
         # (time, frames pushed out of the stereo and depth queues, frames emitted, integrated) at
         # the start of the overload warning's window, and when it was last logged
         self.overload = OverloadWatch()
-        self.ingress = IngressGate(d.ingress_limit)
-        # receive times of the poses handed to the loop and not yet handled (appended by the zenoh
-        # thread, popped by the loop): while one that came before a frame's deadline is still
-        # queued behind a stall of the loop, that frame is not dropped for want of a pose
-        self._pose_backlog_s: deque[float] = deque()
-        # queries and control puts waiting for the loop: bounded like the samples (a flood of
-        # status queries must not pile up callbacks without limit); stops have their own bound,
-        # so that such a flood never turns a stop away
-        self.query_ingress = IngressGate(d.ingress_limit)
-        self.stop_ingress = IngressGate(8)
-        self.deletes_ignored = 0  # zenoh DELETE samples on input keys (they carry no message)
-        self.bridge_errors: dict[str, int] = {}  # samples lost to an error in the zenoh callback
-        self._bridge_lock = threading.Lock()  # both are updated from zenoh's threads
-        self.upstream = SequenceTracker()  # messages lost before they reached pugsd
+        self.bridge = Bridge(d.ingress_limit, lambda: self._loop)
         self._model_lock = threading.Lock()
         # one thread for depth estimation, one for ingest and training, one for grasp computations
         self._depth_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pugsd-depth")
@@ -391,8 +332,9 @@ class Daemon:
             return
         s = self.session
         for kind in ("arm_execute", "arm_stop", "arm_release"):
-            self._entities.append(s.declare_queryable(self.key(_QUERY_KEYS[kind]), self._bridge_query(kind)))
-        on_put = self._bridge_control_put(self.arm.on_stop_put, self.stop_ingress)
+            on_query = self.bridge.query(kind, self._on_query)
+            self._entities.append(s.declare_queryable(self.key(_QUERY_KEYS[kind]), on_query))
+        on_put = self.bridge.control_put(self.arm.on_stop_put, self.bridge.stop_ingress)
         self._entities.append(s.declare_subscriber(self.key("arm/stop"), on_put))
         log.info(
             "arm enabled (%s); execute on %s, stop on %s, release on %s",
@@ -465,111 +407,20 @@ class Daemon:
                 len(graph.subscriptions),
                 t.domain_id,
             )
-        self._entities.append(s.declare_queryable(self.key("grasps/latest"), self._bridge_query("latest")))
-        self._entities.append(s.declare_queryable(self.key("status"), self._bridge_query("status")))
-        self._entities.append(s.declare_queryable(self.key("reset"), self._bridge_query("reset")))
-        on_reset = self._bridge_control_put(self._on_reset_put, self.query_ingress)
+        for kind in ("latest", "status", "reset"):
+            on_query = self.bridge.query(kind, self._on_query)
+            self._entities.append(s.declare_queryable(self.key(_QUERY_KEYS[kind]), on_query))
+        on_reset = self.bridge.control_put(self._on_reset_put, self.bridge.query_ingress)
         self._entities.append(s.declare_subscriber(self.key("reset"), on_reset))
 
     def _declare_inputs(self) -> None:
         t = self.cfg.topics
         for role in INPUT_ROLES:
             key = subscribe_key_for(t, role)
-            self._subscribers.append(self.session.declare_subscriber(key, self._bridge_sample(role)))
+            on_sample = self.bridge.sample(role, self._on_inbound)
+            self._subscribers.append(self.session.declare_subscriber(key, on_sample))
         for key in self._sub_graph_keys:  # announced once the subscribers listen
             self._sub_graph_tokens.append(self.session.liveliness().declare_token(key))
-
-    def _bridge_sample(self, role: str) -> Callable[[Any], None]:
-        loop = self._loop
-        assert loop is not None
-        gate, upstream = self.ingress, self.upstream
-
-        def on_sample(sample: Any) -> None:  # zenoh thread: copy bytes, hand over, never block
-            try:
-                if sample.kind == zenoh.SampleKind.DELETE:  # no message: counted, not decoded
-                    with self._bridge_lock:
-                        self.deletes_ignored += 1
-                    return
-                # before the ingress bound, so that what that bound drops is not also counted lost
-                att = sample.attachment
-                now_s = time.monotonic()
-                lost, gid = upstream.observe_publisher(role, None if att is None else att.to_bytes(), now_s)
-            except Exception as exc:  # a bug: counted and logged, never raised into zenoh
-                self._bridge_error(role, exc)
-                return
-            if not gate.enter():
-                return
-            try:
-                item = Inbound(role, str(sample.key_expr), sample.payload.to_bytes(), now_s, lost, gid)
-            except Exception as exc:
-                gate.leave()
-                self._bridge_error(role, exc)
-                return
-            if role == "pose":
-                self._pose_backlog_s.append(now_s)
-            try:
-                loop.call_soon_threadsafe(self._on_inbound, item)
-            except RuntimeError:  # loop closed during shutdown
-                gate.leave()
-
-        return on_sample
-
-    def _bridge_error(self, role: str, exc: Exception) -> None:
-        """A sample lost to an error in the zenoh callback (a bug): counted per input
-        (``bridge_errors`` in the status) and logged, the first five then every 100th."""
-        with self._bridge_lock:
-            n = self.bridge_errors[role] = self.bridge_errors.get(role, 0) + 1
-        if log_nth(n):
-            log.error("%s sample lost in the zenoh callback (#%d): %s: %s", role, n, type(exc).__name__, exc)
-
-    def _bridge_query(self, kind: str) -> Callable[[Any], None]:
-        loop = self._loop
-        assert loop is not None
-        gate = self.stop_ingress if kind == "arm_stop" else self.query_ingress
-
-        def on_query(query: Any) -> None:  # zenoh thread: hand over (bounded), never block
-            if not gate.enter():
-                with contextlib.suppress(Exception):
-                    if kind == "arm_stop":  # eight stops are on their way already
-                        query.reply(str(query.key_expr), "stopping: a stop is already being sent")
-                    else:
-                        query.reply_err("busy: too many queries waiting; try again")
-                query.drop()
-                return
-            try:
-                loop.call_soon_threadsafe(self._on_query_gated, kind, query, gate)
-            except RuntimeError:
-                gate.leave()
-                query.drop()
-
-        return on_query
-
-    def _on_query_gated(self, kind: str, query: Any, gate: IngressGate) -> None:
-        try:
-            self._on_query(kind, query)
-        finally:
-            gate.leave()
-
-    def _bridge_control_put(self, handle: Callable[[str], None], gate: IngressGate) -> Callable[[Any], None]:
-        """A put on a control key (reset, arm/stop): ``handle(key_expr)`` on the loop, bounded."""
-        loop = self._loop
-        assert loop is not None
-
-        def gated(key_expr: str) -> None:
-            try:
-                handle(key_expr)
-            finally:
-                gate.leave()
-
-        def on_put(sample: Any) -> None:
-            if not gate.enter():
-                return
-            try:
-                loop.call_soon_threadsafe(gated, str(sample.key_expr))
-            except RuntimeError:
-                gate.leave()
-
-        return on_put
 
     def _on_reset_put(self, key_expr: str) -> None:
         if key_expr == self.key("reset"):
@@ -650,15 +501,13 @@ class Daemon:
         return (
             self.stereo_box.dropped
             + self.depth_box.dropped
-            + self.ingress.dropped
+            + self.bridge.ingress.dropped
             + self.frames.pairer.unpaired_dropped
             + self.health.counts.get("dropped", 0)
         )
 
     def _on_inbound(self, item: Inbound) -> None:
-        self.ingress.leave()
-        if item.role == "pose" and self._pose_backlog_s:
-            self._pose_backlog_s.popleft()
+        self.bridge.handled(item)
         self.health.count(f"received.{item.role}")
         self.inputs.received(item.role, time.monotonic())
         if item.lost_before:  # counted by self.upstream; logged like rejections
@@ -694,7 +543,7 @@ class Daemon:
     def _expire_before(self, now_s: float) -> float:
         """A frame's deadline counts as passed only before the oldest pose still queued for the
         loop came in: after a stall of the loop that pose is handled next and may be the frame's."""
-        backlog = self._pose_backlog_s
+        backlog = self.bridge.pose_backlog_s
         return min(now_s, backlog[0]) if backlog else now_s
 
     def _on_frame(self, frame: StereoFrame | DepthFrame, recv_s: float) -> None:

@@ -301,7 +301,7 @@ def status_of(d: Daemon) -> dict[str, Any]:
         pstats = {"error": str(exc)}
     snap = d.health.snapshot()
     problems = d.problems()
-    f = d.frames
+    f, b = d.frames, d.bridge
     return {
         "node": d.cfg.daemon.node_name,
         "stamp_ns": time.time_ns(),
@@ -315,21 +315,21 @@ def status_of(d: Daemon) -> dict[str, Any]:
         **snap,
         "dropped_total": d.dropped_total(),  # counts.dropped and the queues' own, below
         "mailboxes": {b.name: b.stats() for b in (d.stereo_box, d.depth_box, d.commands)},
-        "ingress": {"pending": d.ingress.pending, "dropped": d.ingress.dropped},
-        "query_ingress": {"pending": d.query_ingress.pending, "dropped": d.query_ingress.dropped},
+        "ingress": {"pending": b.ingress.pending, "dropped": b.ingress.dropped},
+        "query_ingress": {"pending": b.query_ingress.pending, "dropped": b.query_ingress.dropped},
         # arm/stop queries and puts beyond the eight on their way (those do the stopping)
-        "stop_ingress": {"pending": d.stop_ingress.pending, "dropped": d.stop_ingress.dropped},
-        "deletes_ignored": d.deletes_ignored,
-        "bridge_errors": dict(d.bridge_errors),
+        "stop_ingress": {"pending": b.stop_ingress.pending, "dropped": b.stop_ingress.dropped},
+        "deletes_ignored": b.deletes_ignored,
+        "bridge_errors": dict(b.errors),
         "inputs": {
             "age_s": d.input_ages_s(),
             "stale": d.stale_inputs(),
             "frame_minus_newest_pose_s": d.frames.skew_summary(),
         },
         "upstream": {
-            **d.upstream.snapshot(),
-            "active_publishers": d.upstream.active(PUBLISHERS_WINDOW_S),
-            "concurrent_publishers": d.upstream.concurrent(PUBLISHERS_WINDOW_S),
+            **b.upstream.snapshot(),
+            "active_publishers": b.upstream.active(PUBLISHERS_WINDOW_S),
+            "concurrent_publishers": b.upstream.concurrent(PUBLISHERS_WINDOW_S),
             "pose_publisher": None if (gid := d.frames.pose_publisher) is None else gid.hex()[:12],
         },
         "waiting": {

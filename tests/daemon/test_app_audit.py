@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 from pugsd.config import load_config_dict
-from pugsd.daemon.app import Command, Daemon, Inbound, IngressGate
+from pugsd.daemon.app import Command, Daemon, Inbound
+from pugsd.daemon.bridge import IngressGate
 from pugsd.daemon.health import jsonable as _jsonable
 from pugsd.daemon.health import reason_head
 from pugsd.errors import DecodeError, PugsdError
@@ -212,13 +213,13 @@ def test_dropped_total_sums_every_kind_of_drop(port: int) -> None:
         d.stereo_box.offer((None, 0.0))  # type: ignore[arg-type]
     for _ in range(4):
         d.depth_box.offer((None, 0.0))  # type: ignore[arg-type]
-    assert [d.ingress.enter() for _ in range(6)] == [True] + [False] * 5
-    d.ingress.leave()
+    assert [d.bridge.ingress.enter() for _ in range(6)] == [True] + [False] * 5
+    d.bridge.ingress.leave()
     small = np.zeros((4, 4), np.uint8)
     for i in range(8):  # left halves without partners (no CameraInfo: not judged on arrival)
-        assert d.ingress.enter()
+        assert d.bridge.ingress.enter()
         _feed(d, "left_image", codec.encode_image(small, (i + 1) * 10**9, "left"))
-    assert d.ingress.enter()  # one sample handed over, not yet handled
+    assert d.bridge.ingress.enter()  # one sample handed over, not yet handled
     d.report.drop("pose_wait", "no pose", 11)
     assert (d.stereo_box.dropped, d.depth_box.dropped, d.frames.pairer.unpaired_dropped) == (2, 3, 7)
     st = d.status()
@@ -232,11 +233,11 @@ def test_dropped_total_sums_every_kind_of_drop(port: int) -> None:
 
 def test_inbound_accounting_received_gaps_ages_backlog_and_no_handling_when_stopping(port: int) -> None:
     d = _daemon(port)
-    d._pose_backlog_s.extend([1.0, 2.0])
-    assert d.ingress.enter()
+    d.bridge.pose_backlog_s.extend([1.0, 2.0])
+    assert d.bridge.ingress.enter()
     _feed(d, "pose", _pose(10**9, "odom"), lost_before=2)
-    assert d.ingress.pending == 0
-    assert list(d._pose_backlog_s) == [2.0]
+    assert d.bridge.ingress.pending == 0
+    assert list(d.bridge.pose_backlog_s) == [2.0]
     assert d.health.counts["received.pose"] == 1 and d.health.counts["upstream_gaps.pose"] == 1
     assert d.health.counts["poses"] == 1 and len(d.frames.poses) == 1
     assert d.frames.frame_id == "odom"  # the outputs' frame follows the poses'
@@ -347,8 +348,8 @@ class _NoStats(FakePipeline):
 
 def test_status_carries_its_counters(port: int) -> None:
     d = Daemon(load_config_dict(daemon_config_dict(port)), _NoStats())
-    d.deletes_ignored = 3
-    d.bridge_errors["pose"] = 2
+    d.bridge.deletes_ignored = 3
+    d.bridge.errors["pose"] = 2
     d.was_ready, d.ready = True, False
     d.recorder = SimpleNamespace(stats=SimpleNamespace(as_dict=lambda: {"written": 4}))
     gid = bytes(range(16))

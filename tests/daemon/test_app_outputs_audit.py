@@ -25,7 +25,8 @@ import pytest
 
 from pugsd.config import load_config_dict
 from pugsd.core.types import DepthFrame
-from pugsd.daemon.app import Command, Daemon, IngressGate, apply_thread_limits
+from pugsd.daemon.app import Command, Daemon, apply_thread_limits
+from pugsd.daemon.bridge import IngressGate
 from pugsd.daemon.notify import Notifier
 from pugsd.errors import EmptyCloudError, PugsdError
 from pugsd.wire import codec
@@ -296,9 +297,9 @@ def test_arm_execute_during_shutdown_is_refused_as_such_not_as_busy() -> None:
 def test_status_reports_the_stop_bound_and_what_it_dropped() -> None:
     """Stops beyond the eight on their way were dropped with no trace in the status."""
     d = _daemon()
-    assert d.stop_ingress.limit == 8
+    assert d.bridge.stop_ingress.limit == 8
     for _ in range(9):
-        d.stop_ingress.enter()
+        d.bridge.stop_ingress.enter()
     st = d.status()
     assert st["stop_ingress"] == {"pending": 8, "dropped": 1}
     assert st["query_ingress"] == {"pending": 0, "dropped": 0}
@@ -458,42 +459,42 @@ def test_a_query_beyond_the_bound_is_answered_busy_and_stops_have_their_own_boun
     d = _daemon(ingress_limit=2)
     loop = FakeLoop()
     d._loop = loop  # type: ignore[assignment]
-    on_status = d._bridge_query("status")
-    on_stop = d._bridge_query("arm_stop")
+    on_status = d.bridge.query("status", d._on_query)
+    on_stop = d.bridge.query("arm_stop", d._on_query)
     qs = [FakeQuery("pugs/status") for _ in range(3)]
     for q in qs:
         on_status(q)
     assert [c[1:3] for c in loop.calls] == [("status", qs[0]), ("status", qs[1])]
-    assert loop.calls[0][3] is d.query_ingress
+    assert loop.calls[0][3] is d.bridge.query_ingress
     assert qs[2].errors == ["busy: too many queries waiting; try again"] and qs[2].dropped == 1
-    assert qs[0].dropped == 0 and d.query_ingress.dropped == 1
+    assert qs[0].dropped == 0 and d.bridge.query_ingress.dropped == 1
     # the queries' bound is full: a stop still goes through, up to eight waiting
     stops = [FakeQuery("pugs/arm/stop") for _ in range(9)]
     for q in stops:
         on_stop(q)
     assert [c[2] for c in loop.calls[2:]] == stops[:8]
-    assert all(c[3] is d.stop_ingress for c in loop.calls[2:])
+    assert all(c[3] is d.bridge.stop_ingress for c in loop.calls[2:])
     assert stops[8].replies == [("pugs/arm/stop", "stopping: a stop is already being sent")]
     assert stops[8].errors == [] and stops[8].dropped == 1
     # handled on the loop: the bound is free again, even when the handler raises
     fn, kind, q, gate = loop.calls[0]
     fn(kind, q, gate)
-    assert d.query_ingress.pending == 1 and q.replies and q.replies[0][0] == "pugs/status"
+    assert d.bridge.query_ingress.pending == 1 and q.replies and q.replies[0][0] == "pugs/status"
     fn, kind, q, gate = loop.calls[2]
     with pytest.raises(RuntimeError):  # no running loop for the stop task here
         fn(kind, q, gate)
-    assert d.stop_ingress.pending == 7
+    assert d.bridge.stop_ingress.pending == 7
 
 
 def test_a_query_to_a_closed_loop_is_dropped_and_frees_its_place() -> None:
     d = _daemon(ingress_limit=1)
     d._loop = FakeLoop(closed=True)  # type: ignore[assignment]
-    on_status = d._bridge_query("status")
+    on_status = d.bridge.query("status", d._on_query)
     for _ in range(3):
         q = FakeQuery("pugs/status")
         on_status(q)
         assert q.dropped == 1 and q.errors == []
-    assert d.query_ingress.pending == 0 and d.query_ingress.dropped == 0
+    assert d.bridge.query_ingress.pending == 0 and d.bridge.query_ingress.dropped == 0
 
 
 def test_a_control_put_is_handed_over_bounded_and_its_place_freed() -> None:
@@ -502,7 +503,7 @@ def test_a_control_put_is_handed_over_bounded_and_its_place_freed() -> None:
     d._loop = loop  # type: ignore[assignment]
     handled: list[str] = []
     gate = IngressGate(1)
-    on_put = d._bridge_control_put(handled.append, gate)
+    on_put = d.bridge.control_put(handled.append, gate)
     sample = types.SimpleNamespace(key_expr="pugs/reset")
     on_put(sample)
     on_put(sample)  # the bound (1) is full: not scheduled
@@ -514,14 +515,14 @@ def test_a_control_put_is_handed_over_bounded_and_its_place_freed() -> None:
     def boom(key: str) -> None:
         raise ValueError(key)
 
-    on_put = d._bridge_control_put(boom, gate)
+    on_put = d.bridge.control_put(boom, gate)
     on_put(sample)
     fn, key = loop.calls[1]
     with pytest.raises(ValueError):
         fn(key)
     assert gate.pending == 0
     d._loop = FakeLoop(closed=True)  # type: ignore[assignment]
-    d._bridge_control_put(handled.append, gate)(sample)
+    d.bridge.control_put(handled.append, gate)(sample)
     assert gate.pending == 0 and handled == ["pugs/reset"]
 
 
@@ -900,10 +901,10 @@ def test_status_reports_its_counters_and_survives_a_failing_pipeline() -> None:
             raise RuntimeError("cuda gone")
 
     d = _daemon(NoStats(), max_consecutive_failures=2)
-    d.query_ingress.enter()
-    d.query_ingress.dropped = 3
-    d.deletes_ignored = 4
-    d.bridge_errors["pose"] = 2
+    d.bridge.query_ingress.enter()
+    d.bridge.query_ingress.dropped = 3
+    d.bridge.deletes_ignored = 4
+    d.bridge.errors["pose"] = 2
     d.frames.pose_publisher = bytes(range(16))
     d.model_version, d.elbo, d.grasps_published = 7, -1.5, 9
     st = d.status()
@@ -912,7 +913,7 @@ def test_status_reports_its_counters_and_survives_a_failing_pipeline() -> None:
     assert st["query_ingress"] == {"pending": 1, "dropped": 3}
     assert st["ingress"] == {"pending": 0, "dropped": 0}
     assert (st["deletes_ignored"], st["bridge_errors"]) == (4, {"pose": 2})
-    assert st["bridge_errors"] is not d.bridge_errors
+    assert st["bridge_errors"] is not d.bridge.errors
     assert st["upstream"]["pose_publisher"] == "000102030405"
     assert (st["model_version"], st["elbo"], st["grasps_published"]) == (7, -1.5, 9)
     assert sorted(st["mailboxes"]) == ["commands", "depth", "stereo"] and st["recorder"] is None

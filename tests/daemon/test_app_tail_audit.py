@@ -210,8 +210,8 @@ def test_bridge_errors_are_all_counted_per_input_and_logged_rate_limited(
     caplog.set_level(logging.INFO, logger="pugsd")
     try:
         for i in range(1, 206):
-            d._bridge_error("pose", ValueError(f"bad attachment {i}"))
-        d._bridge_error("depth", KeyError("k"))
+            d.bridge.error("pose", ValueError(f"bad attachment {i}"))
+        d.bridge.error("depth", KeyError("k"))
     finally:
         _shutdown(d)
     assert [r.getMessage() for r in caplog.records] == [
@@ -220,7 +220,7 @@ def test_bridge_errors_are_all_counted_per_input_and_logged_rate_limited(
         "depth sample lost in the zenoh callback (#1): KeyError: 'k'",
     ]  # fmt: skip
     assert all(r.levelno == logging.ERROR for r in caplog.records)
-    assert d.bridge_errors == {"pose": 205, "depth": 1}
+    assert d.bridge.errors == {"pose": 205, "depth": 1}
 
 
 def test_upstream_gaps_are_all_counted_and_logged_rate_limited(caplog: pytest.LogCaptureFixture) -> None:
@@ -229,9 +229,9 @@ def test_upstream_gaps_are_all_counted_and_logged_rate_limited(caplog: pytest.Lo
     caplog.set_level(logging.INFO, logger="pugsd")
     try:
         for i in range(1, 106):
-            assert d.ingress.enter()
+            assert d.bridge.ingress.enter()
             d._on_inbound(app_mod.Inbound("left_info", "k", b"", 1.0, lost_before=i % 7 + 1))
-        assert d.ingress.enter()
+        assert d.bridge.ingress.enter()
         d._on_inbound(app_mod.Inbound("left_info", "k", b"", 1.0))  # no gap: not counted
     finally:
         _shutdown(d)
@@ -242,7 +242,7 @@ def test_upstream_gaps_are_all_counted_and_logged_rate_limited(caplog: pytest.Lo
         for n in (1, 2, 3, 4, 5, 100)
     ]
     assert d.health.counts["upstream_gaps.left_info"] == 105
-    assert d.health.counts["received.left_info"] == 106 and d.ingress.pending == 0
+    assert d.health.counts["received.left_info"] == 106 and d.bridge.ingress.pending == 0
 
 
 # --- the recorder: started by run(), reported in the status, its files named at shutdown -------------

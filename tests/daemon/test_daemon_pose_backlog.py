@@ -54,7 +54,7 @@ def _daemon(port: int) -> tuple[Daemon, asyncio.AbstractEventLoop]:
 
 
 def _via_zenoh_thread(d: Daemon, role: str, data: bytes) -> None:
-    d._bridge_sample(role)(_Sample(key_for(d.cfg.topics, role), _Payload(data)))
+    d.bridge.sample(role, d._on_inbound)(_Sample(key_for(d.cfg.topics, role), _Payload(data)))
 
 
 def _run_queued(loop: asyncio.AbstractEventLoop) -> None:
@@ -86,7 +86,7 @@ def test_a_pose_queued_behind_a_loop_stall_still_serves_its_frame(port: int) -> 
         _run_queued(loop)  # the stall ends: the pose is handled and releases the frame
         assert d.health.counts.get("frames.stereo", 0) == 1
         assert len(d.frames.gate) == 0 and not d.health.dropped
-        assert not d._pose_backlog_s
+        assert not d.bridge.pose_backlog_s
     finally:
         loop.close()
 
@@ -107,6 +107,6 @@ def test_without_a_pose_in_time_the_frame_is_still_dropped(port: int) -> None:
         assert list(d.health.dropped) == ["pose_wait: no usable pose within 0.2 s"]
         _run_queued(loop)
         assert d.health.counts.get("frames.stereo", 0) == 0
-        assert not d._pose_backlog_s
+        assert not d.bridge.pose_backlog_s
     finally:
         loop.close()

@@ -48,7 +48,7 @@ class Feed:
         if gid is not None:
             self.seq[gid] += 1
             att = encode_attachment(self.seq[gid], stamp_ns, gid)
-        lost, seen = self.d.upstream.observe_publisher("pose", att, recv_s)
+        lost, seen = self.d.bridge.upstream.observe_publisher("pose", att, recv_s)
         assert seen == gid
         data = codec.encode_pose_with_covariance(stamp_ns, _pose_at(x_m), COV)
         self.d._on_inbound(Inbound("pose", self.key, data, recv_s, lost, seen))
@@ -78,9 +78,9 @@ def test_a_second_localiser_is_refused_while_the_first_is_heard(
     assert st["upstream"]["pose_publisher"] == GID_A.hex()[:12]
     # the bridge's tracker saw both, at the test's receive times (100.0 .. 104.95 s), sending at
     # the same time
-    assert d.upstream.active(5.0, now_s=105.0) == {"pose": 2}
-    assert d.upstream.concurrent(5.0, now_s=105.0) == {"pose": 2}
-    st["upstream"]["concurrent_publishers"] = d.upstream.concurrent(5.0, now_s=105.0)
+    assert d.bridge.upstream.active(5.0, now_s=105.0) == {"pose": 2}
+    assert d.bridge.upstream.concurrent(5.0, now_s=105.0) == {"pose": 2}
+    st["upstream"]["concurrent_publishers"] = d.bridge.upstream.concurrent(5.0, now_s=105.0)
     assert (
         "several publishers sending on one input at the same time (a node launched twice?): pose 2"
         in status_lines(st)
@@ -147,7 +147,7 @@ def test_status_counts_the_publishers_heard_lately_and_logs_a_second_one(
 ) -> None:
     caplog.set_level(logging.WARNING, logger="pugsd")
     d = _daemon(port)
-    t = d.upstream
+    t = d.bridge.upstream
     for k in range(4):  # two camera drivers, each at 1 Hz, half a second apart
         t.observe_publisher("left_image", encode_attachment(1 + k, T0, GID_A), 100.0 + k)
         t.observe_publisher("left_image", encode_attachment(1 + k, T0, GID_B), 100.5 + k)

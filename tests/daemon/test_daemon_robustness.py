@@ -265,7 +265,7 @@ def test_status_line_counts_every_drop(port: int, client: zenoh.Session) -> None
         assert d.health.dropped["reset: frames waiting for a pose"] == 2
         assert d.health.dropped["reset: unpaired stereo halves"] == 3
         total = d.dropped_total()
-        assert total == d.stereo_box.dropped + d.depth_box.dropped + d.ingress.dropped + 6
+        assert total == d.stereo_box.dropped + d.depth_box.dropped + d.bridge.ingress.dropped + 6
         wait_for(
             lambda: any(s.startswith("STATUS=") and f"dropped {total}," in s for s in n.sent),
             5.0,
@@ -693,8 +693,8 @@ def test_a_query_flood_is_bounded_and_every_query_answered(port: int, client: ze
         assert all("busy" in r.err.payload.to_string() for r in busy)
         assert len(ok) <= 4 + 1 and len(busy) >= 35  # the bound (one may have left meanwhile)
         # the loop replies, then leaves the gate: the last reply can arrive a moment before that
-        wait_for(lambda: d.query_ingress.pending == 0, 2.0, "the last query to leave the gate")
-        assert d.query_ingress.dropped == len(busy)
+        wait_for(lambda: d.bridge.query_ingress.pending == 0, 2.0, "the last query to leave the gate")
+        assert d.bridge.query_ingress.dropped == len(busy)
         st = query_json(client, "pugs/status")
         assert st["query_ingress"] == {"pending": 1, "dropped": len(busy)}  # 1: this status query
     finally:
@@ -711,7 +711,7 @@ def test_zenoh_delete_samples_on_inputs_are_counted_not_rejected(port: int, clie
     try:
         for role in ("left_image", "pose"):
             client.delete(src.pubs[role].key)
-        wait_for(lambda: d.deletes_ignored == 2, 5.0, "two deletes counted")
+        wait_for(lambda: d.bridge.deletes_ignored == 2, 5.0, "two deletes counted")
         src.stereo(10**9, pose_at(0.0))
         src.put("pose", codec.encode_pose_with_covariance(2 * 10**9, pose_at(0.1), COV))
         wait_for(lambda: _passed_on(d, pipe) == 1, 10.0, "the good frame")
@@ -732,7 +732,7 @@ def test_an_error_in_the_zenoh_callback_is_counted_and_the_next_samples_flow(
     pipe = FakePipeline()
     dt, src = start_with_source(load_config_dict(daemon_config_dict(port)), client, pipe)
     d = dt.daemon
-    real = d.upstream.observe_publisher
+    real = d.bridge.upstream.observe_publisher
     calls = {"pose": 0}
 
     def flaky(role: str, att: bytes | None, now_s: float | None = None) -> tuple[int, bytes | None]:
@@ -742,12 +742,12 @@ def test_an_error_in_the_zenoh_callback_is_counted_and_the_next_samples_flow(
                 raise RuntimeError("tracker bug")
         return real(role, att, now_s)
 
-    monkeypatch.setattr(d.upstream, "observe_publisher", flaky)
+    monkeypatch.setattr(d.bridge.upstream, "observe_publisher", flaky)
     try:
         src.put("pose", codec.encode_pose_with_covariance(10**9, pose_at(0.0), COV))  # lost
         # the zenoh thread counts, then logs: wait for both (the test thread can look in between)
         wait_for(
-            lambda: d.bridge_errors.get("pose") == 1
+            lambda: d.bridge.errors.get("pose") == 1
             and any("pose sample lost in the zenoh callback (#1)" in r.getMessage() for r in caplog.records),
             5.0,
             "the lost sample counted and logged",
