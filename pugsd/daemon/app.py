@@ -22,14 +22,9 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
-import contextlib
-import ctypes
-import json
 import logging
 import math
-import os
 import re
-import sys
 import threading
 import time
 from collections.abc import Awaitable, Callable
@@ -39,14 +34,19 @@ import numpy as np
 import zenoh
 
 from pugsd.config import config_warnings
-from pugsd.core.types import DepthFrame, ScoredGrasps, StereoFrame
+from pugsd.core.types import DepthFrame, StereoFrame
+from pugsd.daemon import queries
 from pugsd.daemon.arm_bridge import ArmBridge
 from pugsd.daemon.bridge import Bridge, Command, Inbound
 from pugsd.daemon.health import Health, InputWatch, OverloadWatch, Reporter, jsonable, status_of
 from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier, watchdog_interval_s
+from pugsd.daemon.outputs import Outputs
+from pugsd.daemon.process import apply_thread_limits
+from pugsd.daemon.queries import QUERY_KEYS
+from pugsd.daemon.recording import start_recording, stop_recording
 from pugsd.errors import DecodeError, EmptyCloudError, PugsdError
-from pugsd.stream.assembler import FrameAssembler, InputRejected, expected_type, log_nth, reason_class
+from pugsd.stream.assembler import FrameAssembler, InputRejected, expected_type, log_nth
 from pugsd.stream.schedule import StreamingSchedule
 from pugsd.wire import codec
 from pugsd.wire.keys import parse_key
@@ -92,32 +92,6 @@ class Pipeline(Protocol):
     def stats(self) -> dict[str, Any]: ...
 
 
-def apply_thread_limits(cfg: Any) -> None:
-    """``[daemon] torch_threads`` (process-wide; a no-op until the pipeline has imported torch)."""
-    torch = sys.modules.get("torch")
-    if cfg.daemon.torch_threads > 0 and torch is not None:
-        torch.set_num_threads(cfg.daemon.torch_threads)
-
-
-_M_ARENA_MAX = -8  # glibc malloc.h
-
-
-def apply_malloc_arena_max(n: int) -> bool:
-    """``[daemon] malloc_arena_max``: cap glibc's malloc arenas (``mallopt(M_ARENA_MAX, n)``) for
-    the arenas created from now on, so call it before the threads start. Returns whether it was
-    set: not for ``n`` = 0, off glibc, or when the ``MALLOC_ARENA_MAX`` environment variable
-    already chose (glibc read it at start)."""
-    if n <= 0 or "MALLOC_ARENA_MAX" in os.environ or not sys.platform.startswith("linux"):
-        return False
-    try:
-        mallopt = ctypes.CDLL("libc.so.6").mallopt
-    except (OSError, AttributeError):  # musl and others: no mallopt
-        return False
-    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
-    mallopt.restype = ctypes.c_int
-    return bool(mallopt(_M_ARENA_MAX, n))
-
-
 class Daemon:
     """Owns the zenoh entities, mailboxes and workers; ``run(stop)`` serves until ``stop``."""
 
@@ -160,7 +134,7 @@ class Daemon:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._subscribers: list[Any] = []
         self._entities: list[Any] = []  # queryables, token (undeclared after the subscribers)
-        self._publishers: dict[str, Publisher] = {}
+        self.outputs = Outputs(self, time.monotonic)
         # rmw_zenoh ROS graph liveliness tokens ([topics] ros_graph_tokens): the node's and its
         # publishers' (undeclared after the publishers), the subscriptions' (with the subscribers)
         self._graph_tokens: list[Any] = []
@@ -182,10 +156,7 @@ class Daemon:
         # to end, and a motion for the reset (an arm stop waits for neither)
         self._motion_lock = asyncio.Lock()
         # model state as seen by the loop
-        self.latest_grasps: bytes | None = None
-        self.latest_result: Any = None  # the last PipelineResult (for the demo's figure)
         self.latest_status: dict[str, Any] = {}
-        self.model_version: int | None = None
         self.elbo: float | None = None
         self.ready = False
         self.was_ready = False  # ready at least once since the start or the last reset
@@ -193,9 +164,6 @@ class Daemon:
         self.inputs = InputWatch(d.input_stale_s)
         # the outputs' stamp: written and read under _model_lock (with the map it labels)
         self._newest_stamp_ns = 0
-        self.grasps_published = 0
-        self._grasps_logged_s = -math.inf  # when grasps were last logged (monotonic)
-        self._grasps_logged_n = 0  # grasps_published then
 
     # --- lifecycle ------------------------------------------------------------------------------
 
@@ -333,7 +301,7 @@ class Daemon:
         s = self.session
         for kind in ("arm_execute", "arm_stop", "arm_release"):
             on_query = self.bridge.query(kind, self._on_query)
-            self._entities.append(s.declare_queryable(self.key(_QUERY_KEYS[kind]), on_query))
+            self._entities.append(s.declare_queryable(self.key(QUERY_KEYS[kind]), on_query))
         on_put = self.bridge.control_put(self.arm.on_stop_put, self.bridge.stop_ingress)
         self._entities.append(s.declare_subscriber(self.key("arm/stop"), on_put))
         log.info(
@@ -342,43 +310,20 @@ class Daemon:
         )  # fmt: skip
 
     def _start_recorder(self) -> None:
-        if not self.cfg.record.enabled:
-            return
-        from pugsd.record.recorder import Recorder, default_record_keys  # only when recording
-
-        keys = default_record_keys(self.cfg)
-        try:
-            rec = Recorder.from_config(self.cfg)
-        except Exception as exc:  # recording is optional: serve without it, say why
-            log.error("recording off: the recorder could not be set up: %s: %s", type(exc).__name__, exc)
-            return
-        self.recorder = rec  # stopped by _close, and its stats (and error) in the status
-        try:
-            rec.start()
-            rec.subscribe(self.session, keys)
-        except Exception as exc:  # a thread that cannot start, a key expression zenoh refuses
-            msg = f"not recording: {type(exc).__name__}: {exc}"
-            rec.stats.error = f"{rec.stats.error}; {msg}" if rec.stats.error else msg
-            log.error("recorder: %s", msg)
-            return
-        if not rec.stats.error:  # else the recorder logged why it is not recording
-            log.info("recording %d key expressions to %s", len(keys), self.cfg.record.directory)
+        if self.cfg.record.enabled:
+            self.recorder = start_recording(self.cfg, self.session)  # stopped by _close
 
     def _close(self) -> None:
         if self.recorder is not None:
-            files = self.recorder.stop(timeout=self.cfg.daemon.shutdown_timeout_s)
-            # hours of rotation leave thousands of files: name the last five, count the rest
-            shown = ", ".join(str(f) for f in files[-5:]) or "no file"
-            more = f" (and {len(files) - 5} earlier)" if len(files) > 5 else ""
-            log.info("recording finished: %d file(s): %s%s", len(files), shown, more)
+            stop_recording(self.recorder, self.cfg.daemon.shutdown_timeout_s)
             self.recorder = None
         self._undeclare_subscribers()
         for ent in self._entities:
             self._undeclare(ent)
         self._entities.clear()
-        for pub in self._publishers.values():
+        for pub in self.outputs.publishers.values():
             self._undeclare(pub)
-        self._publishers.clear()
+        self.outputs.publishers.clear()
         for tok in reversed(self._graph_tokens):  # the node's last, as rmw_zenoh destroys a node
             self._undeclare(tok)
         self._graph_tokens.clear()
@@ -391,7 +336,7 @@ class Daemon:
     def _declare_outputs(self) -> None:
         t = self.cfg.topics
         for role in OUTPUT_ROLES:
-            self._publishers[role] = Publisher(self.session, key_for(t, role))
+            self.outputs.publishers[role] = Publisher(self.session, key_for(t, role))
         s = self.session
         node_name = self.cfg.daemon.node_name
         if graph_tokens_enabled(t, node_name):
@@ -409,7 +354,7 @@ class Daemon:
             )
         for kind in ("latest", "status", "reset"):
             on_query = self.bridge.query(kind, self._on_query)
-            self._entities.append(s.declare_queryable(self.key(_QUERY_KEYS[kind]), on_query))
+            self._entities.append(s.declare_queryable(self.key(QUERY_KEYS[kind]), on_query))
         on_reset = self.bridge.control_put(self._on_reset_put, self.bridge.query_ingress)
         self._entities.append(s.declare_subscriber(self.key("reset"), on_reset))
 
@@ -431,58 +376,10 @@ class Daemon:
     # --- loop-side handlers -----------------------------------------------------------------------
 
     def _on_query(self, kind: str, query: Any) -> None:
-        """Answer on the queryable's own key (a wildcard query's replies stay apart under zenoh's
-        consolidation). Queryables that change state (reset, arm/execute, arm/stop, arm/release)
-        act only on a query for exactly their key; a wildcard query reaching them gets an error
-        reply."""
-        key = self.key(_QUERY_KEYS[kind])
-        if kind == "arm_stop" and str(query.key_expr) == key:
-            self.arm.stop("query", query)  # answered by the stop task once the stop is sent
-            return
-        with query:
-            try:
-                if kind in _STATE_CHANGING and str(query.key_expr) != key:
-                    self._refuse_wildcard(kind, str(query.key_expr))
-                    query.reply_err(f"rejected: {key} acts only on a query for exactly that key")
-                elif kind == "latest":
-                    if self._resetting:  # latest_grasps is the map being cleared
-                        query.reply_err("no grasps: the map is being reset")
-                    elif self.latest_grasps is None:
-                        query.reply_err("no grasps yet: model not ready")
-                    else:
-                        query.reply(key, self.latest_grasps)
-                elif kind == "status":
-                    query.reply(key, json.dumps(jsonable(self.status())))
-                elif kind == "arm_execute":
-                    try:
-                        query.reply(key, self.arm.on_execute(query))
-                    except PugsdError as exc:
-                        if not isinstance(exc, InputRejected):
-                            exc = InputRejected("refused", str(exc))
-                        self.report.reject("arm", exc)
-                        query.reply_err(f"rejected: {exc}")
-                elif kind == "arm_release":
-                    try:
-                        query.reply(key, self.arm.on_release())
-                    except PugsdError as exc:
-                        if not isinstance(exc, InputRejected):
-                            exc = InputRejected("refused", str(exc))
-                        self.report.reject("arm", exc)
-                        query.reply_err(f"rejected: {exc}")
-                elif kind == "reset":
-                    if self._offer_command(Command("reset", None)):
-                        query.reply(key, "accepted")
-                    else:
-                        query.reply_err(f"rejected: {self.commands.reject_reason()}")
-            except Exception as exc:  # a bug: count and log, answer, keep serving
-                self.report.internal_error(f"errors.query.{kind}", f"answering a {kind} query", exc)
-                with contextlib.suppress(Exception):
-                    query.reply_err(f"internal error: {type(exc).__name__}")
+        queries.answer(self, kind, query)
 
     def _refuse_wildcard(self, kind: str, asked: str) -> None:
-        source = "arm" if kind.startswith("arm_") else kind
-        msg = f"{kind} needs exactly {self.key(_QUERY_KEYS[kind])!r}, not {asked[:200]!r}"
-        self.report.reject(source, InputRejected("wildcard_key", msg))
+        queries.refuse_wildcard(self, kind, asked)
 
     def _offer_command(self, cmd: Command) -> bool:
         ok = self.commands.offer(cmd)
@@ -582,26 +479,7 @@ class Daemon:
                 return None
 
     async def _guard(self, stage: str, coro: Awaitable[R]) -> R | None:
-        """Await ``coro``; a PugsdError is a counted rejection, anything else a logged error."""
-        try:
-            out = await coro
-        except PugsdError as exc:
-            self.report.reject(stage, exc)
-            if reason_class(exc) in _MAP_AT_FAULT:  # every later frame fails alike: not input's fault
-                self.health.failed(stage)
-        except Exception as exc:
-            self.health.failed(stage)
-            key = f"errors.{stage}"
-            self.health.count(key)
-            n = self.health.counts[key]
-            if n == 1:
-                log.exception("%s stage failed; continuing", stage)
-            elif log_nth(n):
-                log.error("%s stage failed (#%d): %s: %s", stage, n, type(exc).__name__, exc)
-        else:
-            self.health.succeeded(stage)
-            return out
-        return None
+        return await self.report.guard(stage, coro)
 
     async def _depth_worker(self) -> None:
         while not self._stopping:
@@ -677,121 +555,6 @@ class Daemon:
         if self.ready and not was:
             log.info("model ready (ELBO %.4g)", elbo)
 
-    def _compute_and_encode(
-        self,
-        frame_id: str,
-        generation: int,
-        on_grasps: Callable[[Any, dict[str, bytes]], None],
-        with_cloud: bool,
-    ) -> str:
-        """On the grasp thread. Under the model lock: a snapshot of the query cloud. Without it:
-        the grasp proposal (frames are integrated and the SVGP trains meanwhile). Under the lock
-        again: Algorithm 1 at the contacts and Eq. 13 with the model as it is now, handed to
-        ``on_grasps`` at once; then, if ``with_cloud``, still under that lock, the fused
-        covariances of the rest of the query cloud and a frozen copy of the same model, through
-        which Algorithm 1 for the PointCloud2 runs without the lock, in chunks: it gives way (the
-        cloud is not published) as soon as grasps for a newer frame are due, unless clouds are
-        overdue (``_cloud_gives_way``).
-        The outputs are stamped with the newest frame in the snapshot (read with it).
-        Returns "discarded" if a reset while this ran discarded the result ("cloud discarded" if
-        it came after the grasps), "preempted" if the cloud gave way, else "published"."""
-        with self._model_lock:
-            inp = self.pipeline.grasp_input()
-            stamp_ns = self._newest_stamp_ns
-        proposal = self.pipeline.propose(inp)
-        with self._model_lock:
-            if generation != self._generation:
-                return "discarded"
-            result = self.pipeline.score(proposal)
-            g = result.grasps
-            out = {"grasps": codec.encode_grasp_array(g, frame_id, stamp_ns)}
-            out["markers"] = codec.encode_grasp_markers(
-                g, frame_id, stamp_ns, top_k=self.cfg.daemon.markers_top_k
-            )
-            on_grasps(result, out)
-            job = self.pipeline.cloud_job(result) if with_cloud else None
-        if job is not None:
-            result = self.pipeline.finish_cloud(job, self._cloud_gives_way)
-            if result is None:
-                return "preempted"
-            if generation != self._generation:
-                return "cloud discarded"  # the map was reset meanwhile: not the current map
-            cloud = codec.encode_cloud(
-                result.cloud_W,
-                stamp_ns,
-                frame_id,
-                sigma2_occ=result.sigma2_occ,
-                pugs_confidence=result.pugs_conf_points,
-            )
-            on_grasps(result, {"cloud": cloud})  # the round's result, its sigma^2_occ now whole
-        return "published"
-
-    def _publish_outputs(
-        self, result: Any, payloads: dict[str, bytes], newest_recv: float | None, generation: int
-    ) -> None:
-        """On the loop: publish what ``_compute_and_encode`` handed over (grasps, then the cloud),
-        unless a reset began since it was computed: the grasp thread checks the generation
-        before scoring, but a reset can bump it (here, on the loop) while the scoring runs."""
-        if generation != self._generation:
-            self.health.count("grasps_discarded" if "grasps" in payloads else "clouds_discarded")
-            log.info("grasp results discarded: the map was reset while they were computed")
-            return
-        for role, data in payloads.items():
-            self._put_output(role, data)
-        if "cloud" in payloads:
-            self.schedule.last_cloud_published_s = time.monotonic()
-        if "grasps" not in payloads:
-            # the cloud of the latest grasps' round: the same grasps, with sigma^2_occ over the
-            # whole query cloud (the demo draws it); a cloud of another round changes nothing
-            latest = self.latest_result
-            if result is not None and latest is not None and result.grasps is latest.grasps:
-                self.latest_result = result
-            return
-        self.schedule.grasps_urgent = False  # the grasps are out: idle training need not wait for the cloud
-        self.latest_grasps = payloads["grasps"]
-        self.latest_result = result
-        self.model_version = int(result.model_version)
-        self.grasps_published += 1
-        self.health.count("grasps_published")
-        if newest_recv is not None:
-            self.health.observe("newest_frame_to_grasps", time.monotonic() - newest_recv)
-        g = result.grasps
-        now = time.monotonic()
-        # one line per publication was 86 400 a day at 1 Hz: the first grasps (since the start or
-        # a reset), then at most one line per _GRASPS_LOG_S with the updates published meanwhile
-        if len(g) and now - self._grasps_logged_s >= _GRASPS_LOG_S:
-            log.info(
-                "grasps v%s: %d, top PUGS %.3f (baseline %.3f, sigma2 %.3g); %d update(s) published "
-                "since the last such line",
-                self.model_version,
-                len(g),
-                float(g.pugs_confidence[0]),
-                float(g.baseline_confidence[0]),
-                float(g.sigma2_occ[0]),
-                self.grasps_published - self._grasps_logged_n,
-            )
-            self._grasps_logged_s, self._grasps_logged_n = now, self.grasps_published
-
-    def _put_output(self, role: str, data: bytes) -> bool:
-        """Publish one output; a failed put (zenoh refusing it: a closed or broken session) is
-        logged and counted (``publish_failed``, per role in ``publish_failed.<role>``) instead of
-        escaping into the event loop's exception handler. The results stay queryable
-        (``grasps/latest``). ``daemon.max_consecutive_failures`` failed puts in a row, of any
-        role, make the daemon unhealthy, so systemd restarts it with a fresh session; one role
-        that keeps failing while the others go out does not (a restart would not mend it)."""
-        try:
-            self._publishers[role].put(data)
-        except Exception as exc:
-            self.health.count("publish_failed")
-            self.health.count(f"publish_failed.{role}")
-            n = self.health.failed("publish")
-            of_role = self.health.counts[f"publish_failed.{role}"]
-            if log_nth(of_role, first=10):  # the first ten of a role, then every 100th
-                log.warning("publishing %s failed (%d so far, %d puts in a row): %s", role, of_role, n, exc)
-            return False
-        self.health.succeeded("publish")
-        return True
-
     def _cloud_gives_way(self) -> bool:
         """Whether the running computation's cloud gives way to fresh grasps (the schedule's
         ``cloud_gives_way``), and at shutdown at once: the cloud would not outlive the session,
@@ -818,14 +581,14 @@ class Daemon:
                 newest: float | None = newest_recv,
                 gen: int = generation,
             ) -> None:
-                loop.call_soon_threadsafe(self._publish_outputs, result, payloads, newest, gen)
+                loop.call_soon_threadsafe(self.outputs.publish, result, payloads, newest, gen)
 
             try:
                 outcome = await self._guard(
                     "grasps",
                     self._offload(
                         "grasps",
-                        self._compute_and_encode,
+                        self.outputs.compute_and_encode,
                         self.frames.frame_id,
                         generation,
                         hand_over,
@@ -878,34 +641,18 @@ class Daemon:
         else:
             self._reset_failed = True
             log.error("reset: the pipeline could not be cleared; no grasps until a reset succeeds")
-        self.latest_grasps = None
-        self.latest_result = None
+        self.outputs.latest_grasps = None
+        self.outputs.latest_result = None
         self.ready = False
         self.was_ready = False
         self.schedule.reset()
         self._newest_recv_s = None
         self.elbo = None
-        self.model_version = None  # the cleared map's: no grasps of it are served any more
-        self._grasps_logged_s = -math.inf  # the new map's first grasps are logged
+        self.outputs.model_version = None  # the cleared map's: no grasps of it are served any more
+        self.outputs.grasps_logged_s = -math.inf  # the new map's first grasps are logged
         self.health.count("resets")
-        self._publish_cleared(cleared_stamp_ns)
+        self.outputs.publish_cleared(cleared_stamp_ns)
         log.info("reset: map cleared")
-
-    def _publish_cleared(self, stamp_ns: int) -> None:
-        """After a reset: an empty GraspArray, a MarkerArray holding only its DELETEALL and an
-        empty PointCloud2, so that viewers and subscribers drop the old object's grasps (markers
-        live until deleted) instead of showing them until the new model is ready."""
-        z = np.zeros(0)
-        empty = ScoredGrasps(np.zeros((0, 4, 4)), np.zeros((0, 3)), z, z, z, z, np.zeros(0, np.int64))
-        payloads = {
-            "grasps": codec.encode_grasp_array(empty, self.frames.frame_id, stamp_ns),
-            "markers": codec.encode_grasp_markers(empty, self.frames.frame_id, stamp_ns, top_k=0),
-        }
-        if self.cfg.daemon.publish_cloud:
-            payloads["cloud"] = codec.encode_cloud(np.zeros((0, 3)), stamp_ns, self.frames.frame_id)
-        for role, data in payloads.items():
-            if role in self._publishers:  # a failed put is counted and does not fail the reset
-                self._put_output(role, data)
 
     def _output_stamp_ns(self, stamp_ns: int) -> int:
         """The stamp for outputs after integrating a frame stamped ``stamp_ns``: the newest frame
@@ -946,7 +693,7 @@ class Daemon:
     def _status_round(self) -> None:
         st = self.status()
         self.latest_status = st
-        self._put_output("status", codec.encode_status(jsonable(st)))
+        self.outputs.put("status", codec.encode_status(jsonable(st)))
         c = st["counts"]
         stale = st["inputs"]["stale"]
         self.inputs.report_stale(stale, time.monotonic())
@@ -955,7 +702,7 @@ class Daemon:
         self.notifier.send(
             f"STATUS=frames {c.get('frames.stereo', 0) + c.get('frames.depth', 0)}, "
             f"integrated {c.get('integrated', 0)}, ready {self.ready}, "
-            f"grasps {self.grasps_published}, dropped {self.dropped_total()}, "
+            f"grasps {self.outputs.grasps_published}, dropped {self.dropped_total()}, "
             f"rejected {c.get('rejected', 0)}" + (f", stale input: {' '.join(stale)}" if stale else "")
         )
 
@@ -1006,12 +753,6 @@ class Daemon:
                     self.report.internal_error("errors.gate", "polling the pose gate", exc)
 
 
-# rejections whose cause is the map, not the frame: the point store's voxel hash is anchored at
-# the map's first observation, so once frames come from beyond its range (that observation had a
-# localiser's initial zero pose, and the vehicle is in UTM coordinates), every frame is refused
-# until a reset. They count as failures too, so that a run of them makes the daemon unhealthy
-# (the watchdog restarts it) rather than healthy and never integrating again.
-_MAP_AT_FAULT = frozenset({"out_of_map_range"})
 _UNHEALTHY_RELOG_S = 300.0  # an unchanged unhealthy state is logged again this often
 def _endpoints(zenoh_cfg: Any, what: str) -> str:
     """The ``[zenoh] <what>.endpoints`` for the serving line ("none" when empty or not given)."""
@@ -1022,7 +763,6 @@ def _endpoints(zenoh_cfg: Any, what: str) -> str:
     return ", ".join(str(e) for e in value) if isinstance(value, list) and value else "none"
 
 
-_GRASPS_LOG_S = 60.0  # published grasps are logged at most this often (the first ones at once)
 _NUMBER = re.compile(r"\d+(?:\.\d+)?")
 
 # the stages (``_busy`` keys, health stages) each worker task runs its calls under
@@ -1034,15 +774,3 @@ _WORKER_STAGES: dict[str, tuple[str, ...]] = {
     "arm": ("arm",),
 }
 
-# queryable kind -> its key under the prefix; the state-changing ones answer exact keys only
-_QUERY_KEYS = {
-    "latest": "grasps/latest",
-    "status": "status",
-    "reset": "reset",
-    "arm_execute": "arm/execute",
-    "arm_stop": "arm/stop",
-    "arm_release": "arm/release",
-}
-# a wildcard query (``pugs/**``, to read the status or discover the API) must not stop the arm
-# mid-grasp or change anything else: these act on a query for exactly their key
-_STATE_CHANGING = frozenset({"reset", "arm_execute", "arm_stop", "arm_release"})

@@ -77,7 +77,7 @@ class ArmBridge:
             raise InputRejected("stopped", msg[:300])
         if d._resetting:  # latest_result is the map being cleared
             raise InputRejected("resetting", "no grasps: the map is being reset")
-        result = d.latest_result
+        result = d.outputs.latest_result
         if result is None:
             raise InputRejected("not_ready", "no grasps yet: model not ready")
         if grasp_id not in {int(g) for g in result.grasps.grasp_id}:

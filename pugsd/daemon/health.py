@@ -7,18 +7,21 @@ import logging
 import math
 import time
 from collections import Counter, deque
-from collections.abc import Iterator
+from collections.abc import Awaitable, Iterator
 from contextlib import contextmanager
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
+from pugsd.errors import PugsdError
 from pugsd.stream.assembler import InputRejected, log_nth, reason_class
 
 if TYPE_CHECKING:
     from pugsd.daemon.app import Daemon
 
 log = logging.getLogger(__name__)
+
+R = TypeVar("R")
 
 
 class LatencyWindow:
@@ -170,10 +173,40 @@ class Reporter:
             log.error("%s failed (#%d): %s: %s", what, n, type(exc).__name__, exc)
 
 
+    async def guard(self, stage: str, coro: Awaitable[R]) -> R | None:
+        """Await ``coro``; a PugsdError is a counted rejection, anything else a logged error."""
+        try:
+            out = await coro
+        except PugsdError as exc:
+            self.reject(stage, exc)
+            if reason_class(exc) in MAP_AT_FAULT:  # every later frame fails alike: not input's fault
+                self.health.failed(stage)
+        except Exception as exc:
+            self.health.failed(stage)
+            key = f"errors.{stage}"
+            self.health.count(key)
+            n = self.health.counts[key]
+            if n == 1:
+                log.exception("%s stage failed; continuing", stage)
+            elif log_nth(n):
+                log.error("%s stage failed (#%d): %s: %s", stage, n, type(exc).__name__, exc)
+        else:
+            self.health.succeeded(stage)
+            return out
+        return None
+
+
 def reason_head(reason: str) -> str:
     """Drop counters keyed by the reason's stable head (no numbers)."""
     return reason.split(" (", 1)[0]
 
+
+# rejections whose cause is the map, not the frame: the point store's voxel hash is anchored at
+# the map's first observation, so once frames come from beyond its range (that observation had a
+# localiser's initial zero pose, and the vehicle is in UTM coordinates), every frame is refused
+# until a reset. They count as failures too, so that a run of them makes the daemon unhealthy
+# (the watchdog restarts it) rather than healthy and never integrating again.
+MAP_AT_FAULT = frozenset({"out_of_map_range"})
 
 STREAM_ROLES = ("left_image", "right_image", "depth", "pose")  # inputs that flow continuously
 PUBLISHERS_WINDOW_S = 5.0  # status upstream.active_publishers: publishers heard this recently
@@ -309,9 +342,9 @@ def status_of(d: Daemon) -> dict[str, Any]:
         "problems": problems,
         "ready": d.ready,
         "was_ready": d.was_ready,
-        "model_version": d.model_version,
+        "model_version": d.outputs.model_version,
         "elbo": d.elbo,
-        "grasps_published": d.grasps_published,
+        "grasps_published": d.outputs.grasps_published,
         **snap,
         "dropped_total": d.dropped_total(),  # counts.dropped and the queues' own, below
         "mailboxes": {b.name: b.stats() for b in (d.stereo_box, d.depth_box, d.commands)},

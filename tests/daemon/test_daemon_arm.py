@@ -95,7 +95,7 @@ def test_arm_execute_query(port: int, client: zenoh.Session, sim_process: int) -
         wait_for(lambda: _try(client, key, "7", 0.5) is not None, 10.0, "queryable")
         ok, text = _ask(client, key, "7")
         assert not ok and "no grasps yet" in text  # nothing moves before there are grasps
-        dt.daemon.latest_result = Result(_grasps(), np.zeros((1, 3)), np.zeros(1), np.zeros(1), 1)
+        dt.daemon.outputs.latest_result = Result(_grasps(), np.zeros((1, 3)), np.zeros(1), np.zeros(1), 1)
         ok, text = _ask(client, key, "99")
         assert not ok and "not among the latest grasps" in text
         ok, text = _ask(client, key, "garbage")
@@ -147,7 +147,7 @@ def test_arm_stop_and_release(port: int, client: zenoh.Session, sim_process: int
     try:
         wait_for(lambda: _try(client, "pugs/arm/release", "", 0.5) is not None, 10.0, "queryable")
         arm = dt.daemon.arm.controller
-        dt.daemon.latest_result = Result(_grasps(), np.zeros((1, 3)), np.zeros(1), np.zeros(1), 1)
+        dt.daemon.outputs.latest_result = Result(_grasps(), np.zeros((1, 3)), np.zeros(1), np.zeros(1), 1)
         ok, text = _ask(client, "pugs/arm/execute", "7")
         assert ok, text
         wait_for(lambda: arm.state == "pregrasp", 10.0, "motion")
@@ -202,7 +202,7 @@ def test_a_reset_waits_for_the_arm_motion(port: int, client: zenoh.Session, sim_
         resets = lambda: dt.daemon.health.counts.get("resets", 0)  # noqa: E731 (counted when done)
         wait_for(lambda: resets() == 1, 5.0, "the readiness probe's reset")
         arm = dt.daemon.arm.controller
-        dt.daemon.latest_result = Result(_grasps(), np.zeros((1, 3)), np.zeros(1), np.zeros(1), 1)
+        dt.daemon.outputs.latest_result = Result(_grasps(), np.zeros((1, 3)), np.zeros(1), np.zeros(1), 1)
         ok, text = _ask(client, "pugs/arm/execute", "7")
         assert ok, text
         wait_for(lambda: arm.state == "pregrasp", 10.0, "motion")

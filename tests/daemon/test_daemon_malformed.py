@@ -135,7 +135,7 @@ def test_each_kind_of_bad_input_is_rejected_and_counted(
             "good frames integrated (or dropped as the newest won) after bad ones",
         )
         assert pipe.integrated and pipe.integrated[-1] == 5 * 10**9 + 2 * 10**8
-        wait_for(lambda: dt.daemon.latest_grasps is not None, 10.0, "grasps after bad input")
+        wait_for(lambda: dt.daemon.outputs.latest_grasps is not None, 10.0, "grasps after bad input")
     finally:
         src.close()
         dt.stop()

@@ -62,7 +62,7 @@ def test_grasps_are_stamped_with_the_newest_frame_in_their_snapshot() -> None:
     pipe = SlowIntegratePipeline(ready_after=0, slow_stamp=s2)
     d = Daemon(cfg, pipe, notifier=Notifier(""))
     pubs = {role: RecordingPublisher() for role in ("grasps", "markers", "cloud", "status")}
-    d._publishers = pubs  # type: ignore[assignment]
+    d.outputs.publishers = pubs  # type: ignore[assignment]
 
     async def main() -> None:
         d._loop = asyncio.get_running_loop()

@@ -65,7 +65,7 @@ def test_overload_in_process_drops_oldest_and_stays_bounded(port: int, client: z
             "the backlog to drain",
         )
         drain_s = time.monotonic() - t_sent
-        wait_for(lambda: d.latest_grasps is not None, 5.0, "grasps")
+        wait_for(lambda: d.outputs.latest_grasps is not None, 5.0, "grasps")
         st = query_json(client, "pugs/status")
     finally:
         src.close()
@@ -164,7 +164,7 @@ def test_overload_real_pipeline(tmp_path: Path, port: int, client: zenoh.Session
 
 _ARENA_PROBE = """
 import ctypes, sys, threading
-from pugsd.daemon.app import apply_malloc_arena_max
+from pugsd.daemon.process import apply_malloc_arena_max
 applied = apply_malloc_arena_max(int(sys.argv[1]))
 libc = ctypes.CDLL("libc.so.6")
 libc.malloc.restype = ctypes.c_void_p
@@ -204,7 +204,7 @@ def test_malloc_arena_max_caps_glibcs_arenas(arena_max: int) -> None:
 
 
 def test_malloc_arena_max_leaves_an_explicit_environment_alone(monkeypatch: pytest.MonkeyPatch) -> None:
-    from pugsd.daemon.app import apply_malloc_arena_max
+    from pugsd.daemon.process import apply_malloc_arena_max
 
     monkeypatch.setenv("MALLOC_ARENA_MAX", "4")  # glibc read it at start: it wins
     assert apply_malloc_arena_max(2) is False

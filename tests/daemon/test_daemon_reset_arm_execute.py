@@ -40,11 +40,11 @@ def _daemon() -> tuple[Daemon, FakeArm]:
     cfg = load_config_dict({"daemon": {"publish_cloud": False}})
     pipe = FakePipeline()
     d = Daemon(cfg, pipe, notifier=Notifier(""))
-    d._publishers = {r: RecordingPublisher() for r in ("grasps", "markers", "cloud", "status")}  # type: ignore[assignment]
+    d.outputs.publishers = {r: RecordingPublisher() for r in ("grasps", "markers", "cloud", "status")}  # type: ignore[assignment]
     d._session = type("S", (), {"put": lambda *a, **k: None})()  # arm reports
     arm = FakeArm()
     d.arm.controller = arm
-    d.latest_result = pipe.compute(full_cloud=False)  # grasp ids 0, 1, 2 of the old map
+    d.outputs.latest_result = pipe.compute(full_cloud=False)  # grasp ids 0, 1, 2 of the old map
     return d, arm
 
 
@@ -65,7 +65,7 @@ def test_an_execute_request_while_a_reset_waits_is_refused() -> None:
         d._model_exec.submit(busy.wait, 10.0)  # the model thread is busy: the reset waits for it
         reset = asyncio.create_task(d._reset())
         await asyncio.sleep(0.05)
-        assert d._resetting and d.latest_result is not None  # the reset has begun, not finished
+        assert d._resetting and d.outputs.latest_result is not None  # the reset has begun, not finished
         refused = None
         try:
             d.arm.on_execute(Query(b"1"))
@@ -123,7 +123,7 @@ def test_latest_grasps_are_not_served_while_a_reset_waits() -> None:
     """``pugsd arm execute --grasp-id`` asks ``<prefix>/grasps/latest`` first: during the reset it
     must not get the grasps of the map being cleared."""
     d, _ = _daemon()
-    d.latest_grasps = b"old map"
+    d.outputs.latest_grasps = b"old map"
     busy = threading.Event()
     q = LatestQuery()
 

@@ -127,7 +127,7 @@ def test_arm_requests_are_refused_under_fixed_reasons(port: int) -> None:
     reply counted under one of a few keys (never the id), no exception out of the handler."""
     d = Daemon(load_config_dict(daemon_config_dict(port)), FakePipeline())
     d.arm.controller = types.SimpleNamespace(stop_latched=None)  # enabled (the motion is not reached)
-    d.latest_result = FakePipeline().compute()  # grasp ids 0, 1, 2
+    d.outputs.latest_result = FakePipeline().compute()  # grasp ids 0, 1, 2
 
     def ask(payload: str, key: str = "pugs/arm/execute") -> FakeQuery:
         q = FakeQuery(key, payload)

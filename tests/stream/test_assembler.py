@@ -5,6 +5,7 @@ is counted under."""
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from typing import Any
 
 import numpy as np
@@ -13,7 +14,7 @@ import pytest
 from pugsd.config import load_config_dict
 from pugsd.core.camera import PinholeCamera, StereoRig
 from pugsd.errors import PugsdError
-from pugsd.stream.assembler import FrameAssembler, InputRejected, reason_class
+from pugsd.stream.assembler import FrameAssembler, InputRejected, bounded_put, reason_class
 from pugsd.wire import codec
 from pugsd.wire.types import CAMERA_INFO, IMAGE, POSE_COV_STAMPED
 
@@ -200,3 +201,16 @@ def test_clear_discards_the_waiting_frames_and_halves() -> None:
     r.feed("left_image", codec.encode_image(IMG, 2 * S))
     assert r.asm.clear() == (1, 1)
     assert len(r.asm.gate) == 0 and r.asm.pairer.pending() == 0
+
+
+def test_side_images_keep_exactly_the_newest_cap() -> None:
+    d: OrderedDict[int, np.ndarray] = OrderedDict()
+    for stamp in range(1, 6):
+        bounded_put(d, stamp, np.full(2, stamp), 3)
+    assert list(d) == [3, 4, 5]
+    bounded_put(d, 3, np.full(2, 30), 3)  # a second image of a waiting stamp replaces it
+    assert list(d) == [4, 5, 3] and d[3].tolist() == [30, 30]
+    bounded_put(d, 6, np.full(2, 6), 3)
+    assert list(d) == [5, 3, 6]
+    bounded_put(d, 7, np.full(2, 7), 1)
+    assert list(d) == [7]

@@ -1,10 +1,10 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Small pieces of pugsd/daemon/app.py that earlier audits skipped, pinned (a mutation audit):
-``apply_malloc_arena_max`` (each condition under which it leaves glibc alone, and the exact
-``mallopt(M_ARENA_MAX = -8, n)`` call otherwise, against a stand-in libc); the rate-limited
-``errors.<stage>`` lines of ``_guard`` (the traceback once, then one line for the 2nd to 5th and
-every 100th, while every failure is counted); and the recorder in ``run()`` and the status when
-it cannot write (the daemon still starts and says why), and the shutdown line naming its files."""
+"""The daemon's process set-up, stage guard and start-up: ``apply_malloc_arena_max`` (each condition
+under which it leaves glibc alone, and the exact ``mallopt(M_ARENA_MAX = -8, n)`` call otherwise,
+against a stand-in libc); the rate-limited ``errors.<stage>`` lines of ``_guard`` (the traceback
+once, then one line for the 2nd to 5th and every 100th, while every failure is counted); and the
+recorder in ``run()`` and the status when it cannot write (the daemon still starts and says why),
+the shutdown line naming its files, and the serving line naming the endpoints as configured."""
 
 from __future__ import annotations
 
@@ -17,13 +17,15 @@ from typing import Any
 import pytest
 
 import pugsd.daemon.app as app_mod
+import pugsd.daemon.process as process_mod
 from pugsd.config import load_config_dict
-from pugsd.daemon.app import Daemon, InputRejected, apply_malloc_arena_max
+from pugsd.daemon.app import Daemon, InputRejected
 from pugsd.daemon.notify import Notifier
+from pugsd.daemon.process import apply_malloc_arena_max
 from pugsd.errors import PugsdError
 from pugsd.record.recorder import default_record_keys
 from tests.daemon.conftest import FakePipeline
-from tests.daemon.test_app_workers_audit import DeclSession, stop_at_ready
+from tests.daemon.test_daemon_workers import DeclSession, stop_at_ready
 
 # --- apply_malloc_arena_max ---------------------------------------------------------------------------
 
@@ -65,9 +67,9 @@ class FakeLibc:
 @pytest.fixture
 def libc(monkeypatch: pytest.MonkeyPatch) -> FakeLibc:
     fake = FakeLibc()
-    monkeypatch.setattr(app_mod.ctypes, "CDLL", fake)
+    monkeypatch.setattr(process_mod.ctypes, "CDLL", fake)
     monkeypatch.delenv("MALLOC_ARENA_MAX", raising=False)
-    monkeypatch.setattr(app_mod.sys, "platform", "linux")
+    monkeypatch.setattr(process_mod.sys, "platform", "linux")
     return fake
 
 
@@ -105,13 +107,13 @@ def test_arena_max_leaves_an_environment_choice_alone(
 def test_arena_max_off_linux_leaves_malloc_alone(
     libc: FakeLibc, monkeypatch: pytest.MonkeyPatch, platform: str
 ) -> None:
-    monkeypatch.setattr(app_mod.sys, "platform", platform)
+    monkeypatch.setattr(process_mod.sys, "platform", platform)
     assert apply_malloc_arena_max(2) is False
     assert libc.opened == []
 
 
 def test_arena_max_on_any_linux_platform_string(libc: FakeLibc, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(app_mod.sys, "platform", "linux2")  # the Python 2 era spelling: still linux
+    monkeypatch.setattr(process_mod.sys, "platform", "linux2")  # the Python 2 era spelling: still linux
     assert apply_malloc_arena_max(2) is True and libc.calls == [(-8, 2)]
 
 
@@ -145,7 +147,7 @@ def test_guard_logs_the_first_failure_with_its_traceback_then_2_to_5_and_every_1
         raise RuntimeError(f"boom {i}")
 
     async def main() -> list[Any]:
-        return [await d._guard("grasps", bad(i)) for i in range(1, 206)]
+        return [await d.report.guard("grasps", bad(i)) for i in range(1, 206)]
 
     caplog.set_level(logging.INFO, logger="pugsd")
     try:
@@ -179,10 +181,10 @@ def test_guard_counts_per_stage_and_a_rejection_is_not_an_error(caplog: pytest.L
 
     async def main() -> None:
         for _ in range(3):
-            await d._guard("depth", bad())
-        await d._guard("grasps", bad())  # its own count: logged with the traceback again
-        await d._guard("train", rejected())
-        await d._guard("integrate", off_map())  # every later frame fails alike: a failure too
+            await d.report.guard("depth", bad())
+        await d.report.guard("grasps", bad())  # its own count: logged with the traceback again
+        await d.report.guard("train", rejected())
+        await d.report.guard("integrate", off_map())  # every later frame fails alike: a failure too
 
     caplog.set_level(logging.INFO, logger="pugsd")
     try:
@@ -321,3 +323,13 @@ def test_close_names_five_files_and_counts_the_rest_only_past_five(
     msgs = [r.getMessage() for r in caplog.records]
     assert [m for m in msgs if m.startswith("recording finished")] == [line]
     assert d.recorder is None
+
+
+def test_the_serving_line_names_the_endpoints_as_configured() -> None:
+    from pugsd.daemon.app import _endpoints
+
+    z = {"listen": {"endpoints": ["tcp/127.0.0.1:7447", "tcp/127.0.0.1:7448"]}, "connect": {"endpoints": []}}
+    assert _endpoints(z, "listen") == "tcp/127.0.0.1:7447, tcp/127.0.0.1:7448"
+    assert _endpoints(z, "connect") == "none" and _endpoints({}, "listen") == "none"
+    per_mode = {"connect": {"endpoints": {"peer": ["tcp/127.0.0.1:1"], "client": ["tcp/127.0.0.1:2"]}}}
+    assert _endpoints(per_mode, "connect") == "tcp/127.0.0.1:1, tcp/127.0.0.1:2"

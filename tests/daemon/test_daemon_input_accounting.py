@@ -1,9 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The daemon's input path and its accounting, pinned (a mutation audit of pugsd/daemon/app.py):
-bad input gets a counted rejection charged to the input at fault, with a log line that names the
-sizes, rate-limited; every drop counts in ``dropped_total``; the status message carries the
-counters it claims. The daemon is driven on the calling thread (no zenoh session): samples go
-straight to ``_on_inbound``."""
+"""The daemon's input path and its accounting: bad input gets a counted rejection charged to the
+input at fault, with a log line that names the sizes, rate-limited; every drop counts in
+``dropped_total``; the status message carries the counters it claims. The daemon is driven on the
+calling thread (no zenoh session): samples go straight to ``_on_inbound``."""
 
 from __future__ import annotations
 

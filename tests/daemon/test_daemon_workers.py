@@ -1,12 +1,10 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The daemon's worker loops, pinned (a mutation audit of pugsd/daemon/app.py beyond its input
-path, tests/daemon/test_app_audit.py, and its outputs, tests/daemon/test_app_outputs_audit.py):
-depth estimation hands its frames on and drops those a reset overtook; ingest trains
-``train_steps_per_frame`` steps after each frame and idles on with ``idle_train_steps`` rounds,
-backing off exponentially while training fails; every model call holds the model lock; a reset
-waits for an arm motion, bumps the generation and always ends; the status, watchdog, gate and
-arm workers say and do what they claim; shutdown awaits only the workers inside a call and
-bounds them; ``run()`` never sends READY when stopped while starting. No zenoh session: the
+"""The daemon's worker loops: depth estimation hands its frames on and drops those a reset overtook;
+ingest trains ``train_steps_per_frame`` steps after each frame and idles on with
+``idle_train_steps`` rounds, backing off exponentially while training fails; every model call holds
+the model lock; a reset waits for an arm motion, bumps the generation and always ends; the status,
+watchdog, gate and arm workers say and do what they claim; shutdown awaits only the workers inside a
+call and bounds them; ``run()`` never sends READY when stopped while starting. No zenoh session: the
 workers run on their own with stand-in sessions, arms, notifiers and a stand-in clock."""
 
 from __future__ import annotations
@@ -42,7 +40,7 @@ PIXELS = RIG.left.width * RIG.left.height
 def _daemon(pipe: FakePipeline | None = None, notifier: Notifier | None = None, **daemon: Any) -> Daemon:
     cfg = load_config_dict({"daemon": daemon})
     d = Daemon(cfg, pipe or FakePipeline(), notifier=notifier or Notifier(""))
-    d._publishers = {r: RecordingPublisher() for r in ROLES}  # type: ignore[misc]
+    d.outputs.publishers = {r: RecordingPublisher() for r in ROLES}  # type: ignore[misc]
     return d
 
 
@@ -537,7 +535,7 @@ def test_max_consecutive_failures_makes_a_stage_unhealthy_and_one_success_heals_
     async def main() -> list[list[str]]:
         out = []
         for coro in (bad, bad, bad, good):
-            await d._guard("depth", coro())
+            await d.report.guard("depth", coro())
             out.append(d.health.problems())
         return out
 
@@ -625,7 +623,7 @@ def test_the_status_worker_publishes_the_status_and_the_status_line(sleeps: list
     c["frames.stereo"], c["frames.depth"], c["integrated"] = 3, 2, 4
     d.health.reject("pose", "stale")
     d.health.drop("pose_wait", "no pose", 2)
-    d.grasps_published, d.ready = 7, True
+    d.outputs.grasps_published, d.ready = 7, True
     d.inputs.last_recv_s["pose"] = time.monotonic() - 100.0  # silent for longer than input_stale_s
 
     try:
@@ -638,7 +636,7 @@ def test_the_status_worker_publishes_the_status_and_the_status_line(sleeps: list
     assert sleeps == [0.25]  # one period of 1 / status_rate_hz before each status
     st = d.latest_status
     assert st["inputs"]["stale"] == ["pose"] and d.inputs.stale_reported == {"pose"}  # logged once
-    pub = d._publishers["status"]
+    pub = d.outputs.publishers["status"]
     assert isinstance(pub, RecordingPublisher)
     assert pub.puts == [codec.encode_status(jsonable(st))]
 

@@ -1,11 +1,11 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The daemon's output, query, arm and health paths, pinned (a mutation audit of
-pugsd/daemon/app.py beyond its input path, which tests/daemon/test_app_audit.py covers): queries
-are answered on their own key with fixed texts and never block; state-changing ones act only on
-their exact key; an arm stop always gets an answer, even in a flood; grasps carry the stamp of
-their snapshot and are never published from a reset map; a failed put is counted; the status says
-what it claims; shutdown undeclares everything and counts abandoned work. No zenoh session: the
-handlers are called directly with stand-in queries, publishers, loops and arms."""
+"""The daemon's output, query, arm and health paths (its input path is
+test_daemon_input_accounting.py's): queries are answered on their own key with fixed texts and never
+block; state-changing ones act only on their exact key; an arm stop always gets an answer, even in a
+flood; grasps carry the stamp of their snapshot and are never published from a reset map; a failed
+put is counted; the status says what it claims; shutdown undeclares everything and counts abandoned
+work. No zenoh session: the handlers are called directly with stand-in queries, publishers, loops
+and arms."""
 
 from __future__ import annotations
 
@@ -25,9 +25,10 @@ import pytest
 
 from pugsd.config import load_config_dict
 from pugsd.core.types import DepthFrame
-from pugsd.daemon.app import Command, Daemon, apply_thread_limits
+from pugsd.daemon.app import Command, Daemon
 from pugsd.daemon.bridge import IngressGate
 from pugsd.daemon.notify import Notifier
+from pugsd.daemon.process import apply_thread_limits
 from pugsd.errors import EmptyCloudError, PugsdError
 from pugsd.wire import codec
 from pugsd.wire.types import GRASP_ARRAY, MARKER_ARRAY
@@ -38,7 +39,7 @@ ROLES = ("grasps", "markers", "cloud", "status")
 
 def _daemon(pipe: FakePipeline | None = None, **daemon: Any) -> Daemon:
     d = Daemon(load_config_dict({"daemon": daemon}), pipe or FakePipeline(), notifier=Notifier(""))
-    d._publishers = {r: RecordingPublisher() for r in ROLES}  # type: ignore[misc]
+    d.outputs.publishers = {r: RecordingPublisher() for r in ROLES}  # type: ignore[misc]
     return d
 
 
@@ -48,7 +49,7 @@ def _shutdown(d: Daemon) -> None:
 
 
 def _puts(d: Daemon, role: str) -> list[bytes]:
-    pub = d._publishers[role]
+    pub = d.outputs.publishers[role]
     assert isinstance(pub, RecordingPublisher)
     return pub.puts
 
@@ -149,7 +150,7 @@ def test_status_and_latest_answer_a_wildcard_query_on_their_own_key() -> None:
     q = FakeQuery("pugs/**")
     d._on_query("latest", q)
     assert q.replies == [] and q.errors == ["no grasps yet: model not ready"]
-    d.latest_grasps = b"grasp array bytes"
+    d.outputs.latest_grasps = b"grasp array bytes"
     q = FakeQuery("pugs/**")
     d._on_query("latest", q)
     assert q.replies == [("pugs/grasps/latest", b"grasp array bytes")] and q.errors == []
@@ -195,7 +196,7 @@ def test_a_command_refused_in_a_flood_is_logged_for_the_first_five_then_every_10
 def test_a_state_changing_queryable_refuses_a_wildcard_query(kind: str) -> None:
     d = _daemon()
     d.arm.controller = StopArm(was="tripped")
-    d.latest_result = FakePipeline().compute()
+    d.outputs.latest_result = FakePipeline().compute()
     q = FakeQuery("pugs/**", b"1")
     d._on_query(kind, q)
     key = {
@@ -226,7 +227,7 @@ def test_an_error_while_answering_is_counted_and_answered_with_its_type(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     d = _daemon()
-    d.latest_grasps = b"g"
+    d.outputs.latest_grasps = b"g"
     caplog.set_level(logging.ERROR, logger="pugsd")
     for _ in range(2):
         q = FakeQuery("pugs/grasps/latest", fail_reply=True)
@@ -262,7 +263,7 @@ def test_arm_execute_refusals_and_the_queued_request() -> None:
     assert ask(b"1").errors == ["rejected: stopped (operator): query pugs/arm/release first"]
     arm.stop_latched = None
     assert ask(b"1").errors == ["rejected: no grasps yet: model not ready"]
-    d.latest_result = FakePipeline().compute()
+    d.outputs.latest_result = FakePipeline().compute()
     d._busy["arm"] = True  # the worker took the last request: the mailbox is empty
     assert ask(b"1").errors == ["rejected: busy: an arm motion is in progress"]
     assert len(d.arm.box) == 0
@@ -271,7 +272,7 @@ def test_arm_execute_refusals_and_the_queued_request() -> None:
     q = ask(b'{"grasp_id": 2, "width_m": 0.04}')
     assert q.replies == [("pugs/arm/execute", "accepted: grasp 2")] and q.errors == []
     grasps, gid, width_m, gen = d.arm.box.take_nowait()  # type: ignore[misc]
-    assert (gid, width_m, gen) == (2, 0.04, 3) and grasps is d.latest_result.grasps
+    assert (gid, width_m, gen) == (2, 0.04, 3) and grasps is d.outputs.latest_result.grasps
     assert dict(d.health.rejected) == {
         "arm: disabled": 1,
         "arm: stopped": 1,
@@ -285,7 +286,7 @@ def test_arm_execute_during_shutdown_is_refused_as_such_not_as_busy() -> None:
     in progress" although no motion ran."""
     d = _daemon()
     d.arm.controller = StopArm()  # type: ignore[assignment]
-    d.latest_result = FakePipeline().compute()
+    d.outputs.latest_result = FakePipeline().compute()
     d._stopping = True
     d.arm.box.close()
     q = FakeQuery("pugs/arm/execute", b"1")
@@ -592,7 +593,7 @@ def test_grasps_and_markers_are_stamped_with_the_snapshot_and_the_cloud_follows(
     d = _daemon(markers_top_k=2)
     d._newest_stamp_ns = 7 * 10**9 + 5
     h = Handed()
-    assert d._compute_and_encode("map", d._generation, h, False) == "published"
+    assert d.outputs.compute_and_encode("map", d._generation, h, False) == "published"
     ((result, out),) = h.calls
     assert sorted(out) == ["grasps", "markers"] and result is not None
     assert _stamp_ns(out["grasps"], GRASP_ARRAY) == 7 * 10**9 + 5
@@ -603,7 +604,7 @@ def test_grasps_and_markers_are_stamped_with_the_snapshot_and_the_cloud_follows(
     assert _stamp_ns(out["markers"], MARKER_ARRAY) == 7 * 10**9 + 5
     assert {m.header.frame_id for m in markers} == {"map"}
     h = Handed()
-    assert d._compute_and_encode("map", d._generation, h, True) == "published"
+    assert d.outputs.compute_and_encode("map", d._generation, h, True) == "published"
     assert [sorted(p) for _, p in h.calls] == [["grasps", "markers"], ["cloud"]]
     scored, finished = h.calls[0][0], h.calls[1][0]  # the cloud comes with its round's finished result
     assert finished.grasps is scored.grasps and np.isnan(scored.sigma2_occ).all()
@@ -617,7 +618,7 @@ def test_grasps_and_markers_are_stamped_with_the_snapshot_and_the_cloud_follows(
 def test_a_reset_discards_the_computation_before_scoring_or_after_the_grasps() -> None:
     d = _daemon()
     h = Handed()
-    assert d._compute_and_encode("world", d._generation - 1, h, True) == "discarded"
+    assert d.outputs.compute_and_encode("world", d._generation - 1, h, True) == "discarded"
     assert h.calls == []
 
     class Preempting(FakePipeline):
@@ -626,7 +627,7 @@ def test_a_reset_discards_the_computation_before_scoring_or_after_the_grasps() -
 
     d = _daemon(Preempting())
     h = Handed()
-    assert d._compute_and_encode("world", d._generation, h, True) == "preempted"
+    assert d.outputs.compute_and_encode("world", d._generation, h, True) == "preempted"
     assert len(h.calls) == 1
 
     class ResetMeanwhile(FakePipeline):
@@ -641,7 +642,7 @@ def test_a_reset_discards_the_computation_before_scoring_or_after_the_grasps() -
     d = _daemon(pipe)
     pipe.daemon = d
     h = Handed()
-    assert d._compute_and_encode("world", d._generation, h, True) == "cloud discarded"
+    assert d.outputs.compute_and_encode("world", d._generation, h, True) == "cloud discarded"
     assert [sorted(p) for _, p in h.calls] == [["grasps", "markers"]]
 
 
@@ -650,10 +651,11 @@ def test_results_of_an_older_map_are_counted_and_not_published(caplog: pytest.Lo
     caplog.set_level(logging.INFO, logger="pugsd")
     result = FakePipeline().compute()
     d._generation = 2
-    d._publish_outputs(result, {"grasps": b"g", "markers": b"m"}, None, 1)
-    d._publish_outputs(None, {"cloud": b"c"}, None, 1)
+    d.outputs.publish(result, {"grasps": b"g", "markers": b"m"}, None, 1)
+    d.outputs.publish(None, {"cloud": b"c"}, None, 1)
     assert all(_puts(d, r) == [] for r in ROLES)
-    assert d.latest_grasps is None and d.latest_result is None and d.grasps_published == 0
+    out = d.outputs
+    assert out.latest_grasps is None and out.latest_result is None and out.grasps_published == 0
     assert d.health.counts["grasps_discarded"] == 1 and d.health.counts["clouds_discarded"] == 1
     assert "grasp results discarded: the map was reset while they were computed" in caplog.text
 
@@ -662,17 +664,18 @@ def test_a_published_cloud_alone_changes_no_grasp_state_and_grasps_end_the_urgen
     d = _daemon()
     d.schedule.grasps_urgent = True
     before = d.schedule.last_cloud_published_s
-    d._publish_outputs(None, {"cloud": b"c"}, None, d._generation)
+    d.outputs.publish(None, {"cloud": b"c"}, None, d._generation)
     assert _puts(d, "cloud") == [b"c"] and d.schedule.last_cloud_published_s > before
-    assert d.schedule.grasps_urgent and d.latest_grasps is None and d.grasps_published == 0
+    assert d.schedule.grasps_urgent and d.outputs.latest_grasps is None and d.outputs.grasps_published == 0
     assert "grasps_published" not in d.health.counts
     result = FakePipeline().compute()
     result.model_version = np.int64(12)  # type: ignore[assignment]
     t0 = d.schedule.last_cloud_published_s
-    d._publish_outputs(result, {"grasps": b"g", "markers": b"m"}, time.monotonic(), d._generation)
+    d.outputs.publish(result, {"grasps": b"g", "markers": b"m"}, time.monotonic(), d._generation)
     assert d.schedule.last_cloud_published_s == t0  # no cloud in this hand-over
-    assert not d.schedule.grasps_urgent and d.latest_grasps == b"g" and d.latest_result is result
-    assert d.model_version == 12 and type(d.model_version) is int
+    assert not d.schedule.grasps_urgent
+    assert d.outputs.latest_grasps == b"g" and d.outputs.latest_result is result
+    assert d.outputs.model_version == 12 and type(d.outputs.model_version) is int
     assert (_puts(d, "grasps"), _puts(d, "markers")) == ([b"g"], [b"m"])
     assert d.health.counts["grasps_published"] == 1 and "newest_frame_to_grasps" in d.health.latency
 
@@ -683,18 +686,18 @@ def test_the_cloud_of_the_latest_round_completes_latest_result_and_another_round
     d = _daemon()
     pipe = FakePipeline()
     scored = pipe.score(0)
-    d._publish_outputs(scored, {"grasps": b"g", "markers": b"m"}, None, d._generation)
-    assert d.latest_result is scored and np.isnan(d.latest_result.sigma2_occ).all()
+    d.outputs.publish(scored, {"grasps": b"g", "markers": b"m"}, None, d._generation)
+    assert d.outputs.latest_result is scored and np.isnan(d.outputs.latest_result.sigma2_occ).all()
     other_round = pipe.finish_cloud(pipe.score(0))  # equal values, other grasps object
-    d._publish_outputs(other_round, {"cloud": b"c0"}, None, d._generation)
-    assert d.latest_result is scored
+    d.outputs.publish(other_round, {"cloud": b"c0"}, None, d._generation)
+    assert d.outputs.latest_result is scored
     finished = pipe.finish_cloud(scored)
-    d._publish_outputs(finished, {"cloud": b"c1"}, None, d._generation)
-    assert d.latest_result is finished and d.latest_grasps == b"g"
-    np.testing.assert_allclose(d.latest_result.sigma2_occ, 0.1)
-    assert _puts(d, "cloud") == [b"c0", b"c1"] and d.grasps_published == 1
-    d._publish_outputs(pipe.finish_cloud(finished), {"cloud": b"c2"}, None, d._generation - 1)
-    assert d.latest_result is finished and d.health.counts["clouds_discarded"] == 1
+    d.outputs.publish(finished, {"cloud": b"c1"}, None, d._generation)
+    assert d.outputs.latest_result is finished and d.outputs.latest_grasps == b"g"
+    np.testing.assert_allclose(d.outputs.latest_result.sigma2_occ, 0.1)
+    assert _puts(d, "cloud") == [b"c0", b"c1"] and d.outputs.grasps_published == 1
+    d.outputs.publish(pipe.finish_cloud(finished), {"cloud": b"c2"}, None, d._generation - 1)
+    assert d.outputs.latest_result is finished and d.health.counts["clouds_discarded"] == 1
 
 
 def test_a_failed_put_is_logged_for_the_first_ten_of_a_role_then_every_100th(
@@ -705,12 +708,12 @@ def test_a_failed_put_is_logged_for_the_first_ten_of_a_role_then_every_100th(
             raise RuntimeError("session closed")
 
     d = _daemon()
-    d._publishers["cloud"] = Refusing()  # type: ignore[assignment]
+    d.outputs.publishers["cloud"] = Refusing()  # type: ignore[assignment]
     caplog.set_level(logging.WARNING, logger="pugsd")
-    assert [d._put_output("cloud", b"c") for _ in range(200)] == [False] * 200
+    assert [d.outputs.put("cloud", b"c") for _ in range(200)] == [False] * 200
     counts = [int(r.getMessage().split("(")[1].split(" ")[0]) for r in caplog.records]
     assert counts == [*range(1, 11), 100, 200]
-    assert d.health.failures["publish"] == 200 and d._put_output("status", b"s")
+    assert d.health.failures["publish"] == 200 and d.outputs.put("status", b"s")
     assert "publish" not in d.health.failures
 
 
@@ -793,7 +796,7 @@ def test_the_grasp_worker_publishes_a_changed_ready_model_once_with_its_cloud() 
     d._newest_stamp_ns = 42
     _grasp_rounds(d, lambda: len(_puts(d, "cloud")) >= 1)
     assert (len(_puts(d, "grasps")), len(_puts(d, "markers")), len(_puts(d, "cloud"))) == (1, 1, 1)
-    assert d.grasps_published == 1 and not d.schedule.changed
+    assert d.outputs.grasps_published == 1 and not d.schedule.changed
     assert codec.decode_cloud(_puts(d, "cloud")[0]).frame_id == "odom"
     assert _stamp_ns(_puts(d, "grasps")[0], GRASP_ARRAY) == 42
 
@@ -801,17 +804,17 @@ def test_the_grasp_worker_publishes_a_changed_ready_model_once_with_its_cloud() 
 def test_the_grasp_worker_publishes_no_cloud_when_it_is_off_and_nothing_unready_without_the_latch() -> None:
     d = _daemon(grasp_rate_hz=50.0, publish_cloud=False)
     d.ready = d.schedule.changed = True
-    _grasp_rounds(d, lambda: d.grasps_published >= 1)
-    assert d.grasps_published == 1 and _puts(d, "cloud") == []
+    _grasp_rounds(d, lambda: d.outputs.grasps_published >= 1)
+    assert d.outputs.grasps_published == 1 and _puts(d, "cloud") == []
     unlatched = _daemon(grasp_rate_hz=50.0, ready_latch=False)
     unlatched.was_ready = unlatched.schedule.changed = True
     t_end = time.monotonic() + 0.3  # an observation window (about 15 rounds), not a synchronisation
     _grasp_rounds(unlatched, lambda: time.monotonic() > t_end)
-    assert unlatched.grasps_published == 0 and _puts(unlatched, "grasps") == []
+    assert unlatched.outputs.grasps_published == 0 and _puts(unlatched, "grasps") == []
     latched = _daemon(grasp_rate_hz=50.0, publish_cloud=False)
     latched.was_ready = latched.schedule.changed = True
-    _grasp_rounds(latched, lambda: latched.grasps_published >= 1)
-    assert latched.grasps_published == 1
+    _grasp_rounds(latched, lambda: latched.outputs.grasps_published >= 1)
+    assert latched.outputs.grasps_published == 1
 
 
 # --- a reset's published state ------------------------------------------------------------------------
@@ -821,11 +824,11 @@ def test_a_reset_clears_the_model_state_and_publishes_empties_on_the_old_time_li
     d = _daemon(publish_cloud=False)
     d._newest_stamp_ns = 3 * 10**9
     d.frames.frame_id = "odom"
-    d.latest_grasps, d.latest_result = b"g", FakePipeline().compute()
+    d.outputs.latest_grasps, d.outputs.latest_result = b"g", FakePipeline().compute()
     d.ready = d.was_ready = d.schedule.changed = d.schedule.frame_unpublished = True
     d.elbo, d.schedule.last_frame_s, d._newest_recv_s = -1.0, 5.0, 4.0
     d.health.failed("integrate")
-    d._grasps_logged_s = 10.0
+    d.outputs.grasps_logged_s = 10.0
 
     async def main() -> None:
         d._loop = asyncio.get_running_loop()
@@ -835,11 +838,11 @@ def test_a_reset_clears_the_model_state_and_publishes_empties_on_the_old_time_li
             _shutdown(d)
 
     asyncio.run(main())
-    assert (d.latest_grasps, d.latest_result, d.schedule.changed) == (None, None, False)
+    assert (d.outputs.latest_grasps, d.outputs.latest_result, d.schedule.changed) == (None, None, False)
     assert (d.ready, d.was_ready) == (False, False)
     sch = d.schedule
     assert (sch.frame_unpublished, sch.last_frame_s, d._newest_recv_s, d.elbo) == (False, None, None, None)
-    assert d._grasps_logged_s == -math.inf and d.health.counts["resets"] == 1
+    assert d.outputs.grasps_logged_s == -math.inf and d.health.counts["resets"] == 1
     assert "integrate" not in d.health.failures and d._newest_stamp_ns == 0 and not d._resetting
     assert _puts(d, "cloud") == []  # publish_cloud off
     (g,) = _puts(d, "grasps")
@@ -854,9 +857,9 @@ def test_cleared_outputs_skip_roles_without_a_publisher_and_survive_a_failed_put
             raise RuntimeError("closed")
 
     d = _daemon()
-    del d._publishers["markers"]
-    d._publishers["grasps"] = Refusing()  # type: ignore[assignment]
-    d._publish_cleared(5)
+    del d.outputs.publishers["markers"]
+    d.outputs.publishers["grasps"] = Refusing()  # type: ignore[assignment]
+    d.outputs.publish_cleared(5)
     assert len(_puts(d, "cloud")) == 1 and len(codec.decode_cloud(_puts(d, "cloud")[0]).points) == 0
     assert codec.decode_cloud(_puts(d, "cloud")[0]).stamp_ns == 5
     assert d.health.counts["publish_failed.grasps"] == d.health.counts["publish_failed"] == 1
@@ -906,7 +909,7 @@ def test_status_reports_its_counters_and_survives_a_failing_pipeline() -> None:
     d.bridge.deletes_ignored = 4
     d.bridge.errors["pose"] = 2
     d.frames.pose_publisher = bytes(range(16))
-    d.model_version, d.elbo, d.grasps_published = 7, -1.5, 9
+    d.outputs.model_version, d.elbo, d.outputs.grasps_published = 7, -1.5, 9
     st = d.status()
     assert st["pipeline"] == {"error": "cuda gone"}
     assert st["healthy"] is True and st["problems"] == []
@@ -945,14 +948,15 @@ def test_close_undeclares_everything_in_order_despite_failures_and_leaves_a_lent
     d._sub_graph_tokens = [Entity("sub-token", order)]
     d._subscribers = [Entity("sub-1", order, fail=True), Entity("sub-2", order)]
     d._entities = [Entity("queryable", order, fail=True), Entity("alive", order)]
-    d._publishers = {"grasps": Entity("pub-grasps", order), "status": Entity("pub-status", order)}  # type: ignore[dict-item]
+    d.outputs.publishers = {"grasps": Entity("pub-grasps", order), "status": Entity("pub-status", order)}  # type: ignore[dict-item]
     d._graph_tokens = [Entity("node-token", order), Entity("pub-token", order)]
     d._close()
     assert order == [
         "sub-token", "sub-1", "sub-2", "queryable", "alive", "pub-grasps", "pub-status", "pub-token",
         "node-token",
     ]  # fmt: skip
-    assert not (d._subscribers or d._entities or d._publishers or d._graph_tokens or d._sub_graph_tokens)
+    assert not (d._subscribers or d._entities or d.outputs.publishers)
+    assert not (d._graph_tokens or d._sub_graph_tokens)
     assert closed == [] and d._session is session
     assert not d.serving
 
@@ -1017,7 +1021,7 @@ def test_the_grasp_worker_counts_each_outcome_of_a_round(caplog: pytest.LogCaptu
     d.ready = d.schedule.changed = True
     _grasp_rounds(d, lambda: d.health.counts["clouds_preempted"] >= 1)
     assert d.health.counts["clouds_preempted"] == 1 and _puts(d, "cloud") == []
-    assert d.grasps_published == 1 and "clouds_discarded" not in d.health.counts
+    assert d.outputs.grasps_published == 1 and "clouds_discarded" not in d.health.counts
 
     class ResetDuringCloud(FakePipeline):
         daemon: Daemon | None = None
@@ -1050,7 +1054,7 @@ def test_the_grasp_worker_counts_each_outcome_of_a_round(caplog: pytest.LogCaptu
     d.ready = d.schedule.changed = True
     caplog.set_level(logging.INFO, logger="pugsd")
     _grasp_rounds(d, lambda: d.health.counts["grasps_discarded"] >= 1)
-    assert d.health.counts["grasps_discarded"] == 1 and d.grasps_published == 0
+    assert d.health.counts["grasps_discarded"] == 1 and d.outputs.grasps_published == 0
     assert all(_puts(d, r) == [] for r in ROLES)
     assert "grasp computation discarded: the map was reset while it ran" in caplog.text
 
@@ -1073,7 +1077,7 @@ def test_a_grasp_round_handed_over_after_a_reset_publishes_nothing() -> None:
     d.ready = d.schedule.changed = True
     _grasp_rounds(d, lambda: d.health.counts["grasps_discarded"] >= 1)
     assert d.health.counts["grasps_discarded"] == 1
-    assert d.grasps_published == 0 and _puts(d, "grasps") == [] and d.latest_grasps is None
+    assert d.outputs.grasps_published == 0 and _puts(d, "grasps") == [] and d.outputs.latest_grasps is None
 
 
 def test_while_frames_stream_the_first_cloud_waits_for_the_cloud_interval() -> None:
@@ -1081,8 +1085,8 @@ def test_while_frames_stream_the_first_cloud_waits_for_the_cloud_interval() -> N
     d = _daemon(grasp_rate_hz=50.0, cloud_interval_s=60.0)
     d.ready = d.schedule.changed = True
     d.depth_box.offer((_depth(1), 0.0))  # a frame waits: the input streams
-    _grasp_rounds(d, lambda: d.grasps_published >= 1)
-    assert d.grasps_published == 1 and _puts(d, "cloud") == []
+    _grasp_rounds(d, lambda: d.outputs.grasps_published >= 1)
+    assert d.outputs.grasps_published == 1 and _puts(d, "cloud") == []
 
 
 def test_no_grasp_round_starts_while_a_reset_is_in_progress() -> None:
@@ -1091,7 +1095,7 @@ def test_no_grasp_round_starts_while_a_reset_is_in_progress() -> None:
     d._resetting = True
     t_end = time.monotonic() + 0.3  # an observation window (about 15 rounds), not a synchronisation
     _grasp_rounds(d, lambda: time.monotonic() > t_end)
-    assert d.grasps_published == 0 and d.schedule.changed and _puts(d, "grasps") == []
+    assert d.outputs.grasps_published == 0 and d.schedule.changed and _puts(d, "grasps") == []
 
 
 def test_the_grasp_worker_marks_grasps_for_a_new_frame_urgent_while_they_are_computed() -> None:
@@ -1111,14 +1115,14 @@ def test_the_grasp_worker_marks_grasps_for_a_new_frame_urgent_while_they_are_com
     d = _daemon(pipe, grasp_rate_hz=50.0, publish_cloud=False)
     pipe.daemon = d
     d.ready = d.schedule.changed = d.schedule.frame_unpublished = True
-    _grasp_rounds(d, lambda: d.grasps_published >= 1)
+    _grasp_rounds(d, lambda: d.outputs.grasps_published >= 1)
     assert seen == [True] and not d.schedule.grasps_urgent and not d.schedule.frame_unpublished
 
 
 def test_a_status_query_with_numpy_values_and_nan_is_answered_in_strict_json() -> None:
     d = _daemon()
     d.elbo = float("nan")
-    d.model_version = np.int64(4)  # type: ignore[assignment]
+    d.outputs.model_version = np.int64(4)  # type: ignore[assignment]
     q = FakeQuery("pugs/status")
     d._on_query("status", q)
     assert q.errors == [] and "errors.query.status" not in d.health.counts
@@ -1143,7 +1147,7 @@ def test_the_cloud_keeps_the_snapshots_stamp_when_a_frame_is_integrated_meanwhil
     pipe.daemon = d
     d._newest_stamp_ns = 8 * 10**9
     h = Handed()
-    assert d._compute_and_encode("world", d._generation, h, True) == "published"
+    assert d.outputs.compute_and_encode("world", d._generation, h, True) == "published"
     assert _stamp_ns(h.calls[0][1]["grasps"], GRASP_ARRAY) == 8 * 10**9
     assert codec.decode_cloud(h.calls[1][1]["cloud"]).stamp_ns == 8 * 10**9
     assert d._newest_stamp_ns == 9 * 10**9
@@ -1183,7 +1187,7 @@ def test_a_failed_reset_withholds_grasps_and_makes_the_daemon_unhealthy_until_on
     d.ready = d.schedule.changed = True  # the old map's model trains on and is ready again
     t_end = time.monotonic() + 0.3  # an observation window (about 15 rounds), not a synchronisation
     _grasp_rounds(d, lambda: time.monotonic() > t_end)
-    assert d.grasps_published == 0 and len(_puts(d, "grasps")) == cleared
+    assert d.outputs.grasps_published == 0 and len(_puts(d, "grasps")) == cleared
 
     pipe.fail_reset = False  # the operator sends a reset again: it succeeds
     d._stopping = False  # _grasp_rounds stopped the daemon and its executors: fresh ones
@@ -1191,5 +1195,5 @@ def test_a_failed_reset_withholds_grasps_and_makes_the_daemon_unhealthy_until_on
     asyncio.run(reset())
     assert pipe.resets == 1 and d.problems() == [] and d.status()["healthy"] is True
     d.ready = d.schedule.changed = True
-    _grasp_rounds(d, lambda: d.grasps_published >= 1)
-    assert d.grasps_published == 1
+    _grasp_rounds(d, lambda: d.outputs.grasps_published >= 1)
+    assert d.outputs.grasps_published == 1

@@ -1,15 +1,13 @@
 # SPDX-License-Identifier: Apache-2.0
 """The grasp worker, the overload warning and ``run()``'s start-up with the recorder and the ROS
-graph tokens, pinned (a mutation audit of pugsd/daemon/app.py after tests/daemon/test_app_audit.py,
-test_app_outputs_audit.py and test_app_workers_audit.py): grasp rounds follow the grasp rate and
-the model's changes, the whole cloud goes out every ``cloud_interval_s`` while frames stream (the
-first one too), a round whose pipeline raises is counted and logged and the worker goes on, the
-urgency of grasps for a new frame lasts exactly one round; the overload warning says how many
-frames were pushed out, over how long, and the rates in and integrated, in that window; ``run()``
-starts the recorder once the inputs listen and declares the node's and its publishers' graph
-tokens before anything else and the subscriptions' after their subscribers. No zenoh session: the
-workers run on their own with a stand-in clock, a scripted ``asyncio.sleep`` and stand-in
-sessions."""
+graph tokens: grasp rounds follow the grasp rate and the model's changes, the whole cloud goes out
+every ``cloud_interval_s`` while frames stream (the first one too), a round whose pipeline raises is
+counted and logged and the worker goes on, the urgency of grasps for a new frame lasts exactly one
+round; the overload warning says how many frames were pushed out, over how long, and the rates in
+and integrated, in that window; ``run()`` starts the recorder once the inputs listen and declares
+the node's and its publishers' graph tokens before anything else and the subscriptions' after their
+subscribers. No zenoh session: the workers run on their own with a stand-in clock, a scripted
+``asyncio.sleep`` and stand-in sessions."""
 
 from __future__ import annotations
 
@@ -28,19 +26,19 @@ from pugsd.daemon.notify import Notifier
 from pugsd.record.recorder import default_record_keys
 from pugsd.wire.topics import INPUT_ROLES, OUTPUT_ROLES, ros_graph_tokens
 from tests.daemon.conftest import FakePipeline, RecordingPublisher
-from tests.daemon.test_app_workers_audit import Clock, DeclSession, _depth, stop_at_ready
+from tests.daemon.test_daemon_workers import Clock, DeclSession, _depth, stop_at_ready
 
 ROLES = ("grasps", "markers", "cloud", "status")
 
 
 def _daemon(pipe: FakePipeline | None = None, **daemon: Any) -> Daemon:
     d = Daemon(load_config_dict({"daemon": daemon}), pipe or FakePipeline(), notifier=Notifier(""))
-    d._publishers = {r: RecordingPublisher() for r in ROLES}  # type: ignore[misc]
+    d.outputs.publishers = {r: RecordingPublisher() for r in ROLES}  # type: ignore[misc]
     return d
 
 
 def _puts(d: Daemon, role: str) -> list[bytes]:
-    pub = d._publishers[role]
+    pub = d.outputs.publishers[role]
     assert isinstance(pub, RecordingPublisher)
     return pub.puts
 
@@ -176,7 +174,7 @@ def test_while_frames_stream_the_cloud_goes_out_every_cloud_interval_and_rounds_
     delays = _scripted_rounds(d, monkeypatch, steps)
     assert pipe.rounds == [100.0, 101.0, 110.0, 111.0, 119.0, 120.0, 130.0, 131.0]
     assert pipe.clouds == [110.0, 120.0, 130.0, 131.0]
-    assert d.grasps_published == 8 and len(_puts(d, "cloud")) == 4
+    assert d.outputs.grasps_published == 8 and len(_puts(d, "cloud")) == 4
     assert delays == [0.02] * (len(steps) + 1)  # one 20 ms wait per round, the last ends it
 
 
@@ -241,12 +239,13 @@ def test_a_round_whose_grasps_fail_is_counted_logged_and_the_next_round_publishe
 
     def after_failure() -> None:
         c, f = d.health.counts, d.health.failures
-        checked.append((c["errors.grasps"], f["grasps"], d.schedule.grasps_urgent, d.grasps_published))
+        urgent, published = d.schedule.grasps_urgent, d.outputs.grasps_published
+        checked.append((c["errors.grasps"], f["grasps"], urgent, published))
         _at(d, clock, 102.0)()
 
     _scripted_rounds(d, monkeypatch, [_at(d, clock, 100.0, new_frame=True), after_failure])
     assert checked == [(1, 1, False, 0)]
-    assert pipe.rounds == [100.0, 102.0] and d.grasps_published == 1 and len(_puts(d, "grasps")) == 1
+    assert pipe.rounds == [100.0, 102.0] and d.outputs.grasps_published == 1 and len(_puts(d, "grasps")) == 1
     assert d.health.counts["errors.grasps"] == 1 and "grasps" not in d.health.failures
     (rec,) = [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert rec.getMessage() == "grasps stage failed; continuing" and rec.exc_info is not None
@@ -263,7 +262,7 @@ def test_a_failing_cloud_leaves_the_grasps_published_and_counts_a_grasps_error(
     before = d.schedule.last_cloud_published_s
     _scripted_rounds(d, monkeypatch, [_at(d, clock, 100.0), _at(d, clock, 101.0)])
     assert pipe.clouds == [100.0, 101.0] and pipe.rounds == [100.0, 101.0]
-    assert d.grasps_published == 2 and len(_puts(d, "cloud")) == 1
+    assert d.outputs.grasps_published == 2 and len(_puts(d, "cloud")) == 1
     assert d.health.counts["errors.grasps"] == 1 and "clouds_preempted" not in d.health.counts
     assert d.schedule.last_cloud_published_s == 101.0 != before
 
@@ -276,7 +275,7 @@ def test_a_stop_during_the_wait_starts_no_round(clock: Clock, monkeypatch: pytes
         d._stopping = True  # shutdown begins while the worker waits
 
     _scripted_rounds(d, monkeypatch, [stop])
-    assert pipe.rounds == [] and d.schedule.changed and d.grasps_published == 0
+    assert pipe.rounds == [] and d.schedule.changed and d.outputs.grasps_published == 0
 
 
 def test_the_cloud_is_asked_to_give_way_to_fresh_grasps(
@@ -300,7 +299,7 @@ def test_the_cloud_is_asked_to_give_way_to_fresh_grasps(
     pipe.daemon, d.ready = d, True
     _scripted_rounds(d, monkeypatch, [_at(d, clock, 100.0)])
     assert seen == [True] and d.health.counts["clouds_preempted"] == 1 and _puts(d, "cloud") == []
-    assert d.grasps_published == 1
+    assert d.outputs.grasps_published == 1
 
 
 # --- the overload warning ----------------------------------------------------------------------------
