@@ -78,8 +78,7 @@ def machine_info(device: str) -> dict[str, Any]:
         "python": platform.python_version(),
         "platform": platform.platform(),
         "load_average_at_start": [round(x, 2) for x in os.getloadavg()],
-        # the float arithmetic the SVGP runs on: the agreement figures move with it (the same code
-        # and frames gave 0.459 and 0.698 on two set-ups, see docs/performance.md)
+        # the float arithmetic the SVGP runs on: the agreement figures move with it
         "torch_cpu_capability": str(torch.backends.cpu.get_cpu_capability()),  # torch >= 2.1
         "packages": _package_versions(
             ("numpy", "scipy", "gpytorch", "linear_operator", "opencv-python-headless", "open3d")

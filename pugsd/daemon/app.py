@@ -1,21 +1,13 @@
 # SPDX-License-Identifier: Apache-2.0
 """The streaming daemon: stereo (or depth) and poses in over zenoh, PUGS-scored grasps out.
 
-Wiring (style.md 3.3)::
-
-    zenoh callbacks --(copy bytes, call_soon_threadsafe, ingress bound)--> loop: decode, pair by
-    stamp, wait for a pose (PoseGate) --> [stereo mailbox, drop oldest] --> depth worker
-    (depth_from_stereo, off the loop) --> [depth mailbox, drop oldest] --> model worker
-    (integrate + train_steps under the model lock, off the loop; idle training when no frame)
-    grasp worker (every 1/grasp_rate_hz, once ready, off the loop: snapshot the query cloud, propose
-    grasps without the model lock, score them (Algorithm 1, Eq. 13) under it, encode, publish)
-    command worker ([commands mailbox, reject]: reset), status (1 Hz), watchdog, supervisor.
-
-Only the loop thread touches mailboxes and buffers. Heavy calls run off the loop on three dedicated
-threads: one for depth estimation (stateless), one for ingest and training (the pipeline's mutable
-state: store, SVGP, TSDF) and one for grasp computations. Every call that reads or writes that
-state holds ``_model_lock``; the grasp proposal, the costliest part of a grasp computation, runs on
-a snapshot without it, so ingest and training go on meanwhile (docs/performance.md).
+It wires, it does not decide: zenoh callbacks hand samples to the loop (``bridge``), the frame
+assembler (``pugsd.stream``) turns them into frames, bounded mailboxes carry the frames to the
+depth and model workers, the streaming schedule says when the model trains and when grasps and
+clouds are due, and ``outputs`` publishes them. Heavy calls run off the loop on three threads:
+depth estimation (stateless), ingest and training (the pipeline's mutable state) and grasp
+computations; every call that reads or writes that state holds ``_model_lock``, except the grasp
+proposal, which runs on a snapshot so that ingest and training go on meanwhile.
 """
 
 from __future__ import annotations
@@ -23,12 +15,10 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import logging
-import math
-import re
 import threading
 import time
 from collections.abc import Awaitable, Callable
-from typing import Any, Protocol, TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 import zenoh
@@ -37,11 +27,20 @@ from pugsd.config import config_warnings
 from pugsd.core.types import DepthFrame, StereoFrame
 from pugsd.daemon import queries
 from pugsd.daemon.arm_bridge import ArmBridge
-from pugsd.daemon.bridge import Bridge, Command, Inbound
-from pugsd.daemon.health import Health, InputWatch, OverloadWatch, Reporter, jsonable, status_of
+from pugsd.daemon.bridge import Bridge, Command, Inbound, endpoints
+from pugsd.daemon.health import (
+    Health,
+    InputWatch,
+    OverloadWatch,
+    Reporter,
+    UnhealthyLog,
+    jsonable,
+    status_of,
+)
 from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier, watchdog_interval_s
-from pugsd.daemon.outputs import Outputs
+from pugsd.daemon.outputs import Outputs, output_stamp_ns
+from pugsd.daemon.pipeline_api import Pipeline
 from pugsd.daemon.process import apply_thread_limits
 from pugsd.daemon.queries import QUERY_KEYS
 from pugsd.daemon.recording import start_recording, stop_recording
@@ -64,33 +63,6 @@ from pugsd.wire.topics import (
 log = logging.getLogger(__name__)
 
 R = TypeVar("R")
-
-class Pipeline(Protocol):
-    """What the daemon needs from :class:`pugsd.core.pipeline.PugsPipeline`."""
-
-    @property
-    def ready(self) -> bool: ...
-
-    def depth_from_stereo(self, frame: StereoFrame) -> DepthFrame: ...
-
-    def integrate(self, depth: DepthFrame) -> int: ...
-
-    def train_steps(self, n: int, rate_scale: float = 1.0) -> Any: ...
-
-    def grasp_input(self) -> Any: ...
-
-    def propose(self, inp: Any) -> Any: ...
-
-    def score(self, proposal: Any) -> Any: ...
-
-    def cloud_job(self, result: Any) -> Any: ...
-
-    def finish_cloud(self, job: Any, should_stop: Callable[[], bool] | None = None) -> Any: ...
-
-    def reset(self) -> None: ...
-
-    def stats(self) -> dict[str, Any]: ...
-
 
 class Daemon:
     """Owns the zenoh entities, mailboxes and workers; ``run(stop)`` serves until ``stop``."""
@@ -121,41 +93,32 @@ class Daemon:
         self.commands: Mailbox[Command] = Mailbox("commands", q.commands, Overflow.REJECT)
         self.arm = ArmBridge(self)
         self.schedule = StreamingSchedule(d)  # on time.monotonic()
-        # (time, frames pushed out of the stereo and depth queues, frames emitted, integrated) at
-        # the start of the overload warning's window, and when it was last logged
         self.overload = OverloadWatch()
         self.bridge = Bridge(d.ingress_limit, lambda: self._loop)
         self._model_lock = threading.Lock()
-        # one thread for depth estimation, one for ingest and training, one for grasp computations
-        self._depth_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pugsd-depth")
-        self._model_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pugsd-model")
-        self._grasp_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pugsd-grasps")
+        pool = concurrent.futures.ThreadPoolExecutor  # one thread each: depth, model, grasps
+        self._depth_exec = pool(1, thread_name_prefix="pugsd-depth")
+        self._model_exec = pool(1, thread_name_prefix="pugsd-model")
+        self._grasp_exec = pool(1, thread_name_prefix="pugsd-grasps")
         self._in_flight: set[concurrent.futures.Future[Any]] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._subscribers: list[Any] = []
         self._entities: list[Any] = []  # queryables, token (undeclared after the subscribers)
         self.outputs = Outputs(self, time.monotonic)
-        # rmw_zenoh ROS graph liveliness tokens ([topics] ros_graph_tokens): the node's and its
-        # publishers' (undeclared after the publishers), the subscriptions' (with the subscribers)
+        # rmw_zenoh ROS graph tokens: the node's and its publishers', the subscriptions'
         self._graph_tokens: list[Any] = []
         self._sub_graph_tokens: list[Any] = []
         self._sub_graph_keys: list[str] = []
         self.recorder: Any = None  # pugsd.record.recorder.Recorder when [record] enabled
         self._stopping = False
         self._generation = 0  # bumped by reset: frames from before it are not integrated
-        # from that bump until the map is cleared (the reset may wait for the model thread), no
-        # grasp computation starts: it would snapshot the old map under the new generation
-        self._resetting = False
-        # the last reset could not clear the pipeline (it raised part-way): the model may still
-        # hold the old map, so no grasps are published and the daemon reports itself unhealthy
-        # (systemd's watchdog then restarts it: a fresh map) until a reset succeeds
+        self._resetting = False  # from that bump until the map is cleared: no grasp computation
+        # the last reset raised part-way: no grasps and unhealthy (a restart) until one succeeds
         self._reset_failed = False
         self._busy: dict[str, bool] = {}
-        # a map reset allocates a new TSDF grid in one call that holds Python's GIL for ~0.25 s
-        # (40000 blocks), as long as the arm watchdog's default bound: it waits for an arm motion
-        # to end, and a motion for the reset (an arm stop waits for neither)
+        # a reset holds Python's GIL long enough to starve an arm motion's watchdog: a reset waits
+        # for a motion to end, and a motion for the reset (an arm stop waits for neither)
         self._motion_lock = asyncio.Lock()
-        # model state as seen by the loop
         self.latest_status: dict[str, Any] = {}
         self.elbo: float | None = None
         self.ready = False
@@ -183,9 +146,8 @@ class Daemon:
         for w in config_warnings(self.cfg):
             log.warning("config: %s", w)
         if self._session is None:
-            self._session = open_session(
-                self.cfg.zenoh, require_loopback=not self.cfg.daemon.allow_non_loopback
-            )
+            loopback = not self.cfg.daemon.allow_non_loopback
+            self._session = open_session(self.cfg.zenoh, require_loopback=loopback)
         try:
             self._declare_outputs()
             await self._start_arm()
@@ -212,8 +174,8 @@ class Daemon:
                 self.cfg.daemon.prefix,
                 len(self._subscribers),
                 self.session.zid(),
-                _endpoints(self.cfg.zenoh, "listen"),
-                _endpoints(self.cfg.zenoh, "connect"),
+                endpoints(self.cfg.zenoh, "listen"),
+                endpoints(self.cfg.zenoh, "connect"),
             )
             self.notifier.send("READY=1", "STATUS=waiting for frames")
             async with asyncio.TaskGroup() as tg:
@@ -535,7 +497,8 @@ class Daemon:
         hold of the model lock, so that a grasp computation's snapshot and its stamp agree."""
         with self._model_lock:
             n = self.pipeline.integrate(depth)
-            self._newest_stamp_ns = self._output_stamp_ns(depth.stamp_ns)
+            gap_ns = self.frames.poses.max_gap_ns
+            self._newest_stamp_ns = output_stamp_ns(self._newest_stamp_ns, depth.stamp_ns, gap_ns)
             return n
 
     def _reset_locked(self) -> bool:
@@ -575,26 +538,14 @@ class Daemon:
             newest_recv = self._newest_recv_s
             generation = self._generation
 
-            def hand_over(
-                result: Any,
-                payloads: dict[str, bytes],
-                newest: float | None = newest_recv,
-                gen: int = generation,
-            ) -> None:
+            def hand_over(result: Any, payloads: dict[str, bytes], newest: float | None = newest_recv,
+                          gen: int = generation) -> None:  # fmt: skip
                 loop.call_soon_threadsafe(self.outputs.publish, result, payloads, newest, gen)
 
             try:
-                outcome = await self._guard(
-                    "grasps",
-                    self._offload(
-                        "grasps",
-                        self.outputs.compute_and_encode,
-                        self.frames.frame_id,
-                        generation,
-                        hand_over,
-                        with_cloud,
-                    ),
-                )
+                compute = self.outputs.compute_and_encode
+                args = (self.frames.frame_id, generation, hand_over, with_cloud)
+                outcome = await self._guard("grasps", self._offload("grasps", compute, *args))
             finally:
                 s.grasps_urgent = False
             if outcome == "discarded":
@@ -641,29 +592,15 @@ class Daemon:
         else:
             self._reset_failed = True
             log.error("reset: the pipeline could not be cleared; no grasps until a reset succeeds")
-        self.outputs.latest_grasps = None
-        self.outputs.latest_result = None
+        self.outputs.clear()
         self.ready = False
         self.was_ready = False
         self.schedule.reset()
         self._newest_recv_s = None
         self.elbo = None
-        self.outputs.model_version = None  # the cleared map's: no grasps of it are served any more
-        self.outputs.grasps_logged_s = -math.inf  # the new map's first grasps are logged
         self.health.count("resets")
         self.outputs.publish_cleared(cleared_stamp_ns)
         log.info("reset: map cleared")
-
-    def _output_stamp_ns(self, stamp_ns: int) -> int:
-        """The stamp for outputs after integrating a frame stamped ``stamp_ns``: the newest frame
-        stamp, never going back by a frame integrated out of order, but following the source when
-        its stamps go back by more than ``daemon.pose_max_gap_s`` (a restarted source, a looped
-        recording, a stepped clock: the same test the pose buffer restarts on); a reset starts
-        afresh."""
-        newest = self._newest_stamp_ns
-        if stamp_ns >= newest or newest - stamp_ns > self.frames.poses.max_gap_ns:
-            return stamp_ns
-        return newest
 
     def input_ages_s(self, now: float | None = None) -> dict[str, float]:
         return self.inputs.ages_s(time.monotonic() if now is None else now)
@@ -719,8 +656,7 @@ class Daemon:
     async def _watchdog_worker(self) -> None:
         interval = watchdog_interval_s()
         period = min(1.0, interval) if interval else 1.0
-        reported: list[str] = []  # the problems logged last, without their changing numbers
-        reported_s = -math.inf
+        unhealthy = UnhealthyLog()
         while not self._stopping:
             try:
                 self.health.tick()
@@ -728,18 +664,8 @@ class Daemon:
             except Exception as exc:  # a bug: no verdict this round, so no ping; the daemon serves on
                 self.report.internal_error("errors.watchdog", "the watchdog round", exc)
                 problems = None
-            if problems is None:
-                pass
-            elif problems:
-                kinds = sorted(_NUMBER.sub("#", p) for p in problems)
-                now = time.monotonic()
-                if kinds != reported or now - reported_s >= _UNHEALTHY_RELOG_S:
-                    log.error("unhealthy, withholding watchdog pings: %s", "; ".join(problems))
-                    reported, reported_s = kinds, now
-            else:
-                reported = []
-                if interval:
-                    self.notifier.send("WATCHDOG=1")
+            if problems is not None and unhealthy.note(problems, time.monotonic()) and interval:
+                self.notifier.send("WATCHDOG=1")
             await asyncio.sleep(period)
 
     async def _gate_worker(self) -> None:
@@ -753,17 +679,6 @@ class Daemon:
                     self.report.internal_error("errors.gate", "polling the pose gate", exc)
 
 
-_UNHEALTHY_RELOG_S = 300.0  # an unchanged unhealthy state is logged again this often
-def _endpoints(zenoh_cfg: Any, what: str) -> str:
-    """The ``[zenoh] <what>.endpoints`` for the serving line ("none" when empty or not given)."""
-    table = zenoh_cfg.get(what) if isinstance(zenoh_cfg, dict) else None
-    value = table.get("endpoints") if isinstance(table, dict) else None
-    if isinstance(value, dict):  # per mode
-        value = [e for lst in value.values() if isinstance(lst, list) for e in lst]
-    return ", ".join(str(e) for e in value) if isinstance(value, list) and value else "none"
-
-
-_NUMBER = re.compile(r"\d+(?:\.\d+)?")
 
 # the stages (``_busy`` keys, health stages) each worker task runs its calls under
 _WORKER_STAGES: dict[str, tuple[str, ...]] = {

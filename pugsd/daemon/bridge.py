@@ -187,3 +187,11 @@ class Bridge:
 
         return on_put
 
+
+def endpoints(zenoh_cfg: Any, what: str) -> str:
+    """The ``[zenoh] <what>.endpoints`` for the serving line ("none" when empty or not given)."""
+    table = zenoh_cfg.get(what) if isinstance(zenoh_cfg, dict) else None
+    value = table.get("endpoints") if isinstance(table, dict) else None
+    if isinstance(value, dict):  # per mode
+        value = [e for lst in value.values() if isinstance(lst, list) for e in lst]
+    return ", ".join(str(e) for e in value) if isinstance(value, list) and value else "none"

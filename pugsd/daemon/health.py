@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import time
 from collections import Counter, deque
 from collections.abc import Awaitable, Iterator
@@ -376,3 +377,27 @@ def status_of(d: Daemon) -> dict[str, Any]:
         "pipeline": pstats,
         "recorder": None if d.recorder is None else d.recorder.stats.as_dict(),
     }
+
+
+UNHEALTHY_RELOG_S = 300.0  # an unchanged unhealthy state is logged again this often
+_NUMBER = re.compile(r"\d+(?:\.\d+)?")
+
+
+class UnhealthyLog:
+    """The watchdog's log of problems: logged when they change (their numbers aside) or every
+    ``UNHEALTHY_RELOG_S`` while unchanged."""
+
+    def __init__(self) -> None:
+        self.reported: list[str] = []  # the problems logged last, without their changing numbers
+        self.reported_s = -math.inf
+
+    def note(self, problems: list[str], now: float) -> bool:
+        """Log ``problems`` if due; returns whether the daemon is healthy (a ping may go out)."""
+        if not problems:
+            self.reported = []
+            return True
+        kinds = sorted(_NUMBER.sub("#", p) for p in problems)
+        if kinds != self.reported or now - self.reported_s >= UNHEALTHY_RELOG_S:
+            log.error("unhealthy, withholding watchdog pings: %s", "; ".join(problems))
+            self.reported, self.reported_s = kinds, now
+        return False

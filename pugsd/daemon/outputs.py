@@ -40,6 +40,12 @@ class Outputs:
         self.grasps_logged_s = -math.inf  # when grasps were last logged
         self.grasps_logged_n = 0  # grasps_published then
 
+    def clear(self) -> None:
+        """A reset: no grasps of the cleared map are served any more; the new map's first grasps
+        are logged."""
+        self.latest_grasps = self.latest_result = self.model_version = None
+        self.grasps_logged_s = -math.inf
+
     def compute_and_encode(
         self,
         frame_id: str,
@@ -122,8 +128,8 @@ class Outputs:
             d.health.observe("newest_frame_to_grasps", self.clock() - newest_recv)
         g = result.grasps
         now = self.clock()
-        # one line per publication was 86 400 a day at 1 Hz: the first grasps (since the start or
-        # a reset), then at most one line per GRASPS_LOG_S with the updates published meanwhile
+        # not one line per publication: the first grasps (since the start or a reset), then at
+        # most one line per GRASPS_LOG_S with the updates published meanwhile
         if len(g) and now - self.grasps_logged_s >= GRASPS_LOG_S:
             log.info(
                 "grasps v%s: %d, top PUGS %.3f (baseline %.3f, sigma2 %.3g); %d update(s) published "
@@ -174,3 +180,14 @@ class Outputs:
         for role, data in payloads.items():
             if role in self.publishers:  # a failed put is counted and does not fail the reset
                 self.put(role, data)
+
+
+def output_stamp_ns(newest_ns: int, stamp_ns: int, max_gap_ns: int) -> int:
+    """The stamp for outputs after integrating a frame stamped ``stamp_ns`` when the newest was
+    ``newest_ns``: the newest frame stamp, never going back by a frame integrated out of order,
+    but following the source when its stamps go back by more than ``max_gap_ns``
+    (``daemon.pose_max_gap_s``: a restarted source, a looped recording, a stepped clock, the same
+    test the pose buffer restarts on); a reset starts afresh."""
+    if stamp_ns >= newest_ns or newest_ns - stamp_ns > max_gap_ns:
+        return stamp_ns
+    return newest_ns

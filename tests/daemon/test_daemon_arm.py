@@ -191,10 +191,9 @@ def test_arm_stop_and_release(port: int, client: zenoh.Session, sim_process: int
 
 
 def test_a_reset_waits_for_the_arm_motion(port: int, client: zenoh.Session, sim_process: int) -> None:  # noqa: F811
-    """A map reset allocates the TSDF grid in one call that holds Python's GIL for ~0.25 s, the
-    arm watchdog's bound (measured: resets beside a motion over UDP made the link report feedback
-    264 ms old). So a reset asked for during a motion is accepted at once but runs when the
-    motion has ended; the next motion waits for it."""
+    """A map reset allocates the TSDF grid in one call that holds Python's GIL about as long as
+    the arm watchdog's bound. So a reset asked for during a motion is accepted at once but runs
+    when the motion has ended; the next motion waits for it."""
     slow = "arm.motion.max_joint_speed_rad_s=0.6"  # a motion of a few seconds
     dt, reports, got, sub = _start_arm_daemon(port, client, sim_process, slow)
     try:

@@ -200,7 +200,7 @@ def test_a_hiccup_is_not_an_overload(
 ) -> None:
     """A frame pushed out of the 2-deep stereo queue while the depth worker was slow once is
     counted, not warned of: the warning needs at least 5 frames and 5 % of those that came in the
-    window (measured: 1 of 150 at 15 Hz on a loaded machine, with 15 frames/s integrated)."""
+    window."""
     cfg = daemon_config_dict(port)
     cfg["queues"] = {"stereo": 1}
     d = Daemon(load_config_dict(cfg), FakePipeline())

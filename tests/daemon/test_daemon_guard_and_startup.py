@@ -326,7 +326,7 @@ def test_close_names_five_files_and_counts_the_rest_only_past_five(
 
 
 def test_the_serving_line_names_the_endpoints_as_configured() -> None:
-    from pugsd.daemon.app import _endpoints
+    from pugsd.daemon.bridge import endpoints as _endpoints
 
     z = {"listen": {"endpoints": ["tcp/127.0.0.1:7447", "tcp/127.0.0.1:7448"]}, "connect": {"endpoints": []}}
     assert _endpoints(z, "listen") == "tcp/127.0.0.1:7447, tcp/127.0.0.1:7448"

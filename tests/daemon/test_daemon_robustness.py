@@ -598,9 +598,8 @@ def test_the_first_frame_waits_for_its_mask_before_any_mask_was_seen(
     port: int, client: zenoh.Session
 ) -> None:
     """zenoh does not order different keys: a first frame's images can come before its mask.
-    The daemon waited for masks only once one had arrived, so that frame went on without its
-    mask, and a real pipeline put the whole background into the store (15 000 points instead of
-    1 100 in a bench run). Now, until a frame has waited side_image_wait_s in vain, it waits."""
+    Without a mask a real pipeline puts the whole background into the store, so until a frame
+    has waited side_image_wait_s in vain, the first frame waits for its mask."""
     masks_seen: list[bool] = []
 
     class Recording(FakePipeline):

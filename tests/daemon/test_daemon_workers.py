@@ -791,7 +791,7 @@ def test_an_unhealthy_daemon_withholds_pings_and_logs_each_new_problem_once(
             set_failures(),  # healthy: a ping
             set_failures(train=3),  # unhealthy again: logged
             later(299.0, train=3),  # unchanged, within the re-log period
-            later(1.0, train=3),  # unchanged for _UNHEALTHY_RELOG_S: logged again
+            later(1.0, train=3),  # unchanged for UNHEALTHY_RELOG_S: logged again
         ],
     )
     assert notifier.sent == ["WATCHDOG=1"]
