@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import logging
 import time
-from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
@@ -17,11 +16,8 @@ import pytest
 
 from pugsd.config import load_config_dict
 from pugsd.daemon.app import Command, Daemon, Inbound
-from pugsd.daemon.bridge import IngressGate
-from pugsd.daemon.health import jsonable as _jsonable
-from pugsd.daemon.health import reason_head
-from pugsd.errors import DecodeError, PugsdError
-from pugsd.stream.assembler import InputRejected, log_nth, reason_class, require_size
+from pugsd.errors import PugsdError
+from pugsd.stream.assembler import InputRejected, reason_class
 from pugsd.wire import codec
 from pugsd.wire.topics import key_for
 from tests.daemon.conftest import RIG, FakePipeline, daemon_config_dict
@@ -51,101 +47,6 @@ def _pose(stamp_ns: int, frame_id: str = "world") -> bytes:
 
 
 IMG = np.random.default_rng(0).integers(0, 255, (H, W), dtype=np.uint8)
-
-
-# --- module-level helpers -------------------------------------------------------------------------
-
-
-def test_require_size_names_both_sizes_and_the_input_it_charges() -> None:
-    narrow = codec.ImageMsg(5, "right", "mono8", np.zeros((H, W // 2), np.uint8))
-    with pytest.raises(InputRejected) as ei:
-        require_size(narrow, (H, W), "right_image: image", "right_image")
-    assert ei.value.reason == "wrong_size" and ei.value.role == "right_image"
-    assert str(ei.value) == f"right_image: image is ({H}, {W // 2}), camera expects ({H}, {W})"
-    with pytest.raises(InputRejected) as ei:
-        require_size(codec.ImageMsg(5, "d", "32FC1", np.zeros((H - 1, W), np.float32)), (H, W), "depth image")
-    assert ei.value.role is None
-    assert str(ei.value) == f"depth image is ({H - 1}, {W}), camera expects ({H}, {W})"
-    # a colour image is judged by its height and width only
-    require_size(codec.ImageMsg(5, "left", "rgb8", np.zeros((H, W, 3), np.uint8)), (H, W), "left")
-
-
-@pytest.mark.parametrize(
-    ("text", "cls"),
-    [
-        ("Voxel Hash exhausted", "out_of_map_range"),  # matched case-insensitively
-        ("a point too far for any voxel index", "beyond_any_map"),
-        ("images too small for the disparity search", "too_small_for_stereo"),
-        ("Malformed CDR", "malformed_cdr"),
-        ("truncated CDR at byte 3", "malformed_cdr"),
-        ("unknown CDR encapsulation 0x0009", "malformed_cdr"),
-        ("payload is not bytes", "malformed_cdr"),
-        ("pose: type 'x' not accepted (expected y)", "wrong_type"),
-        ("unsupported pose type", "wrong_type"),
-        ("not an rmw_zenoh key", "wrong_type"),
-        ("depth: no CameraInfo for the depth image yet", "no_camera_info"),
-        ("covariance not positive semi-definite", "non_psd_covariance"),
-        ("covariance not symmetric", "non_psd_covariance"),
-        ("non-finite covariance", "non_psd_covariance"),
-        ("non-finite pose", "bad_pose"),
-        ("quaternion of norm 0", "bad_pose"),
-        ("not rigid", "bad_pose"),
-        ("rotation not orthonormal", "bad_pose"),
-        ("T_W_C must be 4x4", "bad_pose"),
-        ("unsupported encoding 'yuv422'", "wrong_encoding"),
-        ("stereo pair encoding mismatch: mono8 vs rgb8", "wrong_encoding"),  # encoding before mismatch
-        ("data has 3 bytes", "wrong_size"),
-        ("step 3 < width", "wrong_size"),
-        ("wrong size", "wrong_size"),
-        ("bad shape", "wrong_size"),
-        ("sizes mismatch", "wrong_size"),
-        ("camera expects (4, 4)", "wrong_size"),
-        ("empty image", "wrong_size"),
-        ("CameraInfo size 0x0", "wrong_size"),  # size before camerainfo
-        ("CameraInfo K is zero", "bad_camera_info"),
-        ("baseline 0", "bad_camera_info"),
-        ("bad intrinsics", "bad_camera_info"),
-        ("not rectified", "bad_camera_info"),
-        ("bad stamp", "bad_stamp"),
-    ],
-)
-def test_reason_class_maps_each_known_message_to_its_class(text: str, cls: str) -> None:
-    assert reason_class(PugsdError(text)) == cls
-
-
-def test_reason_class_takes_a_fixed_class_before_the_text_and_falls_back_to_the_type() -> None:
-    assert reason_class(InputRejected("custom", "voxel hash")) == "custom"
-    assert reason_class(DecodeError("voxel hash", reason="wrong_type")) == "wrong_type"
-    assert reason_class(DecodeError("voxel hash")) == "out_of_map_range"
-    assert reason_class(PugsdError("nothing known")) == "PugsdError"
-    assert reason_class(ValueError("nothing known")) == "ValueError"
-
-
-def test_ingress_gate_admits_up_to_its_limit_and_counts_each_refusal() -> None:
-    g = IngressGate(2)
-    assert [g.enter() for _ in range(4)] == [True, True, False, False]
-    assert g.pending == 2 and g.dropped == 2
-    g.leave()
-    assert g.pending == 1
-    assert [g.enter(), g.enter()] == [True, False]
-    assert g.pending == 2 and g.dropped == 3
-
-
-def test_log_nth_logs_the_first_five_then_every_hundredth() -> None:
-    assert [n for n in range(1, 1001) if log_nth(n)] == [1, 2, 3, 4, 5, *range(100, 1001, 100)]
-    assert [n for n in range(1, 201) if log_nth(n, first=2)] == [1, 2, 100, 200]
-
-
-def test_short_keeps_the_head_before_the_first_parenthesis_after_a_space() -> None:
-    assert reason_head("duplicate_stamp (a second left_image for stamp 5)") == "duplicate_stamp"
-    assert reason_head("f(x) (12 ms) (more)") == "f(x)"
-    assert reason_head("no pose") == "no pose"
-
-
-def test_jsonable_stringifies_keys_and_unknown_objects() -> None:
-    out = _jsonable({1: Path("/x/a.mcap"), "s": {2.5: np.int32(7)}, "none": None})
-    assert out == {"1": "/x/a.mcap", "s": {"2.5": 7}, "none": None}
-    assert type(out["s"]["2.5"]) is int
 
 
 # --- counting and logging -------------------------------------------------------------------------

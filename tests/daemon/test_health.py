@@ -7,13 +7,14 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from pugsd.config import CoreConfig
 from pugsd.core.pipeline import PugsPipeline
-from pugsd.daemon.health import Health, LatencyWindow, jsonable
+from pugsd.daemon.health import Health, LatencyWindow, jsonable, reason_head
 
 
 def test_latency_summary_percentiles_are_exact() -> None:
@@ -53,3 +54,15 @@ def test_status_values_are_strict_json() -> None:
     assert back["latency"] == {"depth": {"p50_ms": None, "p95_ms": 2.5}}
     assert back["skew"] == [0.25, None, None]
     assert back["pair"] == [3, None] and back["ok"] is True
+
+
+def test_short_keeps_the_head_before_the_first_parenthesis_after_a_space() -> None:
+    assert reason_head("duplicate_stamp (a second left_image for stamp 5)") == "duplicate_stamp"
+    assert reason_head("f(x) (12 ms) (more)") == "f(x)"
+    assert reason_head("no pose") == "no pose"
+
+
+def test_jsonable_stringifies_keys_and_unknown_objects() -> None:
+    out = jsonable({1: Path("/x/a.mcap"), "s": {2.5: np.int32(7)}, "none": None})
+    assert out == {"1": "/x/a.mcap", "s": {"2.5": 7}, "none": None}
+    assert type(out["s"]["2.5"]) is int

@@ -13,14 +13,22 @@ import pytest
 
 from pugsd.config import load_config_dict
 from pugsd.core.camera import PinholeCamera, StereoRig
-from pugsd.errors import PugsdError
-from pugsd.stream.assembler import FrameAssembler, InputRejected, bounded_put, reason_class
+from pugsd.errors import DecodeError, PugsdError
+from pugsd.stream.assembler import (
+    FrameAssembler,
+    InputRejected,
+    bounded_put,
+    log_nth,
+    reason_class,
+    require_size,
+)
 from pugsd.wire import codec
 from pugsd.wire.types import CAMERA_INFO, IMAGE, POSE_COV_STAMPED
 
 RIG = StereoRig(PinholeCamera(60.0, 60.0, 15.5, 11.5, 32, 24), 0.05)
 IMG = np.random.default_rng(0).integers(0, 255, (24, 32), dtype=np.uint8)
 S = 10**9  # one second in ns
+H, W = RIG.left.height, RIG.left.width
 
 
 class Report:
@@ -214,3 +222,73 @@ def test_side_images_keep_exactly_the_newest_cap() -> None:
     assert list(d) == [5, 3, 6]
     bounded_put(d, 7, np.full(2, 7), 1)
     assert list(d) == [7]
+
+
+def test_require_size_names_both_sizes_and_the_input_it_charges() -> None:
+    narrow = codec.ImageMsg(5, "right", "mono8", np.zeros((H, W // 2), np.uint8))
+    with pytest.raises(InputRejected) as ei:
+        require_size(narrow, (H, W), "right_image: image", "right_image")
+    assert ei.value.reason == "wrong_size" and ei.value.role == "right_image"
+    assert str(ei.value) == f"right_image: image is ({H}, {W // 2}), camera expects ({H}, {W})"
+    with pytest.raises(InputRejected) as ei:
+        require_size(codec.ImageMsg(5, "d", "32FC1", np.zeros((H - 1, W), np.float32)), (H, W), "depth image")
+    assert ei.value.role is None
+    assert str(ei.value) == f"depth image is ({H - 1}, {W}), camera expects ({H}, {W})"
+    # a colour image is judged by its height and width only
+    require_size(codec.ImageMsg(5, "left", "rgb8", np.zeros((H, W, 3), np.uint8)), (H, W), "left")
+
+
+@pytest.mark.parametrize(
+    ("text", "cls"),
+    [
+        ("Voxel Hash exhausted", "out_of_map_range"),  # matched case-insensitively
+        ("a point too far for any voxel index", "beyond_any_map"),
+        ("images too small for the disparity search", "too_small_for_stereo"),
+        ("Malformed CDR", "malformed_cdr"),
+        ("truncated CDR at byte 3", "malformed_cdr"),
+        ("unknown CDR encapsulation 0x0009", "malformed_cdr"),
+        ("payload is not bytes", "malformed_cdr"),
+        ("pose: type 'x' not accepted (expected y)", "wrong_type"),
+        ("unsupported pose type", "wrong_type"),
+        ("not an rmw_zenoh key", "wrong_type"),
+        ("depth: no CameraInfo for the depth image yet", "no_camera_info"),
+        ("covariance not positive semi-definite", "non_psd_covariance"),
+        ("covariance not symmetric", "non_psd_covariance"),
+        ("non-finite covariance", "non_psd_covariance"),
+        ("non-finite pose", "bad_pose"),
+        ("quaternion of norm 0", "bad_pose"),
+        ("not rigid", "bad_pose"),
+        ("rotation not orthonormal", "bad_pose"),
+        ("T_W_C must be 4x4", "bad_pose"),
+        ("unsupported encoding 'yuv422'", "wrong_encoding"),
+        ("stereo pair encoding mismatch: mono8 vs rgb8", "wrong_encoding"),  # encoding before mismatch
+        ("data has 3 bytes", "wrong_size"),
+        ("step 3 < width", "wrong_size"),
+        ("wrong size", "wrong_size"),
+        ("bad shape", "wrong_size"),
+        ("sizes mismatch", "wrong_size"),
+        ("camera expects (4, 4)", "wrong_size"),
+        ("empty image", "wrong_size"),
+        ("CameraInfo size 0x0", "wrong_size"),  # size before camerainfo
+        ("CameraInfo K is zero", "bad_camera_info"),
+        ("baseline 0", "bad_camera_info"),
+        ("bad intrinsics", "bad_camera_info"),
+        ("not rectified", "bad_camera_info"),
+        ("bad stamp", "bad_stamp"),
+    ],
+)
+def test_reason_class_maps_each_known_message_to_its_class(text: str, cls: str) -> None:
+    assert reason_class(PugsdError(text)) == cls
+
+
+def test_reason_class_takes_a_fixed_class_before_the_text_and_falls_back_to_the_type() -> None:
+    assert reason_class(InputRejected("custom", "voxel hash")) == "custom"
+    assert reason_class(DecodeError("voxel hash", reason="wrong_type")) == "wrong_type"
+    assert reason_class(DecodeError("voxel hash")) == "out_of_map_range"
+    assert reason_class(PugsdError("nothing known")) == "PugsdError"
+    assert reason_class(ValueError("nothing known")) == "ValueError"
+
+
+def test_log_nth_logs_the_first_five_then_every_hundredth() -> None:
+    assert [n for n in range(1, 1001) if log_nth(n)] == [1, 2, 3, 4, 5, *range(100, 1001, 100)]
+    assert [n for n in range(1, 201) if log_nth(n, first=2)] == [1, 2, 100, 200]
