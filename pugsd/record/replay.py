@@ -108,6 +108,7 @@ class _Replayer:
         self._seen: dict[str, str] = {}  # recorded topic -> role ("" when none)
         self.now_s = 0.0  # the log time of the message being fed
         self.st = stats
+        self.report = _ReplayReport(stats)
         self.out: list[StereoFrame] = []
         q = dataclasses.replace(
             QueuesConfig(), pose_wait=max_pending, unpaired=max_pending, side_images=2 * max_pending
@@ -115,7 +116,7 @@ class _Replayer:
         # offline nothing is thinned, and a frame waits for its pose as long as the bounds allow
         d = dataclasses.replace(d, max_frame_rate_hz=0.0, pose_wait_s=_POSE_WAIT_S)
         self.asm = FrameAssembler(
-            d, q, _ReplayReport(stats), self._on_frame, lambda: self.now_s,
+            d, q, self.report, self._on_frame, lambda: self.now_s,
             pose_capacity=pose_capacity, pose_cov=pose_cov, max_pose_gap_ns=max_pose_gap_ns,
         )  # fmt: skip
 
@@ -141,7 +142,7 @@ class _Replayer:
             # the recorded type decides how a pose is read; images are not checked by type
             self.asm.feed(role, data, self.now_s, (typename or POSE_COV_STAMPED) if role == "pose" else None)
         except PugsdError as exc:
-            _ReplayReport(self.st).reject(role, exc)
+            self.report.reject(role, exc)
         return self._take()
 
     def _take(self) -> list[StereoFrame]:
@@ -165,10 +166,10 @@ def iter_frames(
     max_pending: int = 32,
     pose_capacity: int = POSE_CAPACITY,
 ) -> Iterator[StereoFrame]:
-    """StereoFrames of a recording, streamed in stamp order with bounded memory: left/right
-    paired by exact stamp, the rig from the latest CameraInfos when the pair completes, the pose
-    exact or interpolated between bracketing poses (the daemon's :class:`PoseBuffer`), the
-    covariance from the latest pose carrying a non-zero one, the mask by stamp.
+    """StereoFrames of a recording, streamed in the order they complete, with bounded memory
+    (``max_pending`` frames and halves waiting): assembled by the daemon's frame assembler on the
+    recording's clock, the pose exact or interpolated between bracketing poses, the covariance
+    from the latest pose carrying a non-zero one, the mask by stamp.
 
     ``daemon`` (``[daemon]``, default: its defaults) gives ``max_pose_gap_ns``
     (``pose_max_gap_s``) and ``pose_cov`` (``pose_std_translation_m`` / ``pose_std_rotation_rad``:
