@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""``pugsd bench [--json PATH] [--quick]``: the benchmark of issue #4 (also ``tools/bench``)."""
+"""``pugsd bench [--json PATH] [--quick]``: the benchmark (also ``tools/bench``)."""
 
 from __future__ import annotations
 

@@ -25,6 +25,7 @@ from pugsd.bench.options import BenchOptions
 from pugsd.config import CoreConfig, PugsdConfig
 from pugsd.core.pipeline import PipelineResult, PugsPipeline
 from pugsd.core.types import ScoredGrasps, StereoFrame
+from pugsd.stream.schedule import idle_rate_scale
 
 Writer = Callable[[str], None]
 
@@ -77,8 +78,7 @@ def machine_info(device: str) -> dict[str, Any]:
         "python": platform.python_version(),
         "platform": platform.platform(),
         "load_average_at_start": [round(x, 2) for x in os.getloadavg()],
-        # the float arithmetic the SVGP runs on: the agreement figures move with it (the same code
-        # and frames gave 0.459 and 0.698 on two set-ups, see docs/performance.md)
+        # the float arithmetic the SVGP runs on: the agreement figures move with it
         "torch_cpu_capability": str(torch.backends.cpu.get_cpu_capability()),  # torch >= 2.1
         "packages": _package_versions(
             ("numpy", "scipy", "gpytorch", "linear_operator", "opencv-python-headless", "open3d")
@@ -221,14 +221,14 @@ def idle_refinement(
     """What the daemon publishes while it trains on after the last frame (idle rounds, for
     ``daemon.idle_train_s``): sigma2_occ on the streaming run's query cloud after each cumulative
     number of extra SVGP steps, with the training time they took. The i-th extra step runs at the
-    daemon's idle rate scale 1 / (1 + i / ``decay_steps``) (``daemon.idle_rate_decay_steps``; 0:
-    constant rates). Trains ``run.pipe`` on."""
+    daemon's idle rate scale (:func:`~pugsd.stream.schedule.idle_rate_scale` of
+    ``daemon.idle_rate_decay_steps``; 0: constant rates). Trains ``run.pipe`` on."""
     out: list[tuple[int, float, np.ndarray]] = []
     done, train_s = 0, 0.0
     for k in sorted(steps):
         t0 = time.perf_counter()
         for i in range(done, k):
-            run.pipe.train_steps(1, rate_scale=1.0 / (1.0 + i / decay_steps) if decay_steps > 0 else 1.0)
+            run.pipe.train_steps(1, rate_scale=idle_rate_scale(i, decay_steps))
         train_s += time.perf_counter() - t0
         done = k
         _, s2 = run.pipe.sigma2_occ(run.result.cloud_W)

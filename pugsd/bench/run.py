@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""One benchmark run: render, measure, compare, judge against the issue's targets."""
+"""One benchmark run: render, measure, compare, judge against the targets."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The issue's targets (2-core CPU, no GPU; ratios from one run) judged on a result dict, and the
-printed table."""
+"""The benchmark's targets (2-core CPU, no GPU; ratios from one run) judged on a result dict,
+and the printed table."""
 
 from __future__ import annotations
 

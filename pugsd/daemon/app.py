@@ -1,227 +1,68 @@
 # SPDX-License-Identifier: Apache-2.0
 """The streaming daemon: stereo (or depth) and poses in over zenoh, PUGS-scored grasps out.
 
-Wiring (style.md 3.3)::
-
-    zenoh callbacks --(copy bytes, call_soon_threadsafe, ingress bound)--> loop: decode, pair by
-    stamp, wait for a pose (PoseGate) --> [stereo mailbox, drop oldest] --> depth worker
-    (depth_from_stereo, off the loop) --> [depth mailbox, drop oldest] --> model worker
-    (integrate + train_steps under the model lock, off the loop; idle training when no frame)
-    grasp worker (every 1/grasp_rate_hz, once ready, off the loop: snapshot the query cloud, propose
-    grasps without the model lock, score them (Algorithm 1, Eq. 13) under it, encode, publish)
-    command worker ([commands mailbox, reject]: reset), status (1 Hz), watchdog, supervisor.
-
-Only the loop thread touches mailboxes and buffers. Heavy calls run off the loop on three dedicated
-threads: one for depth estimation (stateless), one for ingest and training (the pipeline's mutable
-state: store, SVGP, TSDF) and one for grasp computations. Every call that reads or writes that
-state holds ``_model_lock``; the grasp proposal, the costliest part of a grasp computation, runs on
-a snapshot without it, so ingest and training go on meanwhile (docs/performance.md).
+It wires, it does not decide: zenoh callbacks hand samples to the loop (``bridge``), the frame
+assembler (``pugsd.stream``) turns them into frames, bounded mailboxes carry the frames to the
+depth and model workers, the streaming schedule says when the model trains and when grasps and
+clouds are due, and ``outputs`` publishes them. Heavy calls run off the loop on three threads:
+depth estimation (stateless), ingest and training (the pipeline's mutable state) and grasp
+computations; every call that reads or writes that state holds ``_model_lock``, except the grasp
+proposal, which runs on a snapshot so that ingest and training go on meanwhile.
 """
 
 from __future__ import annotations
 
 import asyncio
 import concurrent.futures
-import contextlib
-import ctypes
-import json
 import logging
-import math
-import os
-import re
-import sys
 import threading
 import time
-from collections import OrderedDict, deque
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
-from typing import Any, Protocol, TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 import zenoh
 
 from pugsd.config import config_warnings
-from pugsd.core.camera import StereoRig
-from pugsd.core.geometry import compose_pose_cov
-from pugsd.core.types import DepthFrame, ScoredGrasps, StereoFrame
-from pugsd.daemon.health import Health
+from pugsd.core.types import DepthFrame, StereoFrame
+from pugsd.daemon import queries
+from pugsd.daemon.arm_bridge import ArmBridge
+from pugsd.daemon.bridge import Bridge, Command, Inbound, endpoints
+from pugsd.daemon.health import (
+    Health,
+    InputWatch,
+    OverloadWatch,
+    Reporter,
+    UnhealthyLog,
+    jsonable,
+    status_of,
+)
 from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier, watchdog_interval_s
-from pugsd.daemon.timesync import (
-    ExactPairer,
-    FrameRateLimit,
-    PoseBuffer,
-    PoseGate,
-    PoseSample,
-    carried_cov,
-    default_pose_cov,
-)
+from pugsd.daemon.outputs import Outputs, output_stamp_ns
+from pugsd.daemon.pipeline_api import Pipeline
+from pugsd.daemon.process import apply_thread_limits
+from pugsd.daemon.queries import QUERY_KEYS
+from pugsd.daemon.recording import start_recording, stop_recording
 from pugsd.errors import DecodeError, EmptyCloudError, PugsdError
+from pugsd.stream.assembler import FrameAssembler, InputRejected, expected_type, log_nth
+from pugsd.stream.schedule import StreamingSchedule
 from pugsd.wire import codec
-from pugsd.wire.attachment import SequenceTracker
 from pugsd.wire.keys import parse_key
 from pugsd.wire.publisher import Publisher
 from pugsd.wire.session import close_session, open_session
 from pugsd.wire.topics import (
     INPUT_ROLES,
     OUTPUT_ROLES,
-    POSE_TYPES,
     graph_tokens_enabled,
     key_for,
     ros_graph_tokens,
     subscribe_key_for,
 )
-from pugsd.wire.types import CAMERA_INFO, IMAGE
 
 log = logging.getLogger(__name__)
 
 R = TypeVar("R")
-
-STEREO_ENCODINGS = codec.STEREO_ENCODINGS
-DEPTH_ENCODINGS = ("32FC1", "16UC1")
-MASK_ENCODINGS = codec.MASK_ENCODINGS
-
-
-class Pipeline(Protocol):
-    """What the daemon needs from :class:`pugsd.core.pipeline.PugsPipeline`."""
-
-    @property
-    def ready(self) -> bool: ...
-
-    def depth_from_stereo(self, frame: StereoFrame) -> DepthFrame: ...
-
-    def integrate(self, depth: DepthFrame) -> int: ...
-
-    def train_steps(self, n: int, rate_scale: float = 1.0) -> Any: ...
-
-    def grasp_input(self) -> Any: ...
-
-    def propose(self, inp: Any) -> Any: ...
-
-    def score(self, proposal: Any) -> Any: ...
-
-    def cloud_job(self, result: Any) -> Any: ...
-
-    def finish_cloud(self, job: Any, should_stop: Callable[[], bool] | None = None) -> Any: ...
-
-    def reset(self) -> None: ...
-
-    def stats(self) -> dict[str, Any]: ...
-
-
-def apply_thread_limits(cfg: Any) -> None:
-    """``[daemon] torch_threads`` (process-wide; a no-op until the pipeline has imported torch)."""
-    torch = sys.modules.get("torch")
-    if cfg.daemon.torch_threads > 0 and torch is not None:
-        torch.set_num_threads(cfg.daemon.torch_threads)
-
-
-_M_ARENA_MAX = -8  # glibc malloc.h
-
-
-def apply_malloc_arena_max(n: int) -> bool:
-    """``[daemon] malloc_arena_max``: cap glibc's malloc arenas (``mallopt(M_ARENA_MAX, n)``) for
-    the arenas created from now on, so call it before the threads start. Returns whether it was
-    set: not for ``n`` = 0, off glibc, or when the ``MALLOC_ARENA_MAX`` environment variable
-    already chose (glibc read it at start)."""
-    if n <= 0 or "MALLOC_ARENA_MAX" in os.environ or not sys.platform.startswith("linux"):
-        return False
-    try:
-        mallopt = ctypes.CDLL("libc.so.6").mallopt
-    except (OSError, AttributeError):  # musl and others: no mallopt
-        return False
-    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
-    mallopt.restype = ctypes.c_int
-    return bool(mallopt(_M_ARENA_MAX, n))
-
-
-def require_size(img: codec.ImageMsg, shape: tuple[int, int], what: str, role: str | None = None) -> None:
-    """InputRejected ``wrong_size`` unless ``img`` is ``shape`` (height, width) pixels."""
-    if img.array.shape[:2] != shape:
-        msg = f"{what} is {img.array.shape[:2]}, camera expects {shape}"
-        raise InputRejected("wrong_size", msg, role)
-
-
-class InputRejected(PugsdError):
-    """A rejection whose countable class is fixed by the code, not read from the message (which
-    may quote text from the wire); ``role``, when set, is the input it is charged to (a frame
-    combines several inputs)."""
-
-    def __init__(self, reason: str, message: str, role: str | None = None) -> None:
-        super().__init__(message)
-        self.reason = reason
-        self.role = role
-
-
-def reason_class(exc: BaseException) -> str:
-    """A short, countable class for a rejection (the full reason goes to the log)."""
-    if isinstance(exc, InputRejected):
-        return exc.reason
-    if isinstance(exc, DecodeError) and exc.reason:  # a message that quotes the wire
-        return exc.reason
-    text = str(exc).lower()
-    for key, words in (
-        ("out_of_map_range", ("voxel hash",)),
-        ("beyond_any_map", ("too far for any voxel index",)),
-        ("too_small_for_stereo", ("too small for the disparity search",)),
-        ("malformed_cdr", ("malformed cdr", "truncated cdr", "cdr encapsulation", "not bytes")),
-        ("wrong_type", ("not accepted (expected", "unsupported pose type", "rmw_zenoh key")),
-        ("no_camera_info", ("no camerainfo",)),
-        ("non_psd_covariance", ("semi-definite", "not symmetric", "non-finite covariance")),
-        ("bad_pose", ("non-finite pose", "quaternion", "rigid", "orthonormal", "t_w_c")),
-        ("wrong_encoding", ("encoding",)),
-        ("wrong_size", ("data has", "step", "size", "shape", "mismatch", "expects", "empty image")),
-        ("bad_camera_info", ("camerainfo", "baseline", "intrinsics", "rectified")),
-        ("bad_stamp", ("stamp",)),
-    ):
-        if any(w in text for w in words):
-            return key
-    return type(exc).__name__
-
-
-@dataclass(frozen=True, slots=True)
-class Inbound:
-    """One zenoh sample as handed to the loop: role, key, payload copy, receive time."""
-
-    role: str
-    key: str
-    payload: bytes
-    recv_s: float  # time.monotonic()
-    lost_before: int = 0  # messages of the same publisher missing just before this one
-    publisher: bytes | None = None  # the rmw_zenoh publisher GID (None: no valid attachment)
-
-
-@dataclass(frozen=True, slots=True)
-class Command:
-    name: str
-    query: Any | None  # a zenoh Query to answer, or None for a put
-
-
-class IngressGate:
-    """Thread-safe count of samples scheduled on the loop but not handled; bounds that backlog."""
-
-    def __init__(self, limit: int) -> None:
-        self.limit = limit
-        self._pending = 0
-        self._lock = threading.Lock()
-        self.dropped = 0
-
-    def enter(self) -> bool:
-        with self._lock:
-            if self._pending >= self.limit:
-                self.dropped += 1
-                return False
-            self._pending += 1
-            return True
-
-    def leave(self) -> None:
-        with self._lock:
-            self._pending -= 1
-
-    @property
-    def pending(self) -> int:
-        return self._pending
-
 
 class Daemon:
     """Owns the zenoh entities, mailboxes and workers; ``run(stop)`` serves until ``stop``."""
@@ -241,117 +82,51 @@ class Daemon:
         self._own_session = session is None
         self._session = session
         self.health = Health(d.stall_timeout_s, d.max_consecutive_failures)
+        self.report = Reporter(self.health)
+        self.frames = FrameAssembler(
+            d, q, self.report, self._on_frame, time.monotonic, expire_before=self._expire_before
+        )
         self.stereo_box: Mailbox[tuple[StereoFrame, float]] = Mailbox(
             "stereo", q.stereo, Overflow.DROP_OLDEST
         )
         self.depth_box: Mailbox[tuple[DepthFrame, float]] = Mailbox("depth", q.depth, Overflow.DROP_OLDEST)
         self.commands: Mailbox[Command] = Mailbox("commands", q.commands, Overflow.REJECT)
-        # one arm motion at a time; a second request is rejected, never queued behind the first
-        # (grasps, grasp id, width, the map generation they belong to)
-        self.arm_box: Mailbox[tuple[Any, int, float | None, int]] = Mailbox("arm", 1, Overflow.REJECT)
-        self.arm: Any = None  # pugsd.arm.controller.ArmController when [arm] enabled
-        self.arm_report: dict[str, Any] | None = None
-        self._arm_stop_tasks: set[asyncio.Task[None]] = set()  # arm/stop requests being sent
-        self._last_train_s = 0.0  # time.monotonic() of the last training step
-        default_cov = default_pose_cov(d.pose_std_translation_m, d.pose_std_rotation_rad)
-        self._pose_stamped_cov = default_cov
-        self._T_B_C = d.T_B_C  # the camera's mount on the body whose pose comes in (None: none)
-        self._pose_publisher: bytes | None = None  # the GID poses are taken from (pose_publisher_hold_s)
-        self._pose_publisher_s = 0.0  # time.monotonic() it was last heard
-        self._slow_pose_source_warned = False  # its poses came further apart than the hold
-        self._publishers_reported: dict[str, int] = {}  # inputs logged with several publishers
-        self.poses = PoseBuffer(q.poses, int(d.pose_max_gap_s * 1e9), default_cov)
-        self.gate: PoseGate[tuple[str, Any, float]] = PoseGate(self.poses, d.pose_wait_s, q.pose_wait)
-        self.pairer: ExactPairer[codec.ImageMsg, codec.ImageMsg] = ExactPairer(q.unpaired)
-        self.frame_rate = FrameRateLimit(d.max_frame_rate_hz)  # frames thinned before the pose gate
-        # (time, frames pushed out of the stereo and depth queues, frames emitted, integrated) at
-        # the start of the overload warning's window, and when it was last logged
-        self._overload_mark: tuple[float, int, int, int] | None = None
-        self._overload_logged_s = -math.inf
-        self._masks: OrderedDict[int, np.ndarray] = OrderedDict()
-        self._stds: OrderedDict[int, np.ndarray] = OrderedDict()
-        self._infos: dict[str, codec.CameraInfoMsg] = {}
-        self._rig: StereoRig | None = None
-        self._last_mask_s: float | None = None
-        self._last_std_s: float | None = None
-        # whether a side topic (mask, depth std) is undecided: no frame has yet waited its
-        # side_image_wait_s for one in vain since the daemon started or since one last arrived.
-        # Undecided, a frame waits for its own: a first frame's images can arrive before its mask
-        # (zenoh does not order different keys), and one frame integrated without its mask puts
-        # the whole background into the store (15 000 points instead of 1 100 in a bench run)
-        self._side_undecided = {"mask": True, "depth_std": True}
-        self._frame_id = d.world_frame
-        self.ingress = IngressGate(d.ingress_limit)
-        # receive times of the poses handed to the loop and not yet handled (appended by the zenoh
-        # thread, popped by the loop): while one that came before a frame's deadline is still
-        # queued behind a stall of the loop, that frame is not dropped for want of a pose
-        self._pose_backlog_s: deque[float] = deque()
-        # queries and control puts waiting for the loop: bounded like the samples (a flood of
-        # status queries must not pile up callbacks without limit); stops have their own bound,
-        # so that such a flood never turns a stop away
-        self.query_ingress = IngressGate(d.ingress_limit)
-        self.stop_ingress = IngressGate(8)
-        self.deletes_ignored = 0  # zenoh DELETE samples on input keys (they carry no message)
-        self.bridge_errors: dict[str, int] = {}  # samples lost to an error in the zenoh callback
-        self._bridge_lock = threading.Lock()  # both are updated from zenoh's threads
-        self.upstream = SequenceTracker()  # messages lost before they reached pugsd
+        self.arm = ArmBridge(self)
+        self.schedule = StreamingSchedule(d)  # on time.monotonic()
+        self.overload = OverloadWatch()
+        self.bridge = Bridge(d.ingress_limit, lambda: self._loop)
         self._model_lock = threading.Lock()
-        # one thread for depth estimation, one for ingest and training, one for grasp computations
-        self._depth_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pugsd-depth")
-        self._model_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pugsd-model")
-        self._grasp_exec = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="pugsd-grasps")
+        pool = concurrent.futures.ThreadPoolExecutor  # one thread each: depth, model, grasps
+        self._depth_exec = pool(1, thread_name_prefix="pugsd-depth")
+        self._model_exec = pool(1, thread_name_prefix="pugsd-model")
+        self._grasp_exec = pool(1, thread_name_prefix="pugsd-grasps")
         self._in_flight: set[concurrent.futures.Future[Any]] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._subscribers: list[Any] = []
         self._entities: list[Any] = []  # queryables, token (undeclared after the subscribers)
-        self._publishers: dict[str, Publisher] = {}
-        # rmw_zenoh ROS graph liveliness tokens ([topics] ros_graph_tokens): the node's and its
-        # publishers' (undeclared after the publishers), the subscriptions' (with the subscribers)
+        self.outputs = Outputs(self, time.monotonic)
+        # rmw_zenoh ROS graph tokens: the node's and its publishers', the subscriptions'
         self._graph_tokens: list[Any] = []
         self._sub_graph_tokens: list[Any] = []
         self._sub_graph_keys: list[str] = []
         self.recorder: Any = None  # pugsd.record.recorder.Recorder when [record] enabled
         self._stopping = False
-        self._retry_train_at = 0.0
         self._generation = 0  # bumped by reset: frames from before it are not integrated
-        # from that bump until the map is cleared (the reset may wait for the model thread), no
-        # grasp computation starts: it would snapshot the old map under the new generation
-        self._resetting = False
-        # the last reset could not clear the pipeline (it raised part-way): the model may still
-        # hold the old map, so no grasps are published and the daemon reports itself unhealthy
-        # (systemd's watchdog then restarts it: a fresh map) until a reset succeeds
+        self._resetting = False  # from that bump until the map is cleared: no grasp computation
+        # the last reset raised part-way: no grasps and unhealthy (a restart) until one succeeds
         self._reset_failed = False
         self._busy: dict[str, bool] = {}
-        # a map reset allocates a new TSDF grid in one call that holds Python's GIL for ~0.25 s
-        # (40000 blocks), as long as the arm watchdog's default bound: it waits for an arm motion
-        # to end, and a motion for the reset (an arm stop waits for neither)
+        # a reset holds Python's GIL long enough to starve an arm motion's watchdog: a reset waits
+        # for a motion to end, and a motion for the reset (an arm stop waits for neither)
         self._motion_lock = asyncio.Lock()
-        # model state as seen by the loop
-        self.latest_grasps: bytes | None = None
-        self.latest_result: Any = None  # the last PipelineResult (for the demo's figure)
         self.latest_status: dict[str, Any] = {}
-        self.model_version: int | None = None
         self.elbo: float | None = None
         self.ready = False
         self.was_ready = False  # ready at least once since the start or the last reset
-        self._changed = False  # model changed since the last compute
-        self._frame_unpublished = False  # a frame was integrated since the last compute started
-        self._grasps_urgent = False  # computing grasps for a newly integrated frame
-        self._last_cloud_published_s = -math.inf
-        self._steps_since_frame = 0  # training steps since the newest frame was integrated
-        self._idle_steps = 0  # idle steps of a ready model since then (their learning rates decay)
-        self._last_frame_s: float | None = None  # monotonic time of the last integrated frame
         self._newest_recv_s: float | None = None  # receive time of the newest integrated frame
-        self._last_recv_s: dict[str, float] = {}  # monotonic receive time per input stream
-        # a frame's stamp minus the newest pose stamp when it arrived (s), the latest 200: shows a
-        # clock offset between camera and pose source (frames then drop waiting for a pose)
-        self._stamp_skew_s: deque[float] = deque(maxlen=200)
-        self._stale_reported: set[str] = set()  # streams logged as stale and not yet resumed
+        self.inputs = InputWatch(d.input_stale_s)
         # the outputs' stamp: written and read under _model_lock (with the map it labels)
         self._newest_stamp_ns = 0
-        self.grasps_published = 0
-        self._grasps_logged_s = -math.inf  # when grasps were last logged (monotonic)
-        self._grasps_logged_n = 0  # grasps_published then
 
     # --- lifecycle ------------------------------------------------------------------------------
 
@@ -371,9 +146,8 @@ class Daemon:
         for w in config_warnings(self.cfg):
             log.warning("config: %s", w)
         if self._session is None:
-            self._session = open_session(
-                self.cfg.zenoh, require_loopback=not self.cfg.daemon.allow_non_loopback
-            )
+            loopback = not self.cfg.daemon.allow_non_loopback
+            self._session = open_session(self.cfg.zenoh, require_loopback=loopback)
         try:
             self._declare_outputs()
             await self._start_arm()
@@ -400,8 +174,8 @@ class Daemon:
                 self.cfg.daemon.prefix,
                 len(self._subscribers),
                 self.session.zid(),
-                _endpoints(self.cfg.zenoh, "listen"),
-                _endpoints(self.cfg.zenoh, "connect"),
+                endpoints(self.cfg.zenoh, "listen"),
+                endpoints(self.cfg.zenoh, "connect"),
             )
             self.notifier.send("READY=1", "STATUS=waiting for frames")
             async with asyncio.TaskGroup() as tg:
@@ -413,12 +187,12 @@ class Daemon:
                     "status": tg.create_task(self._status_worker(), name="status"),
                     "watchdog": tg.create_task(self._watchdog_worker(), name="watchdog"),
                     "gate": tg.create_task(self._gate_worker(), name="gate"),
-                    "arm": tg.create_task(self._arm_worker(), name="arm"),
+                    "arm": tg.create_task(self.arm.worker(), name="arm"),
                 }
                 tg.create_task(self._supervise(stop, workers), name="supervisor")
         finally:
             self.notifier.send("STOPPING=1")
-            await self._stop_arm()
+            await self.arm.close()
             self._close()
             for ex in (self._depth_exec, self._model_exec, self._grasp_exec):
                 ex.shutdown(wait=False, cancel_futures=True)
@@ -439,7 +213,7 @@ class Daemon:
         log.info("shutdown: stopping intake")
         self._stopping = True
         self._undeclare_subscribers()
-        for box in (self.stereo_box, self.depth_box, self.commands, self.arm_box):
+        for box in (self.stereo_box, self.depth_box, self.commands, self.arm.box):
             box.close()
         busy: list[asyncio.Task[None]] = []
         for name, task in workers.items():
@@ -466,11 +240,7 @@ class Daemon:
             log.warning(
                 "shutdown: left unprocessed: %s", ", ".join(f"{n} in the {k} queue" for k, n in left.items())
             )
-        why = "the daemon shut down before the motion started"
-        while (item := self.arm_box.take_nowait()) is not None:
-            grasp_id = item[1]
-            log.warning("arm: grasp %d not executed: %s", grasp_id, why)
-            self._publish_arm_report({"grasp_id": grasp_id, "ok": False, "error": why})
+        self.arm.cancel_queued()
 
     def _undeclare_subscribers(self) -> None:
         for tok in self._sub_graph_tokens:
@@ -487,182 +257,35 @@ class Daemon:
             log.debug("undeclare failed: %s", exc)
 
     async def _start_arm(self) -> None:
-        """Connect to the arm when the config enables it; motion only on explicit requests."""
-        if not self.cfg.arm.enabled:
+        """Connect to the arm when the config enables it and declare its keys."""
+        if not await self.arm.start():
             return
-        from pugsd.arm.controller import ArmController  # only when the arm is enabled
-
-        self.arm = ArmController(self.cfg.arm)
-        await self.arm.start()
         s = self.session
         for kind in ("arm_execute", "arm_stop", "arm_release"):
-            self._entities.append(s.declare_queryable(self.key(_QUERY_KEYS[kind]), self._bridge_query(kind)))
-        on_put = self._bridge_control_put(self._on_arm_stop_put, self.stop_ingress)
+            on_query = self.bridge.query(kind, self._on_query)
+            self._entities.append(s.declare_queryable(self.key(QUERY_KEYS[kind]), on_query))
+        on_put = self.bridge.control_put(self.arm.on_stop_put, self.bridge.stop_ingress)
         self._entities.append(s.declare_subscriber(self.key("arm/stop"), on_put))
         log.info(
             "arm enabled (%s); execute on %s, stop on %s, release on %s",
-            self.cfg.arm.transport,
-            self.key("arm/execute"),
-            self.key("arm/stop"),
-            self.key("arm/release"),
-        )
-
-    async def _stop_arm(self) -> None:
-        if self.arm is None:
-            return
-        try:
-            await self.arm.close()  # sends zero velocity and the safe mode
-        except Exception as exc:
-            log.error("arm: stop on shutdown failed: %s", exc)
-        self.arm = None
-
-    def _on_arm_execute(self, query: Any) -> str:
-        """Validate an ``<prefix>/arm/execute`` request and queue it; returns the reply text."""
-        from pugsd.arm.controller import parse_execute_request
-
-        if self.arm is None:
-            raise InputRejected("disabled", "arm disabled: set [arm] enabled = true to allow motion")
-        payload = query.payload.to_bytes() if query.payload is not None else b""
-        try:
-            grasp_id, width_m = parse_execute_request(payload)
-        except PugsdError as exc:
-            raise InputRejected("bad_request", str(exc)[:300]) from None
-        except (RecursionError, OverflowError, ValueError) as exc:  # deep nesting, huge numbers
-            msg = f"arm/execute: unreadable request ({type(exc).__name__})"
-            raise InputRejected("bad_request", msg) from None
-        if self._stopping:  # the arm box is closed: "busy" would mislead
-            raise InputRejected("shutting_down", "the daemon is shutting down")
-        if self.arm.stop_latched is not None:
-            msg = f"stopped ({self.arm.stop_latched}): query {self.key('arm/release')} first"
-            raise InputRejected("stopped", msg[:300])
-        if self._resetting:  # latest_result is the map being cleared
-            raise InputRejected("resetting", "no grasps: the map is being reset")
-        result = self.latest_result
-        if result is None:
-            raise InputRejected("not_ready", "no grasps yet: model not ready")
-        if grasp_id not in {int(g) for g in result.grasps.grasp_id}:
-            raise InputRejected("unknown_grasp", f"grasp id {grasp_id} is not among the latest grasps")
-        item = (result.grasps, grasp_id, width_m, self._generation)
-        if self._busy.get("arm") or not self.arm_box.offer(item):
-            raise InputRejected("busy", "busy: an arm motion is in progress")
-        return f"accepted: grasp {grasp_id}"
-
-    def _arm_stop(self, source: str, query: Any = None) -> None:
-        """``<prefix>/arm/stop`` (query or put): stop the arm at once, here on the event loop, not
-        through the arm mailbox, so it never waits behind a running motion; the stop latches
-        (execute is refused until ``<prefix>/arm/release``). The reply follows once it is sent."""
-        self.health.count("arm.stops")
-        log.warning("arm: stop requested (%s)", source)
-        if len(self._arm_stop_tasks) >= 8:  # a flood of stops: those on their way do the job
-            if query is not None:
-                with query, contextlib.suppress(Exception):
-                    query.reply(self.key("arm/stop"), "stopping: a stop is already being sent")
-            return
-        task = asyncio.get_running_loop().create_task(self._arm_stop_send(source, query), name="arm-stop")
-        self._arm_stop_tasks.add(task)
-        task.add_done_callback(self._arm_stop_tasks.discard)
-
-    async def _arm_stop_send(self, source: str, query: Any) -> None:
-        key = self.key("arm/stop")
-        with query if query is not None else contextlib.nullcontext():
-            try:
-                if self.arm is None:
-                    if query is not None:
-                        query.reply_err("rejected: arm disabled or shut down")
-                    return
-                await self.arm.stop(reason=f"{key} ({source})")
-                if query is not None:
-                    query.reply(
-                        key,
-                        f"stopped: zero velocity and {self.cfg.arm.safety.safe_mode} sent; motion "
-                        f"is refused until {self.key('arm/release')}",
-                    )
-            except Exception as exc:  # a bug: count and log, answer, keep serving
-                self._internal_error("errors.query.arm_stop", "stopping the arm", exc)
-                if query is not None:
-                    with contextlib.suppress(Exception):
-                        query.reply_err(f"internal error: {type(exc).__name__}")
-
-    def _on_arm_release(self) -> str:
-        """``<prefix>/arm/release`` (exact key only): clear a latched stop; returns the reply."""
-        if self.arm is None:
-            raise InputRejected("disabled", "arm disabled: set [arm] enabled = true to allow motion")
-        was = self.arm.release_stop()
-        self.health.count("arm.releases")
-        log.warning("arm: stop released (was: %s)", was)
-        return f"released (was: {was})" if was is not None else "not stopped: nothing to release"
-
-    def _on_arm_stop_put(self, key_expr: str) -> None:
-        if key_expr == self.key("arm/stop"):
-            self._arm_stop("put")
-        else:  # a put on a wildcard (``pugs/**``) is data for someone else, not a stop request
-            self._refuse_wildcard("arm_stop", key_expr)
-
-    async def _arm_worker(self) -> None:
-        while not self._stopping:
-            grasps, grasp_id, width_m, generation = await self.arm_box.take()
-            self._busy["arm"] = True
-            try:
-                async with self._motion_lock:
-                    if generation != self._generation:  # a reset ran while it waited for the lock
-                        raise InputRejected("reset", "the map was reset since the request")
-                    rep = await self.arm.execute_grasp_id(grasps, grasp_id, width_m)
-                report = _jsonable(rep.to_dict())
-            except PugsdError as exc:
-                log.warning("arm: grasp %d refused or failed: %s", grasp_id, exc)
-                report = {"grasp_id": grasp_id, "ok": False, "error": str(exc)}
-            except Exception as exc:  # keep serving; the controller has already stopped the arm
-                log.error("arm: grasp %d failed: %s", grasp_id, exc)
-                report = {"grasp_id": grasp_id, "ok": False, "error": repr(exc)}
-            finally:
-                self._busy["arm"] = False
-            self._publish_arm_report(report)
-
-    def _publish_arm_report(self, report: dict[str, Any]) -> None:
-        self.arm_report = report
-        try:
-            self.session.put(self.key("arm/report"), json.dumps(report))
-        except Exception as exc:
-            log.warning("arm: could not publish the report: %s", exc)
+            self.cfg.arm.transport, self.key("arm/execute"), self.key("arm/stop"), self.key("arm/release"),
+        )  # fmt: skip
 
     def _start_recorder(self) -> None:
-        if not self.cfg.record.enabled:
-            return
-        from pugsd.record.recorder import Recorder, default_record_keys  # only when recording
-
-        keys = default_record_keys(self.cfg)
-        try:
-            rec = Recorder.from_config(self.cfg)
-        except Exception as exc:  # recording is optional: serve without it, say why
-            log.error("recording off: the recorder could not be set up: %s: %s", type(exc).__name__, exc)
-            return
-        self.recorder = rec  # stopped by _close, and its stats (and error) in the status
-        try:
-            rec.start()
-            rec.subscribe(self.session, keys)
-        except Exception as exc:  # a thread that cannot start, a key expression zenoh refuses
-            msg = f"not recording: {type(exc).__name__}: {exc}"
-            rec.stats.error = f"{rec.stats.error}; {msg}" if rec.stats.error else msg
-            log.error("recorder: %s", msg)
-            return
-        if not rec.stats.error:  # else the recorder logged why it is not recording
-            log.info("recording %d key expressions to %s", len(keys), self.cfg.record.directory)
+        if self.cfg.record.enabled:
+            self.recorder = start_recording(self.cfg, self.session)  # stopped by _close
 
     def _close(self) -> None:
         if self.recorder is not None:
-            files = self.recorder.stop(timeout=self.cfg.daemon.shutdown_timeout_s)
-            # hours of rotation leave thousands of files: name the last five, count the rest
-            shown = ", ".join(str(f) for f in files[-5:]) or "no file"
-            more = f" (and {len(files) - 5} earlier)" if len(files) > 5 else ""
-            log.info("recording finished: %d file(s): %s%s", len(files), shown, more)
+            stop_recording(self.recorder, self.cfg.daemon.shutdown_timeout_s)
             self.recorder = None
         self._undeclare_subscribers()
         for ent in self._entities:
             self._undeclare(ent)
         self._entities.clear()
-        for pub in self._publishers.values():
+        for pub in self.outputs.publishers.values():
             self._undeclare(pub)
-        self._publishers.clear()
+        self.outputs.publishers.clear()
         for tok in reversed(self._graph_tokens):  # the node's last, as rmw_zenoh destroys a node
             self._undeclare(tok)
         self._graph_tokens.clear()
@@ -675,7 +298,7 @@ class Daemon:
     def _declare_outputs(self) -> None:
         t = self.cfg.topics
         for role in OUTPUT_ROLES:
-            self._publishers[role] = Publisher(self.session, key_for(t, role))
+            self.outputs.publishers[role] = Publisher(self.session, key_for(t, role))
         s = self.session
         node_name = self.cfg.daemon.node_name
         if graph_tokens_enabled(t, node_name):
@@ -691,111 +314,20 @@ class Daemon:
                 len(graph.subscriptions),
                 t.domain_id,
             )
-        self._entities.append(s.declare_queryable(self.key("grasps/latest"), self._bridge_query("latest")))
-        self._entities.append(s.declare_queryable(self.key("status"), self._bridge_query("status")))
-        self._entities.append(s.declare_queryable(self.key("reset"), self._bridge_query("reset")))
-        on_reset = self._bridge_control_put(self._on_reset_put, self.query_ingress)
+        for kind in ("latest", "status", "reset"):
+            on_query = self.bridge.query(kind, self._on_query)
+            self._entities.append(s.declare_queryable(self.key(QUERY_KEYS[kind]), on_query))
+        on_reset = self.bridge.control_put(self._on_reset_put, self.bridge.query_ingress)
         self._entities.append(s.declare_subscriber(self.key("reset"), on_reset))
 
     def _declare_inputs(self) -> None:
         t = self.cfg.topics
         for role in INPUT_ROLES:
             key = subscribe_key_for(t, role)
-            self._subscribers.append(self.session.declare_subscriber(key, self._bridge_sample(role)))
+            on_sample = self.bridge.sample(role, self._on_inbound)
+            self._subscribers.append(self.session.declare_subscriber(key, on_sample))
         for key in self._sub_graph_keys:  # announced once the subscribers listen
             self._sub_graph_tokens.append(self.session.liveliness().declare_token(key))
-
-    def _bridge_sample(self, role: str) -> Callable[[Any], None]:
-        loop = self._loop
-        assert loop is not None
-        gate, upstream = self.ingress, self.upstream
-
-        def on_sample(sample: Any) -> None:  # zenoh thread: copy bytes, hand over, never block
-            try:
-                if sample.kind == zenoh.SampleKind.DELETE:  # no message: counted, not decoded
-                    with self._bridge_lock:
-                        self.deletes_ignored += 1
-                    return
-                # before the ingress bound, so that what that bound drops is not also counted lost
-                att = sample.attachment
-                now_s = time.monotonic()
-                lost, gid = upstream.observe_publisher(role, None if att is None else att.to_bytes(), now_s)
-            except Exception as exc:  # a bug: counted and logged, never raised into zenoh
-                self._bridge_error(role, exc)
-                return
-            if not gate.enter():
-                return
-            try:
-                item = Inbound(role, str(sample.key_expr), sample.payload.to_bytes(), now_s, lost, gid)
-            except Exception as exc:
-                gate.leave()
-                self._bridge_error(role, exc)
-                return
-            if role == "pose":
-                self._pose_backlog_s.append(now_s)
-            try:
-                loop.call_soon_threadsafe(self._on_inbound, item)
-            except RuntimeError:  # loop closed during shutdown
-                gate.leave()
-
-        return on_sample
-
-    def _bridge_error(self, role: str, exc: Exception) -> None:
-        """A sample lost to an error in the zenoh callback (a bug): counted per input
-        (``bridge_errors`` in the status) and logged, the first five then every 100th."""
-        with self._bridge_lock:
-            n = self.bridge_errors[role] = self.bridge_errors.get(role, 0) + 1
-        if _log_nth(n):
-            log.error("%s sample lost in the zenoh callback (#%d): %s: %s", role, n, type(exc).__name__, exc)
-
-    def _bridge_query(self, kind: str) -> Callable[[Any], None]:
-        loop = self._loop
-        assert loop is not None
-        gate = self.stop_ingress if kind == "arm_stop" else self.query_ingress
-
-        def on_query(query: Any) -> None:  # zenoh thread: hand over (bounded), never block
-            if not gate.enter():
-                with contextlib.suppress(Exception):
-                    if kind == "arm_stop":  # eight stops are on their way already
-                        query.reply(str(query.key_expr), "stopping: a stop is already being sent")
-                    else:
-                        query.reply_err("busy: too many queries waiting; try again")
-                query.drop()
-                return
-            try:
-                loop.call_soon_threadsafe(self._on_query_gated, kind, query, gate)
-            except RuntimeError:
-                gate.leave()
-                query.drop()
-
-        return on_query
-
-    def _on_query_gated(self, kind: str, query: Any, gate: IngressGate) -> None:
-        try:
-            self._on_query(kind, query)
-        finally:
-            gate.leave()
-
-    def _bridge_control_put(self, handle: Callable[[str], None], gate: IngressGate) -> Callable[[Any], None]:
-        """A put on a control key (reset, arm/stop): ``handle(key_expr)`` on the loop, bounded."""
-        loop = self._loop
-        assert loop is not None
-
-        def gated(key_expr: str) -> None:
-            try:
-                handle(key_expr)
-            finally:
-                gate.leave()
-
-        def on_put(sample: Any) -> None:
-            if not gate.enter():
-                return
-            try:
-                loop.call_soon_threadsafe(gated, str(sample.key_expr))
-            except RuntimeError:
-                gate.leave()
-
-        return on_put
 
     def _on_reset_put(self, key_expr: str) -> None:
         if key_expr == self.key("reset"):
@@ -806,58 +338,10 @@ class Daemon:
     # --- loop-side handlers -----------------------------------------------------------------------
 
     def _on_query(self, kind: str, query: Any) -> None:
-        """Answer on the queryable's own key (a wildcard query's replies stay apart under zenoh's
-        consolidation). Queryables that change state (reset, arm/execute, arm/stop, arm/release)
-        act only on a query for exactly their key; a wildcard query reaching them gets an error
-        reply."""
-        key = self.key(_QUERY_KEYS[kind])
-        if kind == "arm_stop" and str(query.key_expr) == key:
-            self._arm_stop("query", query)  # answered by the stop task once the stop is sent
-            return
-        with query:
-            try:
-                if kind in _STATE_CHANGING and str(query.key_expr) != key:
-                    self._refuse_wildcard(kind, str(query.key_expr))
-                    query.reply_err(f"rejected: {key} acts only on a query for exactly that key")
-                elif kind == "latest":
-                    if self._resetting:  # latest_grasps is the map being cleared
-                        query.reply_err("no grasps: the map is being reset")
-                    elif self.latest_grasps is None:
-                        query.reply_err("no grasps yet: model not ready")
-                    else:
-                        query.reply(key, self.latest_grasps)
-                elif kind == "status":
-                    query.reply(key, json.dumps(_jsonable(self.status())))
-                elif kind == "arm_execute":
-                    try:
-                        query.reply(key, self._on_arm_execute(query))
-                    except PugsdError as exc:
-                        if not isinstance(exc, InputRejected):
-                            exc = InputRejected("refused", str(exc))
-                        self._reject("arm", exc)
-                        query.reply_err(f"rejected: {exc}")
-                elif kind == "arm_release":
-                    try:
-                        query.reply(key, self._on_arm_release())
-                    except PugsdError as exc:
-                        if not isinstance(exc, InputRejected):
-                            exc = InputRejected("refused", str(exc))
-                        self._reject("arm", exc)
-                        query.reply_err(f"rejected: {exc}")
-                elif kind == "reset":
-                    if self._offer_command(Command("reset", None)):
-                        query.reply(key, "accepted")
-                    else:
-                        query.reply_err(f"rejected: {self.commands.reject_reason()}")
-            except Exception as exc:  # a bug: count and log, answer, keep serving
-                self._internal_error(f"errors.query.{kind}", f"answering a {kind} query", exc)
-                with contextlib.suppress(Exception):
-                    query.reply_err(f"internal error: {type(exc).__name__}")
+        queries.answer(self, kind, query)
 
     def _refuse_wildcard(self, kind: str, asked: str) -> None:
-        source = "arm" if kind.startswith("arm_") else kind
-        msg = f"{kind} needs exactly {self.key(_QUERY_KEYS[kind])!r}, not {asked[:200]!r}"
-        self._reject(source, InputRejected("wildcard_key", msg))
+        queries.refuse_wildcard(self, kind, asked)
 
     def _offer_command(self, cmd: Command) -> bool:
         ok = self.commands.offer(cmd)
@@ -865,84 +349,9 @@ class Daemon:
             reason = "queue full" if not self._stopping else "shutting down"
             self.health.reject("commands", reason)
             n = self.health.rejected[f"commands: {reason}"]
-            if _log_nth(n):
+            if log_nth(n):
                 log.warning("command %s rejected (#%d): %s", cmd.name, n, self.commands.reject_reason())
         return ok
-
-    def _reject(self, role: str, exc: BaseException) -> None:
-        """Count a rejection of ``role`` (or of the input ``exc`` is charged to) by its class and
-        log it with the reason: the first five per key, then every 100th."""
-        if isinstance(exc, InputRejected) and exc.role:
-            role = exc.role
-        cls = reason_class(exc)
-        self.health.reject(role, cls)
-        n = self.health.rejected[f"{role}: {cls}"]
-        if _log_nth(n):
-            log.warning("rejected %s input (%s, #%d): %s", role, cls, n, exc)
-
-    def _follow_pose_publisher(self, item: Inbound) -> None:
-        """Take poses from one publisher at a time (``daemon.pose_publisher_hold_s``): a pose of
-        another publisher while the followed one was heard within the hold is refused
-        (InputRejected ``second_publisher``); after that silence the newcomer is followed."""
-        hold_s, gid = self.cfg.daemon.pose_publisher_hold_s, item.publisher
-        if hold_s <= 0 or gid is None:
-            return
-        cur, silent_s = self._pose_publisher, item.recv_s - self._pose_publisher_s
-        if cur is not None and gid != cur and silent_s <= hold_s:
-            raise InputRejected(
-                "second_publisher",
-                f"a pose from publisher {gid.hex()[:12]} while publisher {cur.hex()[:12]}, whose poses "
-                f"are taken, was heard {max(silent_s, 0.0):.2f} s ago: ignored (two nodes publish on "
-                f"{item.key}? daemon.pose_publisher_hold_s = 0 takes every publisher's poses)",
-            )
-        if gid == cur and silent_s > hold_s and not self._slow_pose_source_warned:
-            self._slow_pose_source_warned = True  # once: a second publisher would take turns
-            log.warning(
-                "pose: %.1f s between two poses of the followed publisher, more than "
-                "daemon.pose_publisher_hold_s = %g s: a second publisher on %s would be followed in "
-                "such gaps (an outage of the source, or its period: if the source publishes this "
-                "slowly, raise the hold above its period; logged once)",
-                silent_s, hold_s, item.key,
-            )  # fmt: skip
-        if cur is not None and gid != cur:
-            self.health.count("pose_publisher_switches")
-            log.warning(
-                "pose: publisher %s silent for %.1f s; following publisher %s",
-                cur.hex()[:12], silent_s, gid.hex()[:12],
-            )  # fmt: skip
-        self._pose_publisher, self._pose_publisher_s = gid, max(self._pose_publisher_s, item.recv_s)
-
-    def _report_publishers(self, concurrent: dict[str, int]) -> None:
-        """Log an input once when several publishers send on it at the same time (and again when
-        their number grows)."""
-        for role, n in sorted(concurrent.items()):
-            if n > 1 and n > self._publishers_reported.get(role, 1):
-                log.warning(
-                    "%s: %d publishers sending at the same time within the last %.1f s (a node "
-                    "launched twice? two drivers on one topic?)", role, n, _PUBLISHERS_WINDOW_S,
-                )  # fmt: skip
-            self._publishers_reported[role] = n
-        for role in set(self._publishers_reported) - set(concurrent):
-            del self._publishers_reported[role]
-
-    def _drop(self, stage: str, reason: str, n: int = 1) -> None:
-        """Count ``n`` drops under the reason's stable head and log the full reason (with its
-        numbers): the first five per key, then every 100th."""
-        head = _short(reason)
-        self.health.drop(stage, head, n)
-        total = self.health.dropped[f"{stage}: {head}"]
-        if total - n < 5 or total // 100 != (total - n) // 100:
-            log.info("dropped %d at %s (#%d): %s", n, stage, total, reason)
-
-    def _internal_error(self, key: str, what: str, exc: BaseException) -> None:
-        """A bug, not bad input: count it under ``key``; log the traceback the first time, then
-        one line for the 2nd to 5th and every 100th."""
-        self.health.count(key)
-        n = self.health.counts[key]
-        if n == 1:
-            log.error("%s failed: %s", what, exc, exc_info=exc)
-        elif _log_nth(n):
-            log.error("%s failed (#%d): %s: %s", what, n, type(exc).__name__, exc)
 
     def dropped_total(self) -> int:
         """Everything the daemon itself dropped: the stereo and depth mailboxes (drop oldest, and
@@ -951,26 +360,19 @@ class Daemon:
         return (
             self.stereo_box.dropped
             + self.depth_box.dropped
-            + self.ingress.dropped
-            + self.pairer.unpaired_dropped
+            + self.bridge.ingress.dropped
+            + self.frames.pairer.unpaired_dropped
             + self.health.counts.get("dropped", 0)
         )
 
     def _on_inbound(self, item: Inbound) -> None:
-        self.ingress.leave()
-        if item.role == "pose" and self._pose_backlog_s:
-            self._pose_backlog_s.popleft()
+        self.bridge.handled(item)
         self.health.count(f"received.{item.role}")
-        if item.role in _STREAM_ROLES:
-            now = time.monotonic()
-            if item.role in self._stale_reported:
-                self._stale_reported.discard(item.role)
-                log.info("%s: input resumed after %.1f s", item.role, now - self._last_recv_s[item.role])
-            self._last_recv_s[item.role] = now
+        self.inputs.received(item.role, time.monotonic())
         if item.lost_before:  # counted by self.upstream; logged like rejections
             self.health.count(f"upstream_gaps.{item.role}")
             n = self.health.counts[f"upstream_gaps.{item.role}"]
-            if _log_nth(n):
+            if log_nth(n):
                 log.warning(
                     "%s: %d message(s) lost before pugsd (rmw_zenoh sequence gap #%d): the "
                     "publisher's congestion control or the link dropped them",
@@ -981,9 +383,9 @@ class Daemon:
         try:
             self._dispatch(item)
         except PugsdError as exc:
-            self._reject(item.role, exc)
+            self.report.reject(item.role, exc)
         except Exception as exc:  # a bug, not bad input: count and log, keep serving
-            self._internal_error(f"errors.input.{item.role}", f"handling {item.role} input", exc)
+            self.report.internal_error(f"errors.input.{item.role}", f"handling {item.role} input", exc)
 
     def _msg_type(self, item: Inbound, default: str) -> str:
         if self.cfg.topics.key_style == "rmw_zenoh":
@@ -994,257 +396,20 @@ class Daemon:
         return default
 
     def _dispatch(self, item: Inbound) -> None:
-        role, data = item.role, item.payload
-        if role in ("left_image", "right_image"):
-            self._expect_type(item, IMAGE)
-            img = codec.decode_image(data, STEREO_ENCODINGS)
-            self._check_size(role, img)
-            dups = self.pairer.duplicates
-            pair = (
-                self.pairer.add_left(img.stamp_ns, img)
-                if role == "left_image"
-                else self.pairer.add_right(img.stamp_ns, img)
-            )
-            if self.pairer.duplicates != dups:  # the waiting half with this stamp was replaced
-                self._drop("unpaired", f"duplicate_stamp (a second {role} for stamp {img.stamp_ns})")
-            if pair is not None:
-                self.health.count("paired")
-                self._admit(img.stamp_ns, ("stereo", pair, item.recv_s), item.recv_s)
-        elif role in ("left_info", "right_info", "depth_info"):
-            self._expect_type(item, CAMERA_INFO)
-            info = codec.decode_camera_info(data)
-            self._infos[role] = info
-            if role != "depth_info":
-                self._rig = None  # rebuilt lazily from both infos
-            self._poll_gate()
-        elif role == "pose":
-            typename = self._msg_type(item, POSE_TYPES[self.cfg.topics.pose_type])
-            if typename not in POSE_TYPES.values():
-                raise InputRejected("wrong_type", f"pose: type {typename[:100]!r} not accepted")
-            pm = codec.decode_pose(data, typename, self._pose_stamped_cov)
-            self._follow_pose_publisher(item)
-            T_W_C, cov = pm.T, carried_cov(pm.cov)
-            if self._T_B_C is not None:  # the pose of the body carrying the camera
-                T_W_C, cov = compose_pose_cov(T_W_C, cov, self._T_B_C)
-            jumps, strays = self.poses.jumps_back, self.poses.strays
-            self.poses.add(PoseSample(pm.stamp_ns, T_W_C, cov))
-            n = self.poses.jumps_back
-            if n != jumps and _log_nth(n):  # a source flapping between clocks would log each
-                log.warning(
-                    "pose: stamps went back by more than daemon.pose_max_gap_s (a restarted source "
-                    "or a stepped clock); the pose buffer starts afresh at %d ns (#%d)",
-                    pm.stamp_ns, n,
-                )  # fmt: skip
-            if self.poses.strays != strays:  # found out now, by the pose after it
-                self._reject("pose", InputRejected("stray_stamp", (
-                    f"a pose stamped {self.poses.last_stray_ns} ns, more than daemon.pose_max_gap_s "
-                    "off the pose timeline, was a stray (the poses after it went on with the "
-                    "timeline): ignored"
-                )))  # fmt: skip
-            if pm.frame_id:
-                self._frame_id = pm.frame_id
-            self.health.count("poses")
-            self._poll_gate()
-        elif role == "mask":
-            self._expect_type(item, IMAGE)
-            m = codec.decode_image(data, MASK_ENCODINGS)
-            _bounded_put(self._masks, m.stamp_ns, m.array > 0, self.cfg.queues.side_images)
-            self._last_mask_s = item.recv_s
-            self._side_undecided["mask"] = True
-            self._poll_gate()
-        elif role == "depth_std":
-            self._expect_type(item, IMAGE)
-            s = codec.decode_image(data, ("32FC1",))
-            _bounded_put(self._stds, s.stamp_ns, s.array.astype(np.float32), self.cfg.queues.side_images)
-            self._last_std_s = item.recv_s
-            self._side_undecided["depth_std"] = True
-            self._poll_gate()
-        elif role == "depth":
-            self._expect_type(item, IMAGE)
-            img = codec.decode_image(data, DEPTH_ENCODINGS)
-            self._check_size(role, img)
-            self._admit(img.stamp_ns, ("depth", img, item.recv_s), item.recv_s)
+        typename = self._msg_type(item, expected_type(item.role, self.cfg.topics.pose_type))
+        self.frames.feed(item.role, item.payload, item.recv_s, typename, item.publisher, item.key)
 
-    def _check_size(self, role: str, img: codec.ImageMsg) -> None:
-        """Reject an image of another size than its camera on arrival, so that it neither takes
-        (or replaces) a good waiting stereo half of its stamp nor pushes good frames out of the
-        pose gate. Without a usable camera (no or inconsistent CameraInfo) the frame is judged
-        when it is emitted, as before."""
-        if role == "depth":
-            info = self._infos.get("depth_info")
-            if info is None:
-                return
-            cam = info.camera
+    def _expire_before(self, now_s: float) -> float:
+        """A frame's deadline counts as passed only before the oldest pose still queued for the
+        loop came in: after a stall of the loop that pose is handled next and may be the frame's."""
+        backlog = self.bridge.pose_backlog_s
+        return min(now_s, backlog[0]) if backlog else now_s
+
+    def _on_frame(self, frame: StereoFrame | DepthFrame, recv_s: float) -> None:
+        if isinstance(frame, StereoFrame):
+            self.stereo_box.offer((frame, recv_s))
         else:
-            try:
-                cam = self._stereo_rig().left
-            except PugsdError:
-                return
-        what = "depth image" if role == "depth" else f"{role}: image"
-        require_size(img, (cam.height, cam.width), what, role)
-
-    def _expect_type(self, item: Inbound, typename: str) -> None:
-        got = self._msg_type(item, typename)
-        if got != typename:
-            msg = f"{item.role}: type {got[:100]!r} not accepted (expected {typename})"
-            raise InputRejected("wrong_type", msg)
-
-    def _admit(self, stamp_ns: int, entry: tuple[str, Any, float], now_s: float) -> None:
-        if not self.frame_rate.accept(stamp_ns):  # daemon.max_frame_rate_hz: skipped, not dropped
-            self.health.count("frames.skipped_rate")
-            self._masks.pop(stamp_ns, None)
-            self._stds.pop(stamp_ns, None)
-            return
-        newest = self.poses.newest_ns
-        if newest is not None:
-            self._stamp_skew_s.append((stamp_ns - newest) / 1e9)
-        for _, reason in self.gate.add(stamp_ns, entry, now_s):
-            self._drop("pose_wait", reason)
-        self._poll_gate()
-
-    def _pending(self, entry: tuple[str, Any, float], now_s: float) -> str | None:
-        """Why a pose-ready frame must still wait (missing CameraInfo, a mask on its way)."""
-        kind, payload, recv_s = entry
-        if kind == "stereo":
-            if "left_info" not in self._infos or "right_info" not in self._infos:
-                return "no CameraInfo for both cameras yet"
-            stamp = payload[0].stamp_ns
-        else:
-            if "depth_info" not in self._infos:
-                return "no CameraInfo for the depth image yet"
-            stamp = payload.stamp_ns
-            if self._side_missing("depth_std", self._std_active(now_s), stamp in self._stds, recv_s, now_s):
-                return "depth std image not here yet"
-        if self._side_missing("mask", self._mask_active(now_s), stamp in self._masks, recv_s, now_s):
-            return "mask not here yet"
-        return None
-
-    def _side_missing(self, role: str, active: bool, here: bool, recv_s: float, now_s: float) -> bool:
-        """Whether a frame must still wait for its ``role`` image: while that topic is active or
-        undecided, up to ``side_image_wait_s``. An undecided wait that ends in vain (its time is
-        up, or the next frame is here) decides the topic (no such publisher, for now): later
-        frames go on."""
-        if here or not (active or self._side_undecided[role]):
-            return False
-        d = self.cfg.daemon
-        # undecided, the wait must end before the pose gate's deadline (pose_wait_s), or a rig
-        # without masks would lose every frame there and never decide; and it ends when the next
-        # frame is already here: keys are reordered by far less than a frame period, and frames
-        # held back together would overflow the stereo mailbox when released
-        limit_s = d.side_image_wait_s if active else min(d.side_image_wait_s, 0.5 * d.pose_wait_s)
-        if now_s - recv_s < limit_s and (active or len(self.gate) <= 1):
-            return True
-        if not active:
-            self._side_undecided[role] = False
-        return False
-
-    def _mask_active(self, now_s: float) -> bool:
-        return self._last_mask_s is not None and now_s - self._last_mask_s < _SIDE_ACTIVE_S
-
-    def _std_active(self, now_s: float) -> bool:
-        return self._last_std_s is not None and now_s - self._last_std_s < _SIDE_ACTIVE_S
-
-    def _poll_gate(self) -> None:
-        """Release the frames whose pose is ready; a frame that fails is counted (a rejection,
-        charged to the input at fault, or an internal error) and the others still go on."""
-        now_s = time.monotonic()
-        # a frame's deadline counts as passed only before the oldest pose still queued for the
-        # loop came in: after a stall of the loop that pose is handled next and may be the frame's
-        backlog = self._pose_backlog_s
-        expire_s = min(now_s, backlog[0]) if backlog else now_s
-        ready, dropped = self.gate.poll(now_s, self._pending, expire_s)
-        for _, reason in dropped:
-            self._drop("pose_wait", reason)
-        for (kind, payload, recv_s), stamp_ns, T, cov in ready:
-            try:
-                if kind == "stereo":
-                    self._emit_stereo(payload, stamp_ns, T, cov, recv_s)
-                else:
-                    self._emit_depth(payload, stamp_ns, T, cov, recv_s)
-            except PugsdError as exc:
-                self._reject("left_image" if kind == "stereo" else "depth", exc)
-            except Exception as exc:  # a bug, not bad input: the gate worker must go on
-                self._internal_error(f"errors.frames.{kind}", f"emitting a {kind} frame", exc)
-
-    def _stereo_rig(self) -> StereoRig:
-        if self._rig is None:
-            left, right = self._infos.get("left_info"), self._infos.get("right_info")
-            if left is None or right is None:
-                raise DecodeError("stereo: no CameraInfo for both cameras yet")
-            # (a disparity search short of min_depth_m is logged by the stereo stage, once per rig)
-            self._rig = codec.stereo_rig_from_infos(left, right)
-        return self._rig
-
-    def _emit_stereo(
-        self,
-        pair: tuple[codec.ImageMsg, codec.ImageMsg],
-        stamp_ns: int,
-        T: np.ndarray,
-        cov: np.ndarray,
-        recv_s: float,
-    ) -> None:
-        left, right = pair
-        mask_in = self._masks.pop(stamp_ns, None)  # taken even if the frame is rejected
-        try:
-            rig = self._stereo_rig()
-        except PugsdError as exc:
-            raise InputRejected(reason_class(exc), str(exc), "camera_info") from None
-        shape = (rig.left.height, rig.left.width)
-        for role, img in (("left_image", left), ("right_image", right)):
-            require_size(img, shape, f"{role}: image", role)
-        if left.encoding != right.encoding:
-            msg = f"stereo pair encoding mismatch: {left.encoding} vs {right.encoding}"
-            raise InputRejected("wrong_encoding", msg, "right_image")
-        mask = self._side_image("mask", mask_in, shape)
-        try:
-            frame = StereoFrame(
-                stamp_ns=stamp_ns,
-                left=left.rgb_or_mono(),
-                right=right.rgb_or_mono(),
-                rig=rig,
-                T_W_C=T,
-                pose_cov=cov,
-                mask=mask,
-            )
-        except PugsdError as exc:  # the images and the mask are checked: the pose is at fault
-            raise InputRejected(reason_class(exc), str(exc), "pose") from None
-        self.health.count("frames.stereo")
-        self.stereo_box.offer((frame, recv_s))
-
-    def _emit_depth(
-        self, img: codec.ImageMsg, stamp_ns: int, T: np.ndarray, cov: np.ndarray, recv_s: float
-    ) -> None:
-        std_in, mask_in = self._stds.pop(stamp_ns, None), self._masks.pop(stamp_ns, None)
-        info = self._infos.get("depth_info")
-        if info is None:
-            raise DecodeError("depth: no CameraInfo for the depth image yet")
-        shape = (info.camera.height, info.camera.width)
-        require_size(img, shape, "depth image")
-        sigma = self._side_image("depth_std", std_in, shape)
-        mask = self._side_image("mask", mask_in, shape)
-        try:
-            frame = DepthFrame(
-                stamp_ns=stamp_ns,
-                depth_m=img.depth_m(),
-                camera=info.camera,
-                T_W_C=T,
-                pose_cov=cov,
-                sigma_m=sigma,
-                mask=mask,
-            )
-        except PugsdError as exc:  # the images are checked: the pose is at fault
-            raise InputRejected(reason_class(exc), str(exc), "pose") from None
-        self.health.count("frames.depth")
-        self.depth_box.offer((frame, recv_s))
-
-    def _side_image(self, role: str, arr: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | None:
-        """A frame's mask or depth std image; one of another size than the frame is rejected
-        (counted under ``role``) and the frame goes on without it."""
-        if arr is None or arr.shape == shape:
-            return arr
-        msg = f"{role} is {arr.shape}, camera expects {shape}; frame used without it"
-        self._reject(role, InputRejected("wrong_size", msg))
-        return None
+            self.depth_box.offer((frame, recv_s))
 
     # --- workers ----------------------------------------------------------------------------------
 
@@ -1276,26 +441,7 @@ class Daemon:
                 return None
 
     async def _guard(self, stage: str, coro: Awaitable[R]) -> R | None:
-        """Await ``coro``; a PugsdError is a counted rejection, anything else a logged error."""
-        try:
-            out = await coro
-        except PugsdError as exc:
-            self._reject(stage, exc)
-            if reason_class(exc) in _MAP_AT_FAULT:  # every later frame fails alike: not input's fault
-                self.health.failed(stage)
-        except Exception as exc:
-            self.health.failed(stage)
-            key = f"errors.{stage}"
-            self.health.count(key)
-            n = self.health.counts[key]
-            if n == 1:
-                log.exception("%s stage failed; continuing", stage)
-            elif _log_nth(n):
-                log.error("%s stage failed (#%d): %s: %s", stage, n, type(exc).__name__, exc)
-        else:
-            self.health.succeeded(stage)
-            return out
-        return None
+        return await self.report.guard(stage, coro)
 
     async def _depth_worker(self) -> None:
         while not self._stopping:
@@ -1309,53 +455,28 @@ class Daemon:
                 self.depth_box.offer((depth, recv_s))
 
     async def _train(self, steps: int, idle: bool = False) -> None:
-        """Up to ``steps`` SVGP steps, one per offload, yielding as soon as a frame is waiting:
-        ingest has priority, so frames are not dropped while the model trains (measured in
-        docs/performance.md: 10 Hz went from 15-26 of 100 frames integrated to 100 of 100).
-        One step is forced when the last is older than ``min_train_interval_s``, so sustained
-        overload cannot starve the model (it then drops frames instead, counted). Idle rounds
-        (``idle``) also stop while grasps for a newly integrated frame are being computed: on two
-        cores the SVGP steps and the grasp proposal slow each other down. Idle steps of a ready
-        model run at learning rates that decay with the number of such steps since the last frame
-        (``idle_rate_decay_steps``: what is published settles); steps after a frame, and idle
-        steps before the model is ready (nothing published yet to settle, readiness not to be
-        slowed), run at the configured rates."""
-        tau = self.cfg.daemon.idle_rate_decay_steps
+        """Up to ``steps`` SVGP steps, one per offload, as the schedule allows each."""
+        s = self.schedule
         for _ in range(steps):
-            overdue = time.monotonic() - self._last_train_s > self.cfg.daemon.min_train_interval_s
-            if self._stopping or (len(self.depth_box) > 0 and not overdue):
+            if self._stopping or not s.may_step(time.monotonic(), len(self.depth_box), idle):
                 break
-            if idle and self._grasps_urgent:
-                break
-            self._last_train_s = time.monotonic()
-            decaying = idle and tau > 0 and self.ready
-            scale = 1.0 / (1.0 + self._idle_steps / tau) if decaying else 1.0
-            stats = await self._guard(
-                "train", self._offload("train", self._train_step_locked, scale)
-            )
+            s.last_train_s = time.monotonic()
+            decaying = s.decaying(idle, self.ready)
+            step = self._offload("train", self._train_step_locked, s.rate_scale(decaying))
+            stats = await self._guard("train", step)
             if stats is None:
                 break
             self._note_train(stats, 1)
-            self._changed = True
-            self._steps_since_frame += 1
-            if decaying:
-                self._idle_steps += 1
+            s.stepped(decaying)
 
     async def _model_worker(self) -> None:
-        d = self.cfg.daemon
+        d, s = self.cfg.daemon, self.schedule
         while not self._stopping:
-            idle = (
-                self._last_frame_s is not None
-                and d.idle_train_steps > 0
-                and time.monotonic() - self._last_frame_s < d.idle_train_s
-            )
+            idle = s.idle(time.monotonic())
             item = await self.depth_box.take_within(0.02 if idle else 0.5)
             if item is not None:
                 depth, recv_s = item
-                n = await self._guard(
-                    "integrate",
-                    self._offload("integrate", self._integrate_locked, depth),
-                )
+                n = await self._guard("integrate", self._offload("integrate", self._integrate_locked, depth))
                 if n is None:
                     continue
                 self.health.count("integrated")
@@ -1363,31 +484,21 @@ class Daemon:
                     log.info("first frame integrated (%d points)", n)
                 self.health.count("points", n)
                 self.health.observe("frame_age_at_integrate", time.monotonic() - recv_s)
-                self._last_frame_s = time.monotonic()
+                s.frame_integrated(time.monotonic())
                 self._newest_recv_s = recv_s
-                self._changed = True
-                self._frame_unpublished = True
-                self._steps_since_frame = 0
-                self._idle_steps = 0
                 if d.train_steps_per_frame > 0 and not self._stopping:
                     await self._train(d.train_steps_per_frame)
-            elif (
-                idle
-                and not self._stopping
-                and not self._grasps_urgent
-                and time.monotonic() >= self._retry_train_at
-            ):
+            elif idle and not self._stopping and s.idle_round_due(time.monotonic()):
                 await self._train(d.idle_train_steps, idle=True)
-                k = self.health.failures.get("train", 0)
-                # a failing model is retried with exponential backoff (0.1 s .. 5 s)
-                self._retry_train_at = time.monotonic() + (min(0.1 * 2 ** (k - 1), 5.0) if k else 0.0)
+                s.round_ended(time.monotonic(), self.health.failures.get("train", 0))
 
     def _integrate_locked(self, depth: DepthFrame) -> int:
         """On the model thread: integrate ``depth`` and advance the outputs' stamp under the same
         hold of the model lock, so that a grasp computation's snapshot and its stamp agree."""
         with self._model_lock:
             n = self.pipeline.integrate(depth)
-            self._newest_stamp_ns = self._output_stamp_ns(depth.stamp_ns)
+            gap_ns = self.frames.poses.max_gap_ns
+            self._newest_stamp_ns = output_stamp_ns(self._newest_stamp_ns, depth.stamp_ns, gap_ns)
             return n
 
     def _reset_locked(self) -> bool:
@@ -1407,211 +518,36 @@ class Daemon:
         if self.ready and not was:
             log.info("model ready (ELBO %.4g)", elbo)
 
-    def _compute_and_encode(
-        self,
-        frame_id: str,
-        generation: int,
-        on_grasps: Callable[[Any, dict[str, bytes]], None],
-        with_cloud: bool,
-    ) -> str:
-        """On the grasp thread. Under the model lock: a snapshot of the query cloud. Without it:
-        the grasp proposal (frames are integrated and the SVGP trains meanwhile). Under the lock
-        again: Algorithm 1 at the contacts and Eq. 13 with the model as it is now, handed to
-        ``on_grasps`` at once; then, if ``with_cloud``, still under that lock, the fused
-        covariances of the rest of the query cloud and a frozen copy of the same model, through
-        which Algorithm 1 for the PointCloud2 runs without the lock, in chunks: it gives way (the
-        cloud is not published) as soon as grasps for a newer frame are due, unless clouds are
-        overdue (``_cloud_gives_way``).
-        The outputs are stamped with the newest frame in the snapshot (read with it).
-        Returns "discarded" if a reset while this ran discarded the result ("cloud discarded" if
-        it came after the grasps), "preempted" if the cloud gave way, else "published"."""
-        with self._model_lock:
-            inp = self.pipeline.grasp_input()
-            stamp_ns = self._newest_stamp_ns
-        proposal = self.pipeline.propose(inp)
-        with self._model_lock:
-            if generation != self._generation:
-                return "discarded"
-            result = self.pipeline.score(proposal)
-            g = result.grasps
-            out = {"grasps": codec.encode_grasp_array(g, frame_id, stamp_ns)}
-            out["markers"] = codec.encode_grasp_markers(
-                g, frame_id, stamp_ns, top_k=self.cfg.daemon.markers_top_k
-            )
-            on_grasps(result, out)
-            job = self.pipeline.cloud_job(result) if with_cloud else None
-        if job is not None:
-            result = self.pipeline.finish_cloud(job, self._cloud_gives_way)
-            if result is None:
-                return "preempted"
-            if generation != self._generation:
-                return "cloud discarded"  # the map was reset meanwhile: not the current map
-            cloud = codec.encode_cloud(
-                result.cloud_W,
-                stamp_ns,
-                frame_id,
-                sigma2_occ=result.sigma2_occ,
-                pugs_confidence=result.pugs_conf_points,
-            )
-            on_grasps(result, {"cloud": cloud})  # the round's result, its sigma^2_occ now whole
-        return "published"
-
-    def _publish_outputs(
-        self, result: Any, payloads: dict[str, bytes], newest_recv: float | None, generation: int
-    ) -> None:
-        """On the loop: publish what ``_compute_and_encode`` handed over (grasps, then the cloud),
-        unless a reset began since it was computed: the grasp thread checks the generation
-        before scoring, but a reset can bump it (here, on the loop) while the scoring runs."""
-        if generation != self._generation:
-            self.health.count("grasps_discarded" if "grasps" in payloads else "clouds_discarded")
-            log.info("grasp results discarded: the map was reset while they were computed")
-            return
-        for role, data in payloads.items():
-            self._put_output(role, data)
-        if "cloud" in payloads:
-            self._last_cloud_published_s = time.monotonic()
-        if "grasps" not in payloads:
-            # the cloud of the latest grasps' round: the same grasps, with sigma^2_occ over the
-            # whole query cloud (the demo draws it); a cloud of another round changes nothing
-            latest = self.latest_result
-            if result is not None and latest is not None and result.grasps is latest.grasps:
-                self.latest_result = result
-            return
-        self._grasps_urgent = False  # the grasps are out: idle training need not wait for the cloud
-        self.latest_grasps = payloads["grasps"]
-        self.latest_result = result
-        self.model_version = int(result.model_version)
-        self.grasps_published += 1
-        self.health.count("grasps_published")
-        if newest_recv is not None:
-            self.health.observe("newest_frame_to_grasps", time.monotonic() - newest_recv)
-        g = result.grasps
-        now = time.monotonic()
-        # one line per publication was 86 400 a day at 1 Hz: the first grasps (since the start or
-        # a reset), then at most one line per _GRASPS_LOG_S with the updates published meanwhile
-        if len(g) and now - self._grasps_logged_s >= _GRASPS_LOG_S:
-            log.info(
-                "grasps v%s: %d, top PUGS %.3f (baseline %.3f, sigma2 %.3g); %d update(s) published "
-                "since the last such line",
-                self.model_version,
-                len(g),
-                float(g.pugs_confidence[0]),
-                float(g.baseline_confidence[0]),
-                float(g.sigma2_occ[0]),
-                self.grasps_published - self._grasps_logged_n,
-            )
-            self._grasps_logged_s, self._grasps_logged_n = now, self.grasps_published
-
-    def _put_output(self, role: str, data: bytes) -> bool:
-        """Publish one output; a failed put (zenoh refusing it: a closed or broken session) is
-        logged and counted (``publish_failed``, per role in ``publish_failed.<role>``) instead of
-        escaping into the event loop's exception handler. The results stay queryable
-        (``grasps/latest``). ``daemon.max_consecutive_failures`` failed puts in a row, of any
-        role, make the daemon unhealthy, so systemd restarts it with a fresh session; one role
-        that keeps failing while the others go out does not (a restart would not mend it)."""
-        try:
-            self._publishers[role].put(data)
-        except Exception as exc:
-            self.health.count("publish_failed")
-            self.health.count(f"publish_failed.{role}")
-            n = self.health.failed("publish")
-            of_role = self.health.counts[f"publish_failed.{role}"]
-            if _log_nth(of_role, first=10):  # the first ten of a role, then every 100th
-                log.warning("publishing %s failed (%d so far, %d puts in a row): %s", role, of_role, n, exc)
-            return False
-        self.health.succeeded("publish")
-        return True
-
-    def _streaming(self, now: float) -> bool:
-        """Frames are coming: one is queued, or the last came less than ``pause_publish_s`` ago."""
-        return len(self.depth_box) > 0 or (
-            self._last_frame_s is not None and now - self._last_frame_s < self.cfg.daemon.pause_publish_s
-        )
-
     def _cloud_gives_way(self) -> bool:
-        """A frame was integrated since the running grasp computation began and the input has
-        paused: fresh grasps now matter more than that computation's cloud, as long as a cloud
-        was published within ``cloud_interval_s``. (Without that bound a camera slower than
-        1 / pause_publish_s, whose every gap looks like a pause, would never let a cloud finish.)
-        Called from the grasp thread; reads values that only the loop writes. At shutdown it
-        gives way at once: the cloud would not outlive the session, and would hold the exit."""
-        if self._stopping:
-            return True
-        now = time.monotonic()
-        return (
-            self._frame_unpublished
-            and not self._streaming(now)
-            and now - self._last_cloud_published_s < self.cfg.daemon.cloud_interval_s
-        )
-
-    def _grasps_due(self, now: float, last_start: float) -> bool:
-        """Every 1 / grasp_rate_hz while the model changes; and at once when the input pauses:
-        the newest frame has had its training steps and no frame came for ``pause_publish_s``
-        (then at most twice the configured rate)."""
-        d = self.cfg.daemon
-        period = 1.0 / d.grasp_rate_hz
-        if now - last_start >= period:
-            return True
-        return (
-            d.pause_publish_s > 0
-            and self._frame_unpublished
-            and self._last_frame_s is not None
-            and not self._streaming(now)
-            and self._steps_since_frame >= d.train_steps_per_frame
-            and now - last_start >= 0.5 * period
-        )
+        """Whether the running computation's cloud gives way to fresh grasps (the schedule's
+        ``cloud_gives_way``), and at shutdown at once: the cloud would not outlive the session,
+        and would hold the exit. Called from the grasp thread; reads values only the loop writes."""
+        return self._stopping or self.schedule.cloud_gives_way(time.monotonic(), len(self.depth_box))
 
     async def _grasp_worker(self) -> None:
-        loop = asyncio.get_running_loop()
-        last_start = last_cloud = -math.inf
+        loop, s = asyncio.get_running_loop(), self.schedule
         while not self._stopping:
             await asyncio.sleep(0.02)
             publishable = self.ready or (self.cfg.daemon.ready_latch and self.was_ready)
-            if not (publishable and self._changed) or self._stopping or self._resetting or self._reset_failed:
+            if not (publishable and s.changed) or self._stopping or self._resetting or self._reset_failed:
                 continue
-            now = time.monotonic()
-            if not self._grasps_due(now, last_start):
+            now, queued = time.monotonic(), len(self.depth_box)
+            if not s.grasps_due(now, s.grasps_started_s, queued):
                 continue
-            last_start = now
-            self._changed = False
-            # grasps for a frame not yet published: idle training waits for them (less contention)
-            self._grasps_urgent = self._frame_unpublished
-            self._frame_unpublished = False
+            with_cloud = s.start_grasps(now, queued)
             newest_recv = self._newest_recv_s
-            # the whole cloud's Algorithm 1 costs about as much as the grasps and occupies the
-            # grasp thread: while frames stream, at most every cloud_interval_s (the first one too)
-            d = self.cfg.daemon
-            streaming = self._streaming(now)
-            if streaming and last_cloud == -math.inf:
-                last_cloud = now
-            with_cloud = d.publish_cloud and (not streaming or now - last_cloud >= d.cloud_interval_s)
-            if with_cloud:
-                last_cloud = now
-
             generation = self._generation
 
-            def hand_over(
-                result: Any,
-                payloads: dict[str, bytes],
-                newest: float | None = newest_recv,
-                gen: int = generation,
-            ) -> None:
-                loop.call_soon_threadsafe(self._publish_outputs, result, payloads, newest, gen)
+            def hand_over(result: Any, payloads: dict[str, bytes], newest: float | None = newest_recv,
+                          gen: int = generation) -> None:  # fmt: skip
+                loop.call_soon_threadsafe(self.outputs.publish, result, payloads, newest, gen)
 
             try:
-                outcome = await self._guard(
-                    "grasps",
-                    self._offload(
-                        "grasps",
-                        self._compute_and_encode,
-                        self._frame_id,
-                        generation,
-                        hand_over,
-                        with_cloud,
-                    ),
-                )
+                compute = self.outputs.compute_and_encode
+                args = (self.frames.frame_id, generation, hand_over, with_cloud)
+                outcome = await self._guard("grasps", self._offload("grasps", compute, *args))
             finally:
-                self._grasps_urgent = False
+                s.grasps_urgent = False
             if outcome == "discarded":
                 self.health.count("grasps_discarded")
                 log.info("grasp computation discarded: the map was reset while it ran")
@@ -1644,11 +580,11 @@ class Daemon:
         cleared_stamp_ns = self._newest_stamp_ns  # the old map's time line (and its transforms)
         self.stereo_box.clear()  # counted by the mailboxes
         self.depth_box.clear()
-        waiting, unpaired = self.gate.clear(), self.pairer.clear()
+        waiting, unpaired = self.frames.clear()
         if waiting:
-            self._drop("reset", "frames waiting for a pose", waiting)
+            self.report.drop("reset", "frames waiting for a pose", waiting)
         if unpaired:
-            self._drop("reset", "unpaired stereo halves", unpaired)
+            self.report.drop("reset", "unpaired stereo halves", unpaired)
         if await self._guard("reset", self._offload("reset", self._reset_locked)):
             # a run of integrate failures belonged to the old map (out_of_map_range: its anchor)
             self.health.succeeded("integrate")
@@ -1656,85 +592,21 @@ class Daemon:
         else:
             self._reset_failed = True
             log.error("reset: the pipeline could not be cleared; no grasps until a reset succeeds")
-        self.latest_grasps = None
-        self.latest_result = None
+        self.outputs.clear()
         self.ready = False
         self.was_ready = False
-        self._changed = False
-        self._frame_unpublished = False
-        self._last_frame_s = None
+        self.schedule.reset()
         self._newest_recv_s = None
         self.elbo = None
-        self.model_version = None  # the cleared map's: no grasps of it are served any more
-        self._grasps_logged_s = -math.inf  # the new map's first grasps are logged
         self.health.count("resets")
-        self._publish_cleared(cleared_stamp_ns)
+        self.outputs.publish_cleared(cleared_stamp_ns)
         log.info("reset: map cleared")
 
-    def _publish_cleared(self, stamp_ns: int) -> None:
-        """After a reset: an empty GraspArray, a MarkerArray holding only its DELETEALL and an
-        empty PointCloud2, so that viewers and subscribers drop the old object's grasps (markers
-        live until deleted) instead of showing them until the new model is ready."""
-        z = np.zeros(0)
-        empty = ScoredGrasps(np.zeros((0, 4, 4)), np.zeros((0, 3)), z, z, z, z, np.zeros(0, np.int64))
-        payloads = {
-            "grasps": codec.encode_grasp_array(empty, self._frame_id, stamp_ns),
-            "markers": codec.encode_grasp_markers(empty, self._frame_id, stamp_ns, top_k=0),
-        }
-        if self.cfg.daemon.publish_cloud:
-            payloads["cloud"] = codec.encode_cloud(np.zeros((0, 3)), stamp_ns, self._frame_id)
-        for role, data in payloads.items():
-            if role in self._publishers:  # a failed put is counted and does not fail the reset
-                self._put_output(role, data)
-
-    def _output_stamp_ns(self, stamp_ns: int) -> int:
-        """The stamp for outputs after integrating a frame stamped ``stamp_ns``: the newest frame
-        stamp, never going back by a frame integrated out of order, but following the source when
-        its stamps go back by more than ``daemon.pose_max_gap_s`` (a restarted source, a looped
-        recording, a stepped clock: the same test the pose buffer restarts on); a reset starts
-        afresh."""
-        newest = self._newest_stamp_ns
-        if stamp_ns >= newest or newest - stamp_ns > self.poses.max_gap_ns:
-            return stamp_ns
-        return newest
-
-    def _skew_summary(self) -> dict[str, float | int]:
-        """The latest frames' stamp minus the newest pose stamp when each arrived, in seconds:
-        near zero or a pose period below it with synchronised clocks; a constant far from zero
-        is an offset between the camera's clock and the pose source's (or a pose source lagging
-        by that much), which ``pose_max_gap_s`` and ``pose_wait_s`` cannot bridge."""
-        if not self._stamp_skew_s:
-            return {"n": 0}
-        a = np.fromiter(self._stamp_skew_s, dtype=np.float64)
-        return {
-            "n": int(a.size),
-            "p50": round(float(np.median(a)), 4),
-            "min": round(float(a.min()), 4),
-            "max": round(float(a.max()), 4),
-        }
-
     def input_ages_s(self, now: float | None = None) -> dict[str, float]:
-        """Seconds since each input stream (left/right image, depth, pose) last sent."""
-        t = time.monotonic() if now is None else now
-        return {r: round(t - t0, 3) for r, t0 in sorted(self._last_recv_s.items())}
+        return self.inputs.ages_s(time.monotonic() if now is None else now)
 
     def stale_inputs(self, now: float | None = None) -> list[str]:
-        """The streams that sent before and have been silent for ``daemon.input_stale_s``."""
-        limit = self.cfg.daemon.input_stale_s
-        if limit <= 0:
-            return []
-        return [r for r, age in self.input_ages_s(now).items() if age > limit]
-
-    def _report_stale(self, stale: list[str]) -> None:
-        """Log each stream once when it goes stale (``_on_inbound`` logs its return)."""
-        ages = self.input_ages_s()
-        new = [r for r in stale if r not in self._stale_reported]
-        if new:
-            self._stale_reported.update(new)
-            log.warning(
-                "input silent: %s (daemon.input_stale_s = %.1f s)",
-                ", ".join(f"{r} for {ages[r]:.1f} s" for r in new), self.cfg.daemon.input_stale_s,
-            )  # fmt: skip
+        return self.inputs.stale(time.monotonic() if now is None else now)
 
     def problems(self) -> list[str]:
         """Why the daemon is unhealthy (empty: healthy): the health monitor's and a failed reset."""
@@ -1744,53 +616,7 @@ class Daemon:
         return out
 
     def status(self) -> dict[str, Any]:
-        try:
-            pstats = self.pipeline.stats()
-        except Exception as exc:  # stats are best effort
-            pstats = {"error": str(exc)}
-        snap = self.health.snapshot()
-        problems = self.problems()
-        return {
-            "node": self.cfg.daemon.node_name,
-            "stamp_ns": time.time_ns(),
-            "healthy": not problems,  # the watchdog's verdict: WATCHDOG=1 pings go out while true
-            "problems": problems,
-            "ready": self.ready,
-            "was_ready": self.was_ready,
-            "model_version": self.model_version,
-            "elbo": self.elbo,
-            "grasps_published": self.grasps_published,
-            **snap,
-            "dropped_total": self.dropped_total(),  # counts.dropped and the queues' own, below
-            "mailboxes": {b.name: b.stats() for b in (self.stereo_box, self.depth_box, self.commands)},
-            "ingress": {"pending": self.ingress.pending, "dropped": self.ingress.dropped},
-            "query_ingress": {"pending": self.query_ingress.pending, "dropped": self.query_ingress.dropped},
-            # arm/stop queries and puts beyond the eight on their way (those do the stopping)
-            "stop_ingress": {"pending": self.stop_ingress.pending, "dropped": self.stop_ingress.dropped},
-            "deletes_ignored": self.deletes_ignored,
-            "bridge_errors": dict(self.bridge_errors),
-            "inputs": {
-                "age_s": self.input_ages_s(),
-                "stale": self.stale_inputs(),
-                "frame_minus_newest_pose_s": self._skew_summary(),
-            },
-            "upstream": {
-                **self.upstream.snapshot(),
-                "active_publishers": self.upstream.active(_PUBLISHERS_WINDOW_S),
-                "concurrent_publishers": self.upstream.concurrent(_PUBLISHERS_WINDOW_S),
-                "pose_publisher": None if self._pose_publisher is None else self._pose_publisher.hex()[:12],
-            },
-            "waiting": {
-                "pose_gate": len(self.gate),
-                "unpaired": self.pairer.pending(),
-                "unpaired_dropped": self.pairer.unpaired_dropped,
-                "poses": len(self.poses),
-                "pose_clock_jumps_back": self.poses.jumps_back,
-                "pose_strays": self.poses.strays,
-            },
-            "pipeline": pstats,
-            "recorder": None if self.recorder is None else self.recorder.stats.as_dict(),
-        }
+        return status_of(self)
 
     async def _status_worker(self) -> None:
         period = 1.0 / self.cfg.daemon.status_rate_hz
@@ -1799,129 +625,60 @@ class Daemon:
             try:
                 self._status_round()
             except Exception as exc:  # a bug: count and log; the daemon keeps serving
-                self._internal_error("errors.status", "the status round", exc)
+                self.report.internal_error("errors.status", "the status round", exc)
 
     def _status_round(self) -> None:
         st = self.status()
         self.latest_status = st
-        self._put_output("status", codec.encode_status(_jsonable(st)))
+        self.outputs.put("status", codec.encode_status(jsonable(st)))
         c = st["counts"]
         stale = st["inputs"]["stale"]
-        self._report_stale(stale)
-        self._report_publishers(st["upstream"]["concurrent_publishers"])
+        self.inputs.report_stale(stale, time.monotonic())
+        self.inputs.report_publishers(st["upstream"]["concurrent_publishers"])
         self._report_overload(time.monotonic())
         self.notifier.send(
             f"STATUS=frames {c.get('frames.stereo', 0) + c.get('frames.depth', 0)}, "
             f"integrated {c.get('integrated', 0)}, ready {self.ready}, "
-            f"grasps {self.grasps_published}, dropped {self.dropped_total()}, "
+            f"grasps {self.outputs.grasps_published}, dropped {self.dropped_total()}, "
             f"rejected {c.get('rejected', 0)}" + (f", stale input: {' '.join(stale)}" if stale else "")
         )
 
     def _report_overload(self, now_s: float) -> None:
-        """Warn when newer frames pushed older ones out of the stereo or depth queue (not a reset's
-        clearing) within a window of ``_OVERLOAD_WINDOW_S``, at least ``_OVERLOAD_MIN_DROPS`` and
-        ``_OVERLOAD_MIN_FRAC`` of the frames: the input comes faster than the daemon integrates,
-        so frames are lost and the ones integrated have waited in the queue. At most once per
-        ``_OVERLOAD_LOG_S``; the status message has the counts all along."""
-        c = self.health.counts
-        mark = (
+        c, age = self.health.counts, self.health.latency.get("frame_age_at_integrate")
+        self.overload.check(
             now_s,
             self.stereo_box.overflowed + self.depth_box.overflowed,
             c.get("frames.stereo", 0) + c.get("frames.depth", 0),
             c.get("integrated", 0),
+            age.summary().get("p50_ms") if age is not None else None,
         )
-        prev = self._overload_mark
-        if prev is None or now_s - prev[0] >= _OVERLOAD_WINDOW_S:
-            self._overload_mark = mark
-        if prev is None or now_s - prev[0] < _OVERLOAD_WINDOW_S:
-            return
-        dropped, emitted = mark[1] - prev[1], mark[2] - prev[2]
-        # a frame or two pushed out now and then is a hiccup (counted in the status), not a rate
-        if dropped < max(_OVERLOAD_MIN_DROPS, _OVERLOAD_MIN_FRAC * emitted):
-            return
-        if now_s - self._overload_logged_s < _OVERLOAD_LOG_S:
-            return
-        self._overload_logged_s = now_s
-        dt = now_s - prev[0]
-        age = self.health.latency.get("frame_age_at_integrate")
-        age_p50 = age.summary().get("p50_ms") if age is not None else None
-        log.warning(
-            "input faster than the daemon integrates: %d frames dropped at the stereo and depth "
-            "queues in the last %.0f s (%.1f frames/s in, %.1f integrated; frames waited %s before "
-            "fusion). Set daemon.max_frame_rate_hz below the integrated rate to keep the output "
-            "fresh (docs/deploy.md, Tuning)",
-            dropped, dt, emitted / dt, (mark[3] - prev[3]) / dt,
-            "?" if age_p50 is None else f"{age_p50 / 1e3:.2f} s (median)",
-        )  # fmt: skip
 
     async def _watchdog_worker(self) -> None:
         interval = watchdog_interval_s()
         period = min(1.0, interval) if interval else 1.0
-        reported: list[str] = []  # the problems logged last, without their changing numbers
-        reported_s = -math.inf
+        unhealthy = UnhealthyLog()
         while not self._stopping:
             try:
                 self.health.tick()
                 problems: list[str] | None = self.problems()
             except Exception as exc:  # a bug: no verdict this round, so no ping; the daemon serves on
-                self._internal_error("errors.watchdog", "the watchdog round", exc)
+                self.report.internal_error("errors.watchdog", "the watchdog round", exc)
                 problems = None
-            if problems is None:
-                pass
-            elif problems:
-                kinds = sorted(_NUMBER.sub("#", p) for p in problems)
-                now = time.monotonic()
-                if kinds != reported or now - reported_s >= _UNHEALTHY_RELOG_S:
-                    log.error("unhealthy, withholding watchdog pings: %s", "; ".join(problems))
-                    reported, reported_s = kinds, now
-            else:
-                reported = []
-                if interval:
-                    self.notifier.send("WATCHDOG=1")
+            if problems is not None and unhealthy.note(problems, time.monotonic()) and interval:
+                self.notifier.send("WATCHDOG=1")
             await asyncio.sleep(period)
 
     async def _gate_worker(self) -> None:
         """Expire frames whose pose never came (deadlines pass without new input)."""
         while not self._stopping:
             await asyncio.sleep(0.05)
-            if len(self.gate):
+            if len(self.frames.gate):
                 try:
-                    self._poll_gate()
+                    self.frames.poll()
                 except Exception as exc:  # a bug in the lookup itself: keep the worker alive
-                    self._internal_error("errors.gate", "polling the pose gate", exc)
+                    self.report.internal_error("errors.gate", "polling the pose gate", exc)
 
 
-# rejections whose cause is the map, not the frame: the point store's voxel hash is anchored at
-# the map's first observation, so once frames come from beyond its range (that observation had a
-# localiser's initial zero pose, and the vehicle is in UTM coordinates), every frame is refused
-# until a reset. They count as failures too, so that a run of them makes the daemon unhealthy
-# (the watchdog restarts it) rather than healthy and never integrating again.
-_MAP_AT_FAULT = frozenset({"out_of_map_range"})
-_SIDE_ACTIVE_S = 2.0  # a mask/std topic counts as active this long after its last message
-_PUBLISHERS_WINDOW_S = 5.0  # status upstream.active_publishers: publishers heard this recently
-_STREAM_ROLES = ("left_image", "right_image", "depth", "pose")  # inputs that flow continuously
-_UNHEALTHY_RELOG_S = 300.0  # an unchanged unhealthy state is logged again this often
-def _endpoints(zenoh_cfg: Any, what: str) -> str:
-    """The ``[zenoh] <what>.endpoints`` for the serving line ("none" when empty or not given)."""
-    table = zenoh_cfg.get(what) if isinstance(zenoh_cfg, dict) else None
-    value = table.get("endpoints") if isinstance(table, dict) else None
-    if isinstance(value, dict):  # per mode
-        value = [e for lst in value.values() if isinstance(lst, list) for e in lst]
-    return ", ".join(str(e) for e in value) if isinstance(value, list) and value else "none"
-
-
-def _log_nth(n: int, first: int = 5) -> bool:
-    """Whether the ``n``-th (1-based) of a repeated event is logged: the first ``first``, then
-    every 100th (each is counted regardless)."""
-    return n <= first or n % 100 == 0
-
-
-_GRASPS_LOG_S = 60.0  # published grasps are logged at most this often (the first ones at once)
-_OVERLOAD_WINDOW_S = 10.0  # the overload warning looks at queue overflows over this long
-_OVERLOAD_LOG_S = 60.0  # and is logged at most this often
-_OVERLOAD_MIN_DROPS = 5  # when at least this many frames were pushed out in the window
-_OVERLOAD_MIN_FRAC = 0.05  # and at least this share of the frames that came in it
-_NUMBER = re.compile(r"\d+(?:\.\d+)?")
 
 # the stages (``_busy`` keys, health stages) each worker task runs its calls under
 _WORKER_STAGES: dict[str, tuple[str, ...]] = {
@@ -1932,45 +689,3 @@ _WORKER_STAGES: dict[str, tuple[str, ...]] = {
     "arm": ("arm",),
 }
 
-# queryable kind -> its key under the prefix; the state-changing ones answer exact keys only
-_QUERY_KEYS = {
-    "latest": "grasps/latest",
-    "status": "status",
-    "reset": "reset",
-    "arm_execute": "arm/execute",
-    "arm_stop": "arm/stop",
-    "arm_release": "arm/release",
-}
-# a wildcard query (``pugs/**``, to read the status or discover the API) must not stop the arm
-# mid-grasp or change anything else: these act on a query for exactly their key
-_STATE_CHANGING = frozenset({"reset", "arm_execute", "arm_stop", "arm_release"})
-
-
-
-def _bounded_put(d: OrderedDict[int, np.ndarray], key: int, value: np.ndarray, cap: int) -> None:
-    d[key] = value
-    d.move_to_end(key)
-    while len(d) > cap:
-        d.popitem(last=False)
-
-
-def _short(reason: str) -> str:
-    """Drop counters keyed by the reason's stable head (no numbers)."""
-    return reason.split(" (", 1)[0]
-
-
-def _jsonable(obj: Any) -> Any:
-    """Plain JSON types: numpy scalars unwrapped, NaN and inf as None (strict JSON)."""
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not np.isfinite(obj):
-        return None
-    if obj is None or isinstance(obj, (bool, int, float, str)):
-        return obj
-    return str(obj)

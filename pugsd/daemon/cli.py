@@ -11,8 +11,9 @@ import signal
 import sys
 
 from pugsd.config import PugsdConfig, core_of, load_config
-from pugsd.daemon.app import Daemon, apply_malloc_arena_max, apply_thread_limits
+from pugsd.daemon.app import Daemon
 from pugsd.daemon.logs import setup_logging
+from pugsd.daemon.process import apply_malloc_arena_max, apply_thread_limits
 
 log = logging.getLogger(__name__)
 

@@ -26,7 +26,8 @@ import zenoh
 from pugsd.config import PugsdConfig, core_of, load_config_dict
 from pugsd.core.camera import StereoRig
 from pugsd.core.types import StereoFrame
-from pugsd.daemon.app import Daemon, apply_malloc_arena_max, apply_thread_limits
+from pugsd.daemon.app import Daemon
+from pugsd.daemon.process import apply_malloc_arena_max, apply_thread_limits
 from pugsd.errors import ConfigError, PugsdError
 from pugsd.wire import codec
 from pugsd.wire.publisher import Publisher
@@ -401,7 +402,8 @@ def run_demo(
         f"{c.get('dropped', 0)}, unpaired halves {st['waiting']['unpaired_dropped']}), messages "
         f"dropped at the ingress bound {ingress}, rejected "
         f"{c.get('rejected', 0)}, lost before the daemon {sum(st['upstream']['lost'].values())}, "
-        f"grasp updates {daemon.grasps_published}; slowest zenoh put {1e3 * extra['max_put_s']:.2f} ms"
+        f"grasp updates {daemon.outputs.grasps_published}; "
+        f"slowest zenoh put {1e3 * extra['max_put_s']:.2f} ms"
     )
     lat = st["latency"]
     write(
@@ -412,10 +414,10 @@ def run_demo(
         write(f"time to first scored grasps: {printer.first_s:.1f} s after the command started")
     for f in files:
         write(f"MCAP: {f}")
-    if daemon.latest_result is not None and len(daemon.latest_result.cloud_W):
+    if daemon.outputs.latest_result is not None and len(daemon.outputs.latest_result.cloud_W):
         png = out / "grasps.png"
-        save_figure(daemon.latest_result, png, gripper_depth_m=cfg.grasp.gripper.depth_m)
+        save_figure(daemon.outputs.latest_result, png, gripper_depth_m=cfg.grasp.gripper.depth_m)
         write(f"PNG:  {png}")
     else:
-        write(no_figure_reason(daemon.grasps_published, c.get("resets", 0)))
+        write(no_figure_reason(daemon.outputs.grasps_published, c.get("resets", 0)))
     return 0 if printer.first_s is not None else 1

@@ -3,13 +3,26 @@
 
 from __future__ import annotations
 
+import logging
+import math
+import re
 import time
 from collections import Counter, deque
-from collections.abc import Iterator
+from collections.abc import Awaitable, Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
+
+from pugsd.errors import PugsdError
+from pugsd.stream.assembler import InputRejected, log_nth, reason_class
+
+if TYPE_CHECKING:
+    from pugsd.daemon.app import Daemon
+
+log = logging.getLogger(__name__)
+
+R = TypeVar("R")
 
 
 class LatencyWindow:
@@ -118,3 +131,273 @@ class Health:
             "busy": sorted(self._busy_since),
             "failing": dict(self.failures),
         }
+
+
+class Reporter:
+    """Counts rejections, drops and internal errors in ``health`` and logs each with its reason:
+    the first few per key, then every 100th."""
+
+    def __init__(self, health: Health) -> None:
+        self.health = health
+
+    def count(self, key: str, n: int = 1) -> None:
+        self.health.count(key, n)
+
+    def reject(self, role: str, exc: BaseException) -> None:
+        """Count a rejection of ``role`` (or of the input ``exc`` is charged to) by its class and
+        log it with the reason: the first five per key, then every 100th."""
+        if isinstance(exc, InputRejected) and exc.role:
+            role = exc.role
+        cls = reason_class(exc)
+        self.health.reject(role, cls)
+        n = self.health.rejected[f"{role}: {cls}"]
+        if log_nth(n):
+            log.warning("rejected %s input (%s, #%d): %s", role, cls, n, exc)
+
+    def drop(self, stage: str, reason: str, n: int = 1) -> None:
+        """Count ``n`` drops under the reason's stable head and log the full reason (with its
+        numbers): the first five per key, then every 100th."""
+        head = reason_head(reason)
+        self.health.drop(stage, head, n)
+        total = self.health.dropped[f"{stage}: {head}"]
+        if total - n < 5 or total // 100 != (total - n) // 100:
+            log.info("dropped %d at %s (#%d): %s", n, stage, total, reason)
+
+    def internal_error(self, key: str, what: str, exc: BaseException) -> None:
+        """A bug, not bad input: count it under ``key``; log the traceback the first time, then
+        one line for the 2nd to 5th and every 100th."""
+        self.health.count(key)
+        n = self.health.counts[key]
+        if n == 1:
+            log.error("%s failed: %s", what, exc, exc_info=exc)
+        elif log_nth(n):
+            log.error("%s failed (#%d): %s: %s", what, n, type(exc).__name__, exc)
+
+
+    async def guard(self, stage: str, coro: Awaitable[R]) -> R | None:
+        """Await ``coro``; a PugsdError is a counted rejection, anything else a logged error."""
+        try:
+            out = await coro
+        except PugsdError as exc:
+            self.reject(stage, exc)
+            if reason_class(exc) in MAP_AT_FAULT:  # every later frame fails alike: not input's fault
+                self.health.failed(stage)
+        except Exception as exc:
+            self.health.failed(stage)
+            key = f"errors.{stage}"
+            self.health.count(key)
+            n = self.health.counts[key]
+            if n == 1:
+                log.exception("%s stage failed; continuing", stage)
+            elif log_nth(n):
+                log.error("%s stage failed (#%d): %s: %s", stage, n, type(exc).__name__, exc)
+        else:
+            self.health.succeeded(stage)
+            return out
+        return None
+
+
+def reason_head(reason: str) -> str:
+    """Drop counters keyed by the reason's stable head (no numbers)."""
+    return reason.split(" (", 1)[0]
+
+
+# rejections whose cause is the map, not the frame: the point store's voxel hash is anchored at
+# the map's first observation, so once frames come from beyond its range (that observation had a
+# localiser's initial zero pose, and the vehicle is in UTM coordinates), every frame is refused
+# until a reset. They count as failures too, so that a run of them makes the daemon unhealthy
+# (the watchdog restarts it) rather than healthy and never integrating again.
+MAP_AT_FAULT = frozenset({"out_of_map_range"})
+
+STREAM_ROLES = ("left_image", "right_image", "depth", "pose")  # inputs that flow continuously
+PUBLISHERS_WINDOW_S = 5.0  # status upstream.active_publishers: publishers heard this recently
+
+
+class InputWatch:
+    """When each input stream last sent, which went silent for ``stale_s`` (0: never), and
+    inputs on which several publishers send at once; each logged once until it changes."""
+
+    def __init__(self, stale_s: float) -> None:
+        self.stale_s = stale_s
+        self.last_recv_s: dict[str, float] = {}  # monotonic receive time per input stream
+        self.stale_reported: set[str] = set()  # streams logged as stale and not yet resumed
+        self.publishers_reported: dict[str, int] = {}  # inputs logged with several publishers
+
+    def received(self, role: str, now: float) -> None:
+        if role not in STREAM_ROLES:
+            return
+        if role in self.stale_reported:
+            self.stale_reported.discard(role)
+            log.info("%s: input resumed after %.1f s", role, now - self.last_recv_s[role])
+        self.last_recv_s[role] = now
+
+    def ages_s(self, now: float) -> dict[str, float]:
+        """Seconds since each input stream (left/right image, depth, pose) last sent."""
+        return {r: round(now - t0, 3) for r, t0 in sorted(self.last_recv_s.items())}
+
+    def stale(self, now: float) -> list[str]:
+        """The streams that sent before and have been silent for ``stale_s``."""
+        if self.stale_s <= 0:
+            return []
+        return [r for r, age in self.ages_s(now).items() if age > self.stale_s]
+
+    def report_stale(self, stale: list[str], now: float) -> None:
+        """Log each stream once when it goes stale (``received`` logs its return)."""
+        ages = self.ages_s(now)
+        new = [r for r in stale if r not in self.stale_reported]
+        if new:
+            self.stale_reported.update(new)
+            log.warning(
+                "input silent: %s (daemon.input_stale_s = %.1f s)",
+                ", ".join(f"{r} for {ages[r]:.1f} s" for r in new), self.stale_s,
+            )  # fmt: skip
+
+    def report_publishers(self, concurrent: dict[str, int]) -> None:
+        """Log an input once when several publishers send on it at the same time (and again when
+        their number grows)."""
+        for role, n in sorted(concurrent.items()):
+            if n > 1 and n > self.publishers_reported.get(role, 1):
+                log.warning(
+                    "%s: %d publishers sending at the same time within the last %.1f s (a node "
+                    "launched twice? two drivers on one topic?)", role, n, PUBLISHERS_WINDOW_S,
+                )  # fmt: skip
+            self.publishers_reported[role] = n
+        for role in set(self.publishers_reported) - set(concurrent):
+            del self.publishers_reported[role]
+
+
+OVERLOAD_WINDOW_S = 10.0  # the overload warning looks at queue overflows over this long
+OVERLOAD_LOG_S = 60.0  # and is logged at most this often
+OVERLOAD_MIN_DROPS = 5  # when at least this many frames were pushed out in the window
+OVERLOAD_MIN_FRAC = 0.05  # and at least this share of the frames that came in it
+
+
+class OverloadWatch:
+    """Warns when newer frames pushed older ones out of the stereo or depth queue (not a reset's
+    clearing) within a window of ``OVERLOAD_WINDOW_S``, at least ``OVERLOAD_MIN_DROPS`` and
+    ``OVERLOAD_MIN_FRAC`` of the frames: the input comes faster than the daemon integrates, so
+    frames are lost and the ones integrated have waited in the queue. At most once per
+    ``OVERLOAD_LOG_S``; the status message has the counts all along."""
+
+    def __init__(self) -> None:
+        # (time, frames pushed out of the queues, frames emitted, integrated) at the start of the
+        # window, and when the warning was last logged
+        self.mark: tuple[float, int, int, int] | None = None
+        self.logged_s = -math.inf
+
+    def check(self, now_s: float, overflowed: int, emitted: int, integrated: int, age_p50_ms: Any) -> None:
+        mark = (now_s, overflowed, emitted, integrated)
+        prev = self.mark
+        if prev is None or now_s - prev[0] >= OVERLOAD_WINDOW_S:
+            self.mark = mark
+        if prev is None or now_s - prev[0] < OVERLOAD_WINDOW_S:
+            return
+        dropped, frames = mark[1] - prev[1], mark[2] - prev[2]
+        # a frame or two pushed out now and then is a hiccup (counted in the status), not a rate
+        if dropped < max(OVERLOAD_MIN_DROPS, OVERLOAD_MIN_FRAC * frames):
+            return
+        if now_s - self.logged_s < OVERLOAD_LOG_S:
+            return
+        self.logged_s = now_s
+        dt = now_s - prev[0]
+        log.warning(
+            "input faster than the daemon integrates: %d frames dropped at the stereo and depth "
+            "queues in the last %.0f s (%.1f frames/s in, %.1f integrated; frames waited %s before "
+            "fusion). Set daemon.max_frame_rate_hz below the integrated rate to keep the output "
+            "fresh (docs/deploy.md, Tuning)",
+            dropped, dt, frames / dt, (mark[3] - prev[3]) / dt,
+            "?" if age_p50_ms is None else f"{age_p50_ms / 1e3:.2f} s (median)",
+        )  # fmt: skip
+
+
+def jsonable(obj: Any) -> Any:
+    """Plain JSON types: numpy scalars unwrapped, NaN and inf as None (strict JSON)."""
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    if obj is None or isinstance(obj, (bool, int, float, str)):
+        return obj
+    return str(obj)
+
+
+def status_of(d: Daemon) -> dict[str, Any]:
+    """The daemon's status message: health, queues, inputs, upstream, pipeline, recorder."""
+    try:
+        pstats = d.pipeline.stats()
+    except Exception as exc:  # stats are best effort
+        pstats = {"error": str(exc)}
+    snap = d.health.snapshot()
+    problems = d.problems()
+    f, b = d.frames, d.bridge
+    return {
+        "node": d.cfg.daemon.node_name,
+        "stamp_ns": time.time_ns(),
+        "healthy": not problems,  # the watchdog's verdict: WATCHDOG=1 pings go out while true
+        "problems": problems,
+        "ready": d.ready,
+        "was_ready": d.was_ready,
+        "model_version": d.outputs.model_version,
+        "elbo": d.elbo,
+        "grasps_published": d.outputs.grasps_published,
+        **snap,
+        "dropped_total": d.dropped_total(),  # counts.dropped and the queues' own, below
+        "mailboxes": {b.name: b.stats() for b in (d.stereo_box, d.depth_box, d.commands)},
+        "ingress": {"pending": b.ingress.pending, "dropped": b.ingress.dropped},
+        "query_ingress": {"pending": b.query_ingress.pending, "dropped": b.query_ingress.dropped},
+        # arm/stop queries and puts beyond the eight on their way (those do the stopping)
+        "stop_ingress": {"pending": b.stop_ingress.pending, "dropped": b.stop_ingress.dropped},
+        "deletes_ignored": b.deletes_ignored,
+        "bridge_errors": dict(b.errors),
+        "inputs": {
+            "age_s": d.input_ages_s(),
+            "stale": d.stale_inputs(),
+            "frame_minus_newest_pose_s": d.frames.skew_summary(),
+        },
+        "upstream": {
+            **b.upstream.snapshot(),
+            "active_publishers": b.upstream.active(PUBLISHERS_WINDOW_S),
+            "concurrent_publishers": b.upstream.concurrent(PUBLISHERS_WINDOW_S),
+            "pose_publisher": None if (gid := d.frames.pose_publisher) is None else gid.hex()[:12],
+        },
+        "waiting": {
+            "pose_gate": len(f.gate),
+            "unpaired": f.pairer.pending(),
+            "unpaired_dropped": f.pairer.unpaired_dropped,
+            "poses": len(f.poses),
+            "pose_clock_jumps_back": f.poses.jumps_back,
+            "pose_strays": f.poses.strays,
+        },
+        "pipeline": pstats,
+        "recorder": None if d.recorder is None else d.recorder.stats.as_dict(),
+    }
+
+
+UNHEALTHY_RELOG_S = 300.0  # an unchanged unhealthy state is logged again this often
+_NUMBER = re.compile(r"\d+(?:\.\d+)?")
+
+
+class UnhealthyLog:
+    """The watchdog's log of problems: logged when they change (their numbers aside) or every
+    ``UNHEALTHY_RELOG_S`` while unchanged."""
+
+    def __init__(self) -> None:
+        self.reported: list[str] = []  # the problems logged last, without their changing numbers
+        self.reported_s = -math.inf
+
+    def note(self, problems: list[str], now: float) -> bool:
+        """Log ``problems`` if due; returns whether the daemon is healthy (a ping may go out)."""
+        if not problems:
+            self.reported = []
+            return True
+        kinds = sorted(_NUMBER.sub("#", p) for p in problems)
+        if kinds != self.reported or now - self.reported_s >= UNHEALTHY_RELOG_S:
+            log.error("unhealthy, withholding watchdog pings: %s", "; ".join(problems))
+            self.reported, self.reported_s = kinds, now
+        return False

@@ -1,19 +1,21 @@
 # SPDX-License-Identifier: Apache-2.0
 """``pugsd replay``: run the PUGS pipeline directly on a recording, without zenoh.
 
-Frames are assembled as the daemon does: topic names normalised (``camera_pose`` =
-``/camera_pose/`` = ``/camera_pose``), left/right images paired by exact stamp, the rig from the
-latest left/right CameraInfo, the pose from the daemon's own :class:`PoseBuffer` (interpolated to
-the image stamp between bracketing poses at most ``[daemon] pose_max_gap_s`` apart; the
-covariance from the latest pose that carries a non-zero one, else ``[daemon] pose_std_*``, which
-PoseStamped input also gets), the mask by exact stamp. Deterministic for a given file, config
-and seed.
+Frames are assembled by the daemon's :class:`~pugsd.stream.assembler.FrameAssembler` on the
+recording's clock: topic names normalised (``camera_pose`` = ``/camera_pose/`` =
+``/camera_pose``), left/right images paired by exact stamp, the rig from the latest left/right
+CameraInfo, the pose interpolated to the image stamp between bracketing poses at most
+``[daemon] pose_max_gap_s`` apart (the covariance from the latest pose that carries a non-zero
+one, else ``[daemon] pose_std_*``, which PoseStamped input also gets), the mask by exact stamp.
+Deterministic for a given file, config and seed.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
+import math
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,13 +23,12 @@ from typing import Any
 
 import numpy as np
 
-from pugsd.core.camera import StereoRig
-from pugsd.core.geometry import compose_pose_cov
+from pugsd.config import DaemonConfig, QueuesConfig, TopicsConfig
 from pugsd.core.types import ScoredGrasps, StereoFrame
-from pugsd.daemon.config import DaemonConfig, TopicsConfig
-from pugsd.daemon.timesync import PoseBuffer, PoseLookup, PoseSample, carried_cov, default_pose_cov
-from pugsd.errors import ConfigError, DecodeError, InputError
+from pugsd.errors import ConfigError, InputError, PugsdError
 from pugsd.record.mcapio import ChannelTable, file_error, iter_recording, new_writer, versions
+from pugsd.stream.assembler import FrameAssembler, InputRejected
+from pugsd.stream.timesync import default_pose_cov
 from pugsd.wire import codec
 from pugsd.wire.keys import strip_topic
 from pugsd.wire.topics import ROLE_TYPES, key_for
@@ -37,6 +38,7 @@ log = logging.getLogger(__name__)
 
 #: poses kept for interpolation (offline there is no reason for the daemon's small real-time ring)
 POSE_CAPACITY = 10_000
+_POSE_WAIT_S = 3600.0  # offline a frame waits for its pose by count (max_pending), not by time
 _ROLES = ("left_image", "right_image", "left_info", "right_info", "pose", "mask")
 
 
@@ -54,36 +56,72 @@ class AssembleStats:
     rejected: int = 0
 
 
-class _FrameAssembler:
-    """Streaming assembly: bounded memory (pending pairs and images are capped)."""
+class _ReplayReport:
+    """What the frame assembler reports, counted in :class:`AssembleStats`."""
+
+    def __init__(self, stats: AssembleStats) -> None:
+        self.st = stats
+
+    def count(self, key: str, n: int = 1) -> None:
+        if key in ("frames.stereo", "frames.depth"):
+            self.st.frames += n
+
+    def drop(self, stage: str, reason: str, n: int = 1) -> None:
+        if stage == "unpaired":
+            self.st.unpaired += n
+        elif "CameraInfo" in reason:
+            self.st.no_info += n
+        else:
+            self.st.no_pose += n
+            log.debug("replay: a frame has no pose: %s", reason)
+
+    def reject(self, role: str, exc: BaseException) -> None:
+        if isinstance(exc, InputRejected) and exc.role == "camera_info":
+            self.st.no_info += 1
+        else:
+            self.st.rejected += 1
+        log.warning("replay: rejected a %s message: %s", role, exc)
+
+    def internal_error(self, key: str, what: str, exc: BaseException) -> None:
+        raise exc
+
+
+class _Replayer:
+    """Feeds a recording's messages, on the recording's clock, to the frame assembler the daemon
+    uses; frames wait for their pose as long as the pending bounds allow, and the end of the
+    recording flushes them."""
 
     def __init__(
         self,
         topics: TopicsConfig,
-        pose_cov: np.ndarray,
-        max_pose_gap_ns: int,
+        d: DaemonConfig,
         stats: AssembleStats,
         max_pending: int,
-        pose_capacity: int = POSE_CAPACITY,
-        T_B_C: np.ndarray | None = None,
+        pose_capacity: int,
+        pose_cov: np.ndarray,
+        max_pose_gap_ns: int,
     ) -> None:
-        self.t = topics
-        self.T_B_C = T_B_C  # the camera's mount on the body whose pose was recorded (None: none)
-        self.pose_cov = pose_cov  # PoseStamped input, and before any pose carried a covariance
-        self.st = stats
-        self.max_pending = max_pending
         # normalised topic -> role (the first role listed wins when two share a topic)
         self.roles: dict[str, str] = {}
         for role in reversed(_ROLES):
             self.roles[_norm_topic(getattr(topics, role))] = role
         self._seen: dict[str, str] = {}  # recorded topic -> role ("" when none)
-        self.left: dict[int, codec.ImageMsg] = {}
-        self.right: dict[int, codec.ImageMsg] = {}
-        self.masks: dict[int, np.ndarray] = {}
-        self.rigs: dict[int, StereoRig | None] = {}  # stamp -> rig when the pair completed
-        self.info: dict[str, codec.CameraInfoMsg] = {}
-        self.poses = PoseBuffer(pose_capacity, int(max_pose_gap_ns), pose_cov)
-        self.newest_image = -1
+        self.now_s = 0.0  # the log time of the message being fed
+        self.st = stats
+        self.report = _ReplayReport(stats)
+        self.out: list[StereoFrame] = []
+        q = dataclasses.replace(
+            QueuesConfig(), pose_wait=max_pending, unpaired=max_pending, side_images=2 * max_pending
+        )
+        # offline nothing is thinned, and a frame waits for its pose as long as the bounds allow
+        d = dataclasses.replace(d, max_frame_rate_hz=0.0, pose_wait_s=_POSE_WAIT_S)
+        self.asm = FrameAssembler(
+            d, q, self.report, self._on_frame, lambda: self.now_s,
+            pose_capacity=pose_capacity, pose_cov=pose_cov, max_pose_gap_ns=max_pose_gap_ns,
+        )  # fmt: skip
+
+    def _on_frame(self, frame: Any, recv_s: float) -> None:
+        self.out.append(frame)
 
     def _role(self, topic: str) -> str:
         role = self._seen.get(topic)
@@ -95,92 +133,26 @@ class _FrameAssembler:
             self._seen[topic] = role
         return role
 
-    def feed(self, topic: str, typename: str, data: bytes) -> list[StereoFrame]:
+    def feed(self, topic: str, typename: str, data: bytes, log_time_ns: int) -> list[StereoFrame]:
         role = self._role(topic)
         if not role:
             return []
+        self.now_s = log_time_ns / 1e9
         try:
-            if role in ("left_image", "right_image"):
-                img = codec.decode_image(data, codec.STEREO_ENCODINGS)
-                (self.left if role == "left_image" else self.right)[img.stamp_ns] = img
-                if img.stamp_ns in self.left and img.stamp_ns in self.right:
-                    self.rigs[img.stamp_ns] = self._rig()
-                self._note_image(img.stamp_ns)
-            elif role in ("left_info", "right_info"):
-                self.info["l" if role == "left_info" else "r"] = codec.decode_camera_info(data)
-            elif role == "pose":
-                p = codec.decode_pose(data, typename or POSE_COV_STAMPED, self.pose_cov)
-                T_W_C, cov = p.T, carried_cov(p.cov)
-                if self.T_B_C is not None:  # as the daemon does
-                    T_W_C, cov = compose_pose_cov(T_W_C, cov, self.T_B_C)
-                self.poses.add(PoseSample(p.stamp_ns, T_W_C, cov))
-            elif role == "mask":
-                mk = codec.decode_image(data, codec.MASK_ENCODINGS)
-                self.masks[mk.stamp_ns] = mk.array > 0
-                self._note_image(mk.stamp_ns)
-        except DecodeError as exc:
-            self.st.rejected += 1
-            log.warning("replay: rejected a %s message: %s", topic, exc)
-        return self._emit(final=False)
+            # the recorded type decides how a pose is read; images are not checked by type
+            self.asm.feed(role, data, self.now_s, (typename or POSE_COV_STAMPED) if role == "pose" else None)
+        except PugsdError as exc:
+            self.report.reject(role, exc)
+        return self._take()
 
-    def _note_image(self, stamp: int) -> None:
-        self.newest_image = max(self.newest_image, stamp)
-
-    def _rig(self) -> StereoRig | None:
-        if "l" not in self.info or "r" not in self.info:
-            return None
-        try:
-            return codec.stereo_rig_from_infos(self.info["l"], self.info["r"])
-        except DecodeError as exc:
-            log.warning("replay: %s", exc)
-            return None
-
-    def _emit(self, final: bool) -> list[StereoFrame]:
-        out: list[StereoFrame] = []
-        for stamp in sorted(self.rigs):
-            # wait for everything of this stamp (mask, a later pose) until a newer image arrives
-            if not final and stamp >= self.newest_image:
-                break
-            pose: PoseLookup = self.poses.lookup(stamp)
-            if pose.state == "wait" and not final and len(self.rigs) <= self.max_pending:
-                continue  # a bracketing pose may still come
-            rig = self.rigs.pop(stamp) or self._rig()  # infos may come after images
-            left, right = self.left.pop(stamp), self.right.pop(stamp)
-            mask = self.masks.pop(stamp, None)
-            if rig is None:
-                self.st.no_info += 1
-            elif pose.state != "ready" or pose.T_W_C is None or pose.cov is None:
-                self.st.no_pose += 1
-                log.debug("replay: frame %d has no pose: %s", stamp, pose.reason)
-            else:
-                try:
-                    out.append(StereoFrame(stamp, left.rgb_or_mono(), right.rgb_or_mono(), rig,
-                                           pose.T_W_C, pose.cov, mask))  # fmt: skip
-                except InputError as exc:
-                    self.st.rejected += 1
-                    log.warning("replay: frame %d rejected: %s", stamp, exc)
-        self._trim(final)
-        self.st.frames += len(out)
+    def _take(self) -> list[StereoFrame]:
+        out, self.out = self.out, []
         return out
 
-    def _trim(self, final: bool) -> None:
-        """Unpaired images older than the pending window are dropped (and counted)."""
-        for d in (self.left, self.right):
-            extra = [s for s in d if s not in self.rigs]
-            if final:
-                self.st.unpaired += len(extra)
-                for s in extra:
-                    del d[s]
-                continue
-            for s in sorted(extra)[: max(0, len(extra) - self.max_pending)]:
-                del d[s]
-                self.st.unpaired += 1
-        keep = max(0, len(self.masks) - 2 * self.max_pending)
-        for s in sorted(self.masks)[:keep]:
-            del self.masks[s]
-
     def finish(self) -> list[StereoFrame]:
-        return self._emit(final=True)
+        self.asm.poll(math.inf)
+        self.st.unpaired += self.asm.pairer.unpaired_dropped + self.asm.pairer.clear()
+        return self._take()
 
 
 def iter_frames(
@@ -194,10 +166,10 @@ def iter_frames(
     max_pending: int = 32,
     pose_capacity: int = POSE_CAPACITY,
 ) -> Iterator[StereoFrame]:
-    """StereoFrames of a recording, streamed in stamp order with bounded memory: left/right
-    paired by exact stamp, the rig from the latest CameraInfos when the pair completes, the pose
-    exact or interpolated between bracketing poses (the daemon's :class:`PoseBuffer`), the
-    covariance from the latest pose carrying a non-zero one, the mask by stamp.
+    """StereoFrames of a recording, streamed in the order they complete, with bounded memory
+    (``max_pending`` frames and halves waiting): assembled by the daemon's frame assembler on the
+    recording's clock, the pose exact or interpolated between bracketing poses, the covariance
+    from the latest pose carrying a non-zero one, the mask by stamp.
 
     ``daemon`` (``[daemon]``, default: its defaults) gives ``max_pose_gap_ns``
     (``pose_max_gap_s``) and ``pose_cov`` (``pose_std_translation_m`` / ``pose_std_rotation_rad``:
@@ -210,11 +182,10 @@ def iter_frames(
     if max_pose_gap_ns is None:
         max_pose_gap_ns = int(d.pose_max_gap_s * 1e9)
     st = stats if stats is not None else AssembleStats()
-    asm = _FrameAssembler(topics or TopicsConfig(), np.asarray(pose_cov, dtype=np.float64), max_pose_gap_ns,
-                          st, max_pending, pose_capacity, d.T_B_C)  # fmt: skip
+    rep = _Replayer(topics or TopicsConfig(), d, st, max_pending, pose_capacity, pose_cov, max_pose_gap_ns)
     for m in iter_recording(paths):
-        yield from asm.feed(m.topic, m.typename, m.data)
-    yield from asm.finish()
+        yield from rep.feed(m.topic, m.typename, m.data, m.log_time_ns)
+    yield from rep.finish()
 
 
 def assemble_frames(

@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from pugsd.config import TopicsConfig
 from pugsd.core.types import StereoFrame
-from pugsd.daemon.config import TopicsConfig
 from pugsd.record.mcapio import ChannelTable, file_error, new_writer, versions
 from pugsd.wire import codec
 from pugsd.wire.topics import ROLE_TYPES, key_for

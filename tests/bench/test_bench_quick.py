@@ -132,8 +132,7 @@ def test_quick_paper_vs_streaming(quick_json: dict[str, Any]) -> None:
             assert _finite_nonneg(pm["last_frame_to_grasps_s"]) and pm["svgp_steps"] >= 3 * 4
             assert pm["spearman_sigma2_occ"] is None or -1.0 <= pm["spearman_sigma2_occ"] <= 1.0
         dm = c["daemon"]
-        # the daemon's own counters are kept, and no frame goes missing without a count (a first
-        # frame lost to zenoh's DROP did: docs/bench-history/2026-11-23-first-frame-drop/)
+        # the daemon's own counters are kept, and no frame goes missing without a count
         assert dm["status_counts"]["integrated"] == dm["integrated"] <= dm["frames"]
         assert dm["integrated"] == dm["frames"] or any(dm["drops"].values()), dm
         assert "lost" in dm["upstream"]

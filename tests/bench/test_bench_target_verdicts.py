@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The judge of issue #4's targets (``pugsd.bench.targets``) on hand-made results: each target's
+"""The judge of the benchmark's targets (``pugsd.bench.targets``) on hand-made results: each target's
 threshold on both sides of its edge, which figure of the result is the one judged, the rows that
 get no verdict (n/a) and say why, ``--quick`` rows marked as not comparable, half runs, and the
 printed table's result column. Nothing is run or rendered."""

@@ -95,7 +95,7 @@ def test_arm_execute_query(port: int, client: zenoh.Session, sim_process: int) -
         wait_for(lambda: _try(client, key, "7", 0.5) is not None, 10.0, "queryable")
         ok, text = _ask(client, key, "7")
         assert not ok and "no grasps yet" in text  # nothing moves before there are grasps
-        dt.daemon.latest_result = Result(_grasps(), np.zeros((1, 3)), np.zeros(1), np.zeros(1), 1)
+        dt.daemon.outputs.latest_result = Result(_grasps(), np.zeros((1, 3)), np.zeros(1), np.zeros(1), 1)
         ok, text = _ask(client, key, "99")
         assert not ok and "not among the latest grasps" in text
         ok, text = _ask(client, key, "garbage")
@@ -117,12 +117,12 @@ def test_arm_execute_query(port: int, client: zenoh.Session, sim_process: int) -
         assert got.wait(30.0), "no arm report for the refused grasp"
         rep = reports[-1]
         assert rep["ok"] is False and rep["grasp_id"] == 8 and "unreachable" in rep["error"], rep
-        assert dt.daemon.arm_report == rep
+        assert dt.daemon.arm.report == rep
         assert not dt.daemon._busy.get("arm")
     finally:
         sub.undeclare()
         dt.stop(15.0)
-    assert dt.daemon.arm is None  # closed (zero velocity + safe mode sent) on shutdown
+    assert dt.daemon.arm.controller is None  # closed (zero velocity + safe mode sent) on shutdown
 
 
 def test_arm_execute_refused_when_disabled(port: int, client: zenoh.Session) -> None:
@@ -146,8 +146,8 @@ def test_arm_stop_and_release(port: int, client: zenoh.Session, sim_process: int
     dt, reports, got, sub = _start_arm_daemon(port, client, sim_process, slow)
     try:
         wait_for(lambda: _try(client, "pugs/arm/release", "", 0.5) is not None, 10.0, "queryable")
-        arm = dt.daemon.arm
-        dt.daemon.latest_result = Result(_grasps(), np.zeros((1, 3)), np.zeros(1), np.zeros(1), 1)
+        arm = dt.daemon.arm.controller
+        dt.daemon.outputs.latest_result = Result(_grasps(), np.zeros((1, 3)), np.zeros(1), np.zeros(1), 1)
         ok, text = _ask(client, "pugs/arm/execute", "7")
         assert ok, text
         wait_for(lambda: arm.state == "pregrasp", 10.0, "motion")
@@ -191,18 +191,17 @@ def test_arm_stop_and_release(port: int, client: zenoh.Session, sim_process: int
 
 
 def test_a_reset_waits_for_the_arm_motion(port: int, client: zenoh.Session, sim_process: int) -> None:  # noqa: F811
-    """A map reset allocates the TSDF grid in one call that holds Python's GIL for ~0.25 s, the
-    arm watchdog's bound (measured: resets beside a motion over UDP made the link report feedback
-    264 ms old). So a reset asked for during a motion is accepted at once but runs when the
-    motion has ended; the next motion waits for it."""
+    """A map reset allocates the TSDF grid in one call that holds Python's GIL about as long as
+    the arm watchdog's bound. So a reset asked for during a motion is accepted at once but runs
+    when the motion has ended; the next motion waits for it."""
     slow = "arm.motion.max_joint_speed_rad_s=0.6"  # a motion of a few seconds
     dt, reports, got, sub = _start_arm_daemon(port, client, sim_process, slow)
     try:
         wait_for(lambda: _try(client, "pugs/reset", "", 0.5) is not None, 10.0, "queryable")
         resets = lambda: dt.daemon.health.counts.get("resets", 0)  # noqa: E731 (counted when done)
         wait_for(lambda: resets() == 1, 5.0, "the readiness probe's reset")
-        arm = dt.daemon.arm
-        dt.daemon.latest_result = Result(_grasps(), np.zeros((1, 3)), np.zeros(1), np.zeros(1), 1)
+        arm = dt.daemon.arm.controller
+        dt.daemon.outputs.latest_result = Result(_grasps(), np.zeros((1, 3)), np.zeros(1), np.zeros(1), 1)
         ok, text = _ask(client, "pugs/arm/execute", "7")
         assert ok, text
         wait_for(lambda: arm.state == "pregrasp", 10.0, "motion")

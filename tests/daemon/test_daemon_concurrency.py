@@ -115,7 +115,7 @@ def test_frames_are_integrated_while_grasps_are_proposed(port: int, client: zeno
             _frame(src, 10**9 + i * 5 * 10**7, seed=i % 4)
             time.sleep(0.05)
         wait_for(lambda: len(pipe.integrated) == 30, 10.0, "all 30 frames integrated")
-        wait_for(lambda: dt.daemon.latest_grasps is not None, 5.0, "grasps")
+        wait_for(lambda: dt.daemon.outputs.latest_grasps is not None, 5.0, "grasps")
     finally:
         src.close()
         dt.stop()
@@ -202,7 +202,7 @@ def test_a_reset_during_a_proposal_discards_its_grasps(port: int, client: zenoh.
         wait_for(lambda: pipe.resets == 1 and len(pipe.intervals("propose")) == 1, 5.0, "proposal end")
         time.sleep(0.3)
         st = query_json(client, "pugs/status")
-        latest = dt.daemon.latest_grasps
+        latest = dt.daemon.outputs.latest_grasps
     finally:
         src.close()
         dt.stop()

@@ -16,7 +16,7 @@ import pytest
 from pugsd.config import load_config_dict
 from pugsd.daemon.app import Daemon, Inbound
 from pugsd.daemon.client import status_lines
-from pugsd.daemon.timesync import FrameRateLimit
+from pugsd.stream.timesync import FrameRateLimit
 from pugsd.wire import codec
 from pugsd.wire.topics import key_for
 from tests.daemon.conftest import RIG, FakePipeline, daemon_config_dict
@@ -135,7 +135,7 @@ def test_the_daemon_thins_a_30_hz_stereo_camera_before_depth_estimation(port: in
     assert d.health.counts["frames.skipped_rate"] == 20
     assert d.health.counts["paired"] == 30  # every pair arrived; skipping is not a drop:
     assert d.dropped_total() == 0 and not d.health.dropped
-    assert not d._masks, "the masks of skipped frames are let go"
+    assert not d.frames.masks, "the masks of skipped frames are let go"
     assert d.status()["counts"]["frames.skipped_rate"] == 20
 
 
@@ -166,7 +166,7 @@ def test_queue_overflow_is_warned_of_with_the_rates_at_most_once_a_minute(
     cfg = daemon_config_dict(port)
     cfg["queues"] = {"depth": 2}
     d = Daemon(load_config_dict(cfg), FakePipeline())
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     t = 1000.0
     d._report_overload(t)  # the window starts
     for _ in range(22):  # 22 frames into a queue of 2: 20 pushed out
@@ -200,11 +200,11 @@ def test_a_hiccup_is_not_an_overload(
 ) -> None:
     """A frame pushed out of the 2-deep stereo queue while the depth worker was slow once is
     counted, not warned of: the warning needs at least 5 frames and 5 % of those that came in the
-    window (measured: 1 of 150 at 15 Hz on a loaded machine, with 15 frames/s integrated)."""
+    window."""
     cfg = daemon_config_dict(port)
     cfg["queues"] = {"stereo": 1}
     d = Daemon(load_config_dict(cfg), FakePipeline())
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d._report_overload(0.0)
     for _ in range(pushed + 1):
         d.stereo_box.offer((None, 0.0))  # type: ignore[arg-type]
@@ -216,7 +216,7 @@ def test_a_hiccup_is_not_an_overload(
 
 def test_a_reset_clearing_the_queues_is_not_an_overload(port: int, caplog: pytest.LogCaptureFixture) -> None:
     d = Daemon(load_config_dict(daemon_config_dict(port)), FakePipeline())
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d._report_overload(0.0)
     for _ in range(7):
         d.depth_box.offer((None, 0.0))  # type: ignore[arg-type]
@@ -274,7 +274,7 @@ def test_the_daemons_status_carries_the_total_of_its_drops(port: int) -> None:
     d = Daemon(load_config_dict(cfg), FakePipeline())
     for _ in range(5):
         d.depth_box.offer((None, 0.0))  # type: ignore[arg-type]
-    d._drop("pose_wait", "no pose for the frame")
+    d.report.drop("pose_wait", "no pose for the frame")
     st = d.status()
     assert st["dropped_total"] == d.dropped_total() == 4
     assert status_lines(st)[1].endswith("dropped 4")

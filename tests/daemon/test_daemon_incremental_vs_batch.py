@@ -95,7 +95,7 @@ def test_daemon_streaming_sigma2_agrees_with_batch_on_the_same_points(
         for f in load_frames(str(sequence_npz)):
             cam.publish(f, time.time_ns())
             time.sleep(0.5)
-        wait_for(lambda: dt.daemon.latest_grasps is not None, 180.0, "grasps", every_s=0.5)
+        wait_for(lambda: dt.daemon.outputs.latest_grasps is not None, 180.0, "grasps", every_s=0.5)
         cam.close()
         # the daemon keeps training while idle (idle_train_s); compare after 150 streaming steps
         wait_for(

@@ -140,7 +140,7 @@ def test_stereo_to_grasps_query_status_reset(
     rep = list(client.get("pugs/reset", timeout=2.0))
     assert rep[0].ok is not None and rep[0].ok.payload.to_string() == "accepted"
     wait_for(lambda: pipe.resets == 1, 5.0, "reset")
-    wait_for(lambda: dt.daemon.latest_grasps is None, 5.0, "grasps cleared")
+    wait_for(lambda: dt.daemon.outputs.latest_grasps is None, 5.0, "grasps cleared")
     sub.undeclare()
     src.close()
     assert dt.stop() < 5.0

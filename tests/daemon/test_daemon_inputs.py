@@ -14,7 +14,7 @@ import zenoh
 
 from pugsd.config import load_config_dict
 from pugsd.daemon.app import Daemon
-from pugsd.daemon.timesync import matrix_from_quat
+from pugsd.stream.timesync import matrix_from_quat
 from pugsd.wire import codec
 from tests.daemon.conftest import RIG, FakePipeline, Source, daemon_config_dict, wait_for
 from tests.daemon.test_daemon_inprocess import DaemonThread, RecordingNotifier
@@ -73,7 +73,7 @@ def test_depth_input_with_std_and_interpolated_pose(
         src.put("depth_std", codec.encode_image(std, stamp, "depth"))
         # topics are delivered on separate threads, so cross-topic order is not guaranteed; once a
         # std stream is active a frame waits for its std, but the very first one cannot know
-        wait_for(lambda: dt.daemon._last_std_s is not None, 5.0, "the std stream")
+        wait_for(lambda: dt.daemon.frames.last_std_s is not None, 5.0, "the std stream")
         src.put("depth", codec.encode_image(depth_m, stamp, "depth"))
         depth_mm = np.full((h, w), 500, np.uint16)
         depth_mm[1, 1] = 0  # invalid

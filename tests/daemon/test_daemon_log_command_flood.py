@@ -18,7 +18,7 @@ from tests.daemon.conftest import FakePipeline, daemon_config_dict
 def test_a_flood_of_resets_is_counted_without_a_warning_per_refused_one(
     port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = Daemon(load_config_dict(daemon_config_dict(port)), FakePipeline())
     for _ in range(508):
         d._on_reset_put(d.key("reset"))

@@ -23,21 +23,21 @@ def _grasp_lines(caplog: pytest.LogCaptureFixture) -> list[str]:
 def test_published_grasps_are_not_logged_once_per_publication(
     port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     pipe = FakePipeline()
     d = Daemon(load_config_dict(daemon_config_dict(port)), pipe)
-    d._publishers = {r: RecordingPublisher() for r in ("grasps", "markers", "cloud", "status")}
+    d.outputs.publishers = {r: RecordingPublisher() for r in ("grasps", "markers", "cloud", "status")}
     payloads = {"grasps": b"g", "markers": b"m"}
     for _ in range(200):
-        d._publish_outputs(pipe.compute(full_cloud=False), payloads, None, d._generation)
-    assert d.grasps_published == 200 and len(d._publishers["grasps"].puts) == 200
+        d.outputs.publish(pipe.compute(full_cloud=False), payloads, None, d._generation)
+    assert d.outputs.grasps_published == 200 and len(d.outputs.publishers["grasps"].puts) == 200
     assert len(_grasp_lines(caplog)) == 1, len(_grasp_lines(caplog))  # was 200
 
     # after a reset, the new map's first grasps are logged again
     caplog.clear()
     asyncio.run(d._reset())
-    d._publish_outputs(pipe.compute(full_cloud=False), payloads, None, d._generation)
-    d._publish_outputs(pipe.compute(full_cloud=False), payloads, None, d._generation)
+    d.outputs.publish(pipe.compute(full_cloud=False), payloads, None, d._generation)
+    d.outputs.publish(pipe.compute(full_cloud=False), payloads, None, d._generation)
     lines = _grasp_lines(caplog)
     assert len(lines) == 1 and "200 update(s) published since the last such line" in lines[0], lines
     for ex in (d._depth_exec, d._model_exec, d._grasp_exec):

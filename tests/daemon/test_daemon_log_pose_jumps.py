@@ -25,7 +25,7 @@ COV = np.eye(6) * 1e-6
 def test_alternating_pose_clocks_do_not_log_a_warning_per_pose(
     port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = Daemon(load_config_dict(daemon_config_dict(port)), FakePipeline())
     key = key_for(d.cfg.topics, "pose")
     wall = 1_700_000_000 * 10**9
@@ -49,7 +49,7 @@ def test_a_clock_stepping_back_again_and_again_is_logged_for_the_first_five_then
 ) -> None:
     """Each restart of the pose timeline (a source restarted or a clock stepped back, confirmed by
     the pose after it) is counted; its warning line follows _log_nth, with the running number."""
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = Daemon(load_config_dict(daemon_config_dict(port)), FakePipeline())
     key = key_for(d.cfg.topics, "pose")
     base = 1_700_000_000 * 10**9

@@ -59,7 +59,7 @@ def raw_pose(
 def test_each_kind_of_bad_input_is_rejected_and_counted(
     port: int, client: zenoh.Session, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     cfg = load_config_dict(daemon_config_dict(port))
     pipe = FakePipeline()
     dt, src = start_with_source(cfg, client, pipe)
@@ -91,7 +91,7 @@ def test_each_kind_of_bad_input_is_rejected_and_counted(
             src.put(role, data)
         # a stereo pair whose images do not match the CameraInfo size (valid CDR each); with the
         # CameraInfo in, each half is refused on arrival, before it pairs
-        wait_for(lambda: {"left_info", "right_info"} <= set(dt.daemon._infos), 10.0, "CameraInfo")
+        wait_for(lambda: {"left_info", "right_info"} <= set(dt.daemon.frames.infos), 10.0, "CameraInfo")
         src.put("pose", codec.encode_pose_with_covariance(3 * 10**9, np.eye(4), np.eye(6) * 1e-6))
         small = np.zeros((24, 32), np.uint8)
         src.put("left_image", codec.encode_image(small, 3 * 10**9, "left"))
@@ -135,7 +135,7 @@ def test_each_kind_of_bad_input_is_rejected_and_counted(
             "good frames integrated (or dropped as the newest won) after bad ones",
         )
         assert pipe.integrated and pipe.integrated[-1] == 5 * 10**9 + 2 * 10**8
-        wait_for(lambda: dt.daemon.latest_grasps is not None, 10.0, "grasps after bad input")
+        wait_for(lambda: dt.daemon.outputs.latest_grasps is not None, 10.0, "grasps after bad input")
     finally:
         src.close()
         dt.stop()
@@ -159,7 +159,7 @@ def test_bad_camera_info_is_rejected_and_frames_go_on_with_the_last_good_one(
     rig of the last good pair stays in use. A pair that is valid alone but not a rig (left and
     right of different sizes) costs the frames it meets, counted against camera_info, until a
     consistent pair comes."""
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     cfg = load_config_dict(daemon_config_dict(port))
     pipe = FakePipeline()
     dt, src = start_with_source(cfg, client, pipe)

@@ -71,8 +71,9 @@ def test_points_too_far_for_any_map_are_a_rejection_of_their_own_not_the_maps_fa
     """A garbage pose (1e300 m) is refused by the store before it anchors the map; the daemon
     counts it as ``beyond_any_map``, which, unlike ``out_of_map_range``, does not blame the map
     (a restart would not mend the input)."""
-    from pugsd.daemon.app import _MAP_AT_FAULT, reason_class
+    from pugsd.daemon.health import MAP_AT_FAULT as _MAP_AT_FAULT
     from pugsd.errors import InputError
+    from pugsd.stream.assembler import reason_class
 
     store = FofStore(FofConfig())
     cov = np.tile(np.eye(3) * 1e-6, (2, 1, 1))

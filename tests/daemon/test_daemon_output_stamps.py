@@ -62,7 +62,7 @@ def test_grasps_are_stamped_with_the_newest_frame_in_their_snapshot() -> None:
     pipe = SlowIntegratePipeline(ready_after=0, slow_stamp=s2)
     d = Daemon(cfg, pipe, notifier=Notifier(""))
     pubs = {role: RecordingPublisher() for role in ("grasps", "markers", "cloud", "status")}
-    d._publishers = pubs  # type: ignore[assignment]
+    d.outputs.publishers = pubs  # type: ignore[assignment]
 
     async def main() -> None:
         d._loop = asyncio.get_running_loop()
@@ -77,7 +77,7 @@ def test_grasps_are_stamped_with_the_newest_frame_in_their_snapshot() -> None:
             # the next frame is being integrated (model lock held) when the grasps are scheduled
             d.depth_box.offer((_depth(s2), 0.0))
             assert await asyncio.to_thread(pipe.integrating.wait, 10.0)
-            d.ready = d.was_ready = d._changed = True
+            d.ready = d.was_ready = d.schedule.changed = True
             grasps = asyncio.create_task(d._grasp_worker())
             await asyncio.sleep(0.3)  # the computation has started and waits for the lock
             pipe.finish.set()

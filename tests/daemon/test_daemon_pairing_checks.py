@@ -67,7 +67,7 @@ def test_wrong_size_frames_do_not_push_a_good_frame_out_of_the_pose_gate(port: i
     s0 = 10**9
     _feed(d, "left_image", codec.encode_image(img, s0, "left"))
     _feed(d, "right_image", codec.encode_image(img, s0, "right"))
-    assert len(d.gate) == 1  # the good frame waits for its pose
+    assert len(d.frames.gate) == 1  # the good frame waits for its pose
     n = d.cfg.queues.pose_wait
     for i in range(n):
         stamp = s0 + (i + 1) * 10**7

@@ -54,7 +54,7 @@ def _daemon(port: int) -> tuple[Daemon, asyncio.AbstractEventLoop]:
 
 
 def _via_zenoh_thread(d: Daemon, role: str, data: bytes) -> None:
-    d._bridge_sample(role)(_Sample(key_for(d.cfg.topics, role), _Payload(data)))
+    d.bridge.sample(role, d._on_inbound)(_Sample(key_for(d.cfg.topics, role), _Payload(data)))
 
 
 def _run_queued(loop: asyncio.AbstractEventLoop) -> None:
@@ -76,17 +76,17 @@ def test_a_pose_queued_behind_a_loop_stall_still_serves_its_frame(port: int) -> 
         d._on_inbound(Inbound("pose", key_for(d.cfg.topics, "pose"), codec.encode_pose_with_covariance(
             s0, np.eye(4), COV), time.monotonic()))  # fmt: skip
         _frame(d, s0 + 5 * 10**7)  # between s0 and the pose still to come: it waits
-        assert len(d.gate) == 1
+        assert len(d.frames.gate) == 1
         # the bracketing pose comes in time, but the loop is stalled: it stays queued
         _via_zenoh_thread(d, "pose", codec.encode_pose_with_covariance(s1, np.eye(4), COV))
         time.sleep(WAIT_S * 2)  # the stall outlasts the frame's deadline
-        d._poll_gate()  # e.g. the gate worker's timer or another input handled first
+        d.frames.poll()  # e.g. the gate worker's timer or another input handled first
         assert not d.health.dropped, "the frame was dropped while its pose was queued"
-        assert len(d.gate) == 1
+        assert len(d.frames.gate) == 1
         _run_queued(loop)  # the stall ends: the pose is handled and releases the frame
         assert d.health.counts.get("frames.stereo", 0) == 1
-        assert len(d.gate) == 0 and not d.health.dropped
-        assert not d._pose_backlog_s
+        assert len(d.frames.gate) == 0 and not d.health.dropped
+        assert not d.bridge.pose_backlog_s
     finally:
         loop.close()
 
@@ -102,11 +102,11 @@ def test_without_a_pose_in_time_the_frame_is_still_dropped(port: int) -> None:
         _frame(d, s0 + 5 * 10**7)
         time.sleep(WAIT_S * 2)
         _via_zenoh_thread(d, "pose", codec.encode_pose_with_covariance(s1, np.eye(4), COV))
-        d._poll_gate()
+        d.frames.poll()
         assert sum(d.health.dropped.values()) == 1
         assert list(d.health.dropped) == ["pose_wait: no usable pose within 0.2 s"]
         _run_queued(loop)
         assert d.health.counts.get("frames.stereo", 0) == 0
-        assert not d._pose_backlog_s
+        assert not d.bridge.pose_backlog_s
     finally:
         loop.close()

@@ -48,7 +48,7 @@ class Feed:
         if gid is not None:
             self.seq[gid] += 1
             att = encode_attachment(self.seq[gid], stamp_ns, gid)
-        lost, seen = self.d.upstream.observe_publisher("pose", att, recv_s)
+        lost, seen = self.d.bridge.upstream.observe_publisher("pose", att, recv_s)
         assert seen == gid
         data = codec.encode_pose_with_covariance(stamp_ns, _pose_at(x_m), COV)
         self.d._on_inbound(Inbound("pose", self.key, data, recv_s, lost, seen))
@@ -64,7 +64,7 @@ def test_a_second_localiser_is_refused_while_the_first_is_heard(
     """Two localisers at 10 Hz, the second on another clock (stamps 5 s behind) and with another
     estimate: before, every pose of both went into the buffer, which restarted on each change of
     clock; now only the first one's poses are taken, and each of the second's is counted."""
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = _daemon(port)
     f = Feed(d)
     for i in range(50):
@@ -78,15 +78,15 @@ def test_a_second_localiser_is_refused_while_the_first_is_heard(
     assert st["upstream"]["pose_publisher"] == GID_A.hex()[:12]
     # the bridge's tracker saw both, at the test's receive times (100.0 .. 104.95 s), sending at
     # the same time
-    assert d.upstream.active(5.0, now_s=105.0) == {"pose": 2}
-    assert d.upstream.concurrent(5.0, now_s=105.0) == {"pose": 2}
-    st["upstream"]["concurrent_publishers"] = d.upstream.concurrent(5.0, now_s=105.0)
+    assert d.bridge.upstream.active(5.0, now_s=105.0) == {"pose": 2}
+    assert d.bridge.upstream.concurrent(5.0, now_s=105.0) == {"pose": 2}
+    st["upstream"]["concurrent_publishers"] = d.bridge.upstream.concurrent(5.0, now_s=105.0)
     assert (
         "several publishers sending on one input at the same time (a node launched twice?): pose 2"
         in status_lines(st)
     )
     # the buffer holds the first localiser's estimate only
-    s = d.poses.lookup(T0 + 25 * 10**8 + 5 * 10**7)
+    s = d.frames.poses.lookup(T0 + 25 * 10**8 + 5 * 10**7)
     assert s.state == "ready" and s.T_W_C is not None
     assert s.T_W_C[0, 3] == pytest.approx(0.255)
     logged = [r.getMessage() for r in caplog.records if "second_publisher" in r.getMessage()]
@@ -97,7 +97,7 @@ def test_a_second_localiser_is_refused_while_the_first_is_heard(
 def test_a_restarted_localiser_is_followed_after_the_hold(
     port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = _daemon(port, pose_publisher_hold_s=1.0)
     f = Feed(d)
     for i in range(10):
@@ -145,9 +145,9 @@ def test_a_malformed_pose_does_not_claim_the_topic(port: int) -> None:
 def test_status_counts_the_publishers_heard_lately_and_logs_a_second_one(
     port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = _daemon(port)
-    t = d.upstream
+    t = d.bridge.upstream
     for k in range(4):  # two camera drivers, each at 1 Hz, half a second apart
         t.observe_publisher("left_image", encode_attachment(1 + k, T0, GID_A), 100.0 + k)
         t.observe_publisher("left_image", encode_attachment(1 + k, T0, GID_B), 100.5 + k)
@@ -159,10 +159,10 @@ def test_status_counts_the_publishers_heard_lately_and_logs_a_second_one(
     assert t.active(5.0, now_s=108.2) == {"left_image": 1}  # A's last image 5.2 s ago
     assert t.concurrent(5.0, now_s=108.2) == {}
     assert t.active(5.0, now_s=109.0) == {}
-    d._report_publishers({"left_image": 2})
-    d._report_publishers({"left_image": 2})  # unchanged: not logged again
-    d._report_publishers({})
-    d._report_publishers({"left_image": 2})  # two at once again: logged again
+    d.inputs.report_publishers({"left_image": 2})
+    d.inputs.report_publishers({"left_image": 2})  # unchanged: not logged again
+    d.inputs.report_publishers({})
+    d.inputs.report_publishers({"left_image": 2})  # two at once again: logged again
     msgs = [r.getMessage() for r in caplog.records if "at the same time" in r.getMessage()]
     assert msgs == ["left_image: 2 publishers sending at the same time within the last 5.0 s (a node "
                     "launched twice? two drivers on one topic?)"] * 2  # fmt: skip
@@ -187,7 +187,7 @@ def test_a_pose_source_slower_than_the_hold_is_warned_of_once(
     """A 0.5 Hz pose source with the 1 s hold: in each of its gaps a second publisher would be
     followed, so the daemon says once that the hold is shorter than the source's period. A source
     faster than the hold gets no warning."""
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = _daemon(port, pose_publisher_hold_s=1.0)
     f = Feed(d)
     for i in range(10):  # 10 Hz: no warning

@@ -39,7 +39,7 @@ def _daemon(max_failures: int = 5) -> tuple[Daemon, dict[str, RecordingPublisher
         "cloud": RecordingPublisher(),
         "status": RecordingPublisher(),
     }
-    d._publishers = pubs  # type: ignore[assignment]
+    d.outputs.publishers = pubs  # type: ignore[assignment]
     return d, pubs
 
 
@@ -49,7 +49,7 @@ def _publish_once(d: Daemon) -> None:
         "grasps": codec.encode_grasp_array(result.grasps, "world", 1),
         "markers": codec.encode_grasp_markers(result.grasps, "world", 1, top_k=3),
     }
-    d._publish_outputs(result, payloads, None, d._generation)
+    d.outputs.publish(result, payloads, None, d._generation)
 
 
 def test_a_refused_put_is_counted_and_the_other_outputs_and_the_query_still_get_the_grasps(
@@ -61,7 +61,8 @@ def test_a_refused_put_is_counted_and_the_other_outputs_and_the_query_still_get_
     assert d.health.counts["publish_failed"] == 1
     assert d.health.counts["publish_failed.grasps"] == 1
     assert len(pubs["markers"].puts) == 1  # the markers after the refused grasps still went out
-    assert d.latest_grasps is not None and d.grasps_published == 1  # grasps/latest answers them
+    # grasps/latest answers them
+    assert d.outputs.latest_grasps is not None and d.outputs.grasps_published == 1
     assert "publishing grasps failed (1 so far, 1 puts in a row): session closed" in caplog.text
     assert d.health.problems() == []
 
@@ -70,17 +71,17 @@ def test_failed_puts_in_a_row_make_the_daemon_unhealthy_and_a_good_put_ends_the_
     d, pubs = _daemon(max_failures=5)
     for role in ("markers", "cloud", "status"):
         pubs[role] = RefusingPublisher()  # the whole session is broken
-    d._publishers = pubs  # type: ignore[assignment]
+    d.outputs.publishers = pubs  # type: ignore[assignment]
     _publish_once(d)
     _publish_once(d)
     assert d.health.problems() == []  # 4 in a row
-    assert not d._put_output("status", b"x")
+    assert not d.outputs.put("status", b"x")
     assert d.health.problems() == ["publish failed 5 times in a row"]
     assert d.health.counts["publish_failed"] == 5
     for pub in pubs.values():
         assert isinstance(pub, RefusingPublisher)
         pub.refuse = False
-    assert d._put_output("status", b"x")
+    assert d.outputs.put("status", b"x")
     assert d.health.problems() == []
 
 

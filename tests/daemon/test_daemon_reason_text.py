@@ -35,7 +35,7 @@ def _image(encoding: str) -> bytes:
 def test_a_quoted_encoding_neither_picks_the_reason_class_nor_floods_the_log(
     port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = Daemon(load_config_dict(daemon_config_dict(port)), FakePipeline())
     key = key_for(d.cfg.topics, "left_image")
     for enc in ("voxel hash", "malformed cdr", "not symmetric", "e" * 100_000):

@@ -40,17 +40,17 @@ def _daemon() -> tuple[Daemon, FakeArm]:
     cfg = load_config_dict({"daemon": {"publish_cloud": False}})
     pipe = FakePipeline()
     d = Daemon(cfg, pipe, notifier=Notifier(""))
-    d._publishers = {r: RecordingPublisher() for r in ("grasps", "markers", "cloud", "status")}  # type: ignore[assignment]
+    d.outputs.publishers = {r: RecordingPublisher() for r in ("grasps", "markers", "cloud", "status")}  # type: ignore[assignment]
     d._session = type("S", (), {"put": lambda *a, **k: None})()  # arm reports
     arm = FakeArm()
-    d.arm = arm
-    d.latest_result = pipe.compute(full_cloud=False)  # grasp ids 0, 1, 2 of the old map
+    d.arm.controller = arm
+    d.outputs.latest_result = pipe.compute(full_cloud=False)  # grasp ids 0, 1, 2 of the old map
     return d, arm
 
 
 def _run(d: Daemon, body: Any) -> None:
     async def main() -> None:
-        async with running_worker(d, d._arm_worker()):
+        async with running_worker(d, d.arm.worker()):
             await body()
             await asyncio.sleep(0.2)  # the arm worker's turn
 
@@ -65,10 +65,10 @@ def test_an_execute_request_while_a_reset_waits_is_refused() -> None:
         d._model_exec.submit(busy.wait, 10.0)  # the model thread is busy: the reset waits for it
         reset = asyncio.create_task(d._reset())
         await asyncio.sleep(0.05)
-        assert d._resetting and d.latest_result is not None  # the reset has begun, not finished
+        assert d._resetting and d.outputs.latest_result is not None  # the reset has begun, not finished
         refused = None
         try:
-            d._on_arm_execute(Query(b"1"))
+            d.arm.on_execute(Query(b"1"))
         except InputRejected as exc:
             refused = exc
         busy.set()
@@ -87,7 +87,7 @@ def test_an_execute_accepted_before_a_reset_does_not_run_after_it() -> None:
 
     async def body() -> None:
         d._model_exec.submit(busy.wait, 10.0)
-        d._on_arm_execute(Query(b"1"))  # accepted: the map is still the old one
+        d.arm.on_execute(Query(b"1"))  # accepted: the map is still the old one
         async with d._motion_lock:  # the command worker holds it during the reset
             reset = asyncio.create_task(d._reset())
             await asyncio.sleep(0.05)
@@ -96,7 +96,7 @@ def test_an_execute_accepted_before_a_reset_does_not_run_after_it() -> None:
 
     _run(d, body)
     assert arm.executed == []
-    assert d.arm_report is not None and d.arm_report["ok"] is False, d.arm_report
+    assert d.arm.report is not None and d.arm.report["ok"] is False, d.arm.report
 
 
 class LatestQuery:
@@ -123,7 +123,7 @@ def test_latest_grasps_are_not_served_while_a_reset_waits() -> None:
     """``pugsd arm execute --grasp-id`` asks ``<prefix>/grasps/latest`` first: during the reset it
     must not get the grasps of the map being cleared."""
     d, _ = _daemon()
-    d.latest_grasps = b"old map"
+    d.outputs.latest_grasps = b"old map"
     busy = threading.Event()
     q = LatestQuery()
 

@@ -35,11 +35,11 @@ def test_a_reset_deletes_the_published_markers_grasps_and_cloud() -> None:
     pipe = FakePipeline()
     d = Daemon(cfg, pipe, notifier=Notifier(""))
     pubs = {role: RecordingPublisher() for role in ("grasps", "markers", "cloud", "status")}
-    d._publishers = pubs  # type: ignore[assignment]
-    d.latest_grasps = codec.encode_grasp_array(pipe.compute().grasps, "map", 10**9)
+    d.outputs.publishers = pubs  # type: ignore[assignment]
+    d.outputs.latest_grasps = codec.encode_grasp_array(pipe.compute().grasps, "map", 10**9)
     d.ready = d.was_ready = True
     _run_reset(d)
-    assert pipe.resets == 1 and d.latest_grasps is None
+    assert pipe.resets == 1 and d.outputs.latest_grasps is None
     assert len(pubs["markers"].puts) == 1, "no MarkerArray after the reset: the old grippers stay drawn"
     markers = codec.deserialize(pubs["markers"].puts[0], MARKER_ARRAY).markers
     assert [(m.action, m.header.frame_id) for m in markers] == [(3, "map")]  # DELETEALL only
@@ -53,12 +53,12 @@ def test_a_reset_clears_the_reported_model_version() -> None:
     ready, elbo and the grasps, not ``model_version``)."""
     pipe = FakePipeline()
     d = Daemon(load_config_dict({}), pipe, notifier=Notifier(""))
-    d._publishers = {r: RecordingPublisher() for r in ("grasps", "markers", "cloud", "status")}  # type: ignore[misc]
+    d.outputs.publishers = {r: RecordingPublisher() for r in ("grasps", "markers", "cloud", "status")}  # type: ignore[misc]
     result = pipe.compute(full_cloud=False)
     result.model_version = 17
-    d._publish_outputs(result, {"grasps": b"g", "markers": b"m"}, None, d._generation)
+    d.outputs.publish(result, {"grasps": b"g", "markers": b"m"}, None, d._generation)
     assert d.status()["model_version"] == 17
     _run_reset(d)
     st = d.status()
-    assert (st["ready"], st["grasps_published"], d.latest_grasps) == (False, 1, None)
+    assert (st["ready"], st["grasps_published"], d.outputs.latest_grasps) == (False, 1, None)
     assert st["model_version"] is None

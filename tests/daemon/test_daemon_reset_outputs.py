@@ -37,10 +37,10 @@ def test_grasps_scored_across_a_reset_are_not_published() -> None:
     pipe = SlowScorePipeline()
     d = Daemon(cfg, pipe, notifier=Notifier(""))
     pubs = {role: RecordingPublisher() for role in ("grasps", "markers", "cloud", "status")}
-    d._publishers = pubs  # type: ignore[assignment]
+    d.outputs.publishers = pubs  # type: ignore[assignment]
 
     async def main() -> tuple[int, int]:
-        d.ready = d.was_ready = d._changed = True
+        d.ready = d.was_ready = d.schedule.changed = True
         async with running_worker(d, d._grasp_worker()):
             # the computation is inside score (model lock held)
             assert await asyncio.to_thread(pipe.scoring.wait, 10.0)
@@ -60,7 +60,7 @@ def test_grasps_scored_across_a_reset_are_not_published() -> None:
     assert not any(published), f"the old map's grasps were published after the reset: {published}"
     drawn = [m for p in pubs["markers"].puts for m in codec.deserialize(p, MARKER_ARRAY).markers]
     assert all(m.action == 3 for m in drawn)  # at most a DELETEALL, no gripper
-    assert d.latest_grasps is None and d.grasps_published == 0
+    assert d.outputs.latest_grasps is None and d.outputs.grasps_published == 0
     assert d.health.counts.get("grasps_discarded") == 1
 
 
@@ -87,10 +87,10 @@ def test_a_reset_during_idle_training_rejects_nothing() -> None:
     cfg = load_config_dict({"daemon": {"idle_train_steps": 4, "publish_cloud": False}})
     pipe = GatedTrainPipeline(integrated=[1])
     d = Daemon(cfg, pipe, notifier=Notifier(""))
-    d._publishers = {role: RecordingPublisher() for role in ("grasps", "markers", "cloud", "status")}  # type: ignore[assignment]
+    d.outputs.publishers = {role: RecordingPublisher() for role in ("grasps", "markers", "cloud", "status")}  # type: ignore[assignment]
 
     async def main() -> None:
-        d._last_frame_s = time.monotonic()  # a frame was integrated: idle training rounds run
+        d.schedule.last_frame_s = time.monotonic()  # a frame was integrated: idle training rounds run
         async with running_worker(d, d._model_worker()):
             assert await asyncio.to_thread(pipe.training.wait, 10.0)  # a step holds the model lock
             reset = asyncio.create_task(d._reset())  # bumps the generation, waits for the lock

@@ -68,7 +68,7 @@ def test_no_grasp_computation_starts_while_a_reset_waits_for_the_model(
         wait_for(lambda: len(maps) >= 1, 10.0, "grasps of the first map")
         n = len(maps)
         wait_for(lambda: len(maps) > n, 10.0, "the next grasps")  # the next computation is ~1 s away
-        wait_for(lambda: d._changed, 5.0, "a training step since")
+        wait_for(lambda: d.schedule.changed, 5.0, "a training step since")
         pipe.gate.clear()
         d._model_exec.submit(free.wait, 30.0)  # the model thread is busy: the reset waits for it
         gen = d._generation

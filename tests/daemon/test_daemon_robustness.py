@@ -36,7 +36,7 @@ def _passed_on(d: Daemon, pipe: FakePipeline) -> int:
 def test_an_input_bug_is_counted_and_logged_with_a_rate_limit(
     port: int, client: zenoh.Session, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     pipe = FakePipeline()
     dt, src = start_with_source(load_config_dict(daemon_config_dict(port)), client, pipe)
     d = dt.daemon
@@ -126,8 +126,8 @@ def test_arm_requests_are_refused_under_fixed_reasons(port: int) -> None:
     """Deep nesting, huge numbers, unknown grasp ids, wildcards and a busy arm: each an error
     reply counted under one of a few keys (never the id), no exception out of the handler."""
     d = Daemon(load_config_dict(daemon_config_dict(port)), FakePipeline())
-    d.arm = types.SimpleNamespace(stop_latched=None)  # enabled (the motion itself is not reached here)
-    d.latest_result = FakePipeline().compute()  # grasp ids 0, 1, 2
+    d.arm.controller = types.SimpleNamespace(stop_latched=None)  # enabled (the motion is not reached)
+    d.outputs.latest_result = FakePipeline().compute()  # grasp ids 0, 1, 2
 
     def ask(payload: str, key: str = "pugs/arm/execute") -> FakeQuery:
         q = FakeQuery(key, payload)
@@ -196,7 +196,7 @@ def test_a_wrong_size_side_image_is_rejected_alone_and_the_frame_goes_on(
         src.put("mask", codec.encode_image(np.full((h, w), 255, np.uint8), stamp, "depth", "mono8"))
 
         def sides_here() -> bool:
-            return d._last_std_s is not None and d.health.counts["received.mask"] == n + 2
+            return d.frames.last_std_s is not None and d.health.counts["received.mask"] == n + 2
 
         wait_for(sides_here, 5.0, "the std image and the mask")
         src.put("pose", codec.encode_pose_with_covariance(stamp, np.eye(4), COV))
@@ -217,7 +217,7 @@ def test_a_wrong_size_side_image_is_rejected_alone_and_the_frame_goes_on(
 def test_shutdown_lets_a_busy_training_step_finish(
     port: int, client: zenoh.Session, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     pipe = FakePipeline(train_delay_s=1.0, ready_after=1000)
     cfg = load_config_dict(daemon_config_dict(port, shutdown_timeout_s=5.0))
     dt, src = start_with_source(cfg, client, pipe)
@@ -258,14 +258,14 @@ def test_status_line_counts_every_drop(port: int, client: zenoh.Session) -> None
         for stamp in (8 * 10**9, 9 * 10**9):
             src.put("left_image", codec.encode_image(img, stamp, "left"))
             src.put("right_image", codec.encode_image(img, stamp, "right"))
-        wait_for(lambda: len(d.gate) == 2, 5.0, "two frames waiting for a pose")
-        assert d.health.dropped["unpaired: duplicate_stamp"] == 1 and d.pairer.pending() == 3
+        wait_for(lambda: len(d.frames.gate) == 2, 5.0, "two frames waiting for a pose")
+        assert d.health.dropped["unpaired: duplicate_stamp"] == 1 and d.frames.pairer.pending() == 3
         assert [r.ok is not None for r in client.get("pugs/reset", timeout=2.0)] == [True]
         wait_for(lambda: d.health.counts.get("resets", 0) == 1, 5.0, "the reset")
         assert d.health.dropped["reset: frames waiting for a pose"] == 2
         assert d.health.dropped["reset: unpaired stereo halves"] == 3
         total = d.dropped_total()
-        assert total == d.stereo_box.dropped + d.depth_box.dropped + d.ingress.dropped + 6
+        assert total == d.stereo_box.dropped + d.depth_box.dropped + d.bridge.ingress.dropped + 6
         wait_for(
             lambda: any(s.startswith("STATUS=") and f"dropped {total}," in s for s in n.sent),
             5.0,
@@ -281,13 +281,13 @@ def test_a_bug_in_a_released_frame_costs_only_that_frame(
 ) -> None:
     """Frames released by the gate worker (after waiting for their mask): an exception that is
     not bad input, for one of them, neither stops the daemon nor loses the others."""
-    caplog.set_level(logging.ERROR, logger="pugsd.daemon.app")
+    caplog.set_level(logging.ERROR, logger="pugsd")
     pipe = FakePipeline()
     cfg = load_config_dict(daemon_config_dict(port, side_image_wait_s=0.2))
     dt, src = start_with_source(cfg, client, pipe)
     d = dt.daemon
     h, w = RIG.left.height, RIG.left.width
-    emit = d._emit_stereo
+    emit = d.frames._emit_stereo
     bad_stamp = 2 * 10**9
 
     def flaky(pair: Any, stamp_ns: int, *args: Any) -> None:
@@ -295,11 +295,11 @@ def test_a_bug_in_a_released_frame_costs_only_that_frame(
             raise RuntimeError("bug while assembling a frame")
         emit(pair, stamp_ns, *args)
 
-    d._emit_stereo = flaky  # type: ignore[method-assign]
+    d.frames._emit_stereo = flaky  # type: ignore[method-assign]
     try:
         mask = codec.encode_image(np.full((h, w), 255, np.uint8), 10**9, "left", "mono8")
         src.put("mask", mask)  # masks are active: later frames wait for theirs, then go without
-        wait_for(lambda: d._last_mask_s is not None, 5.0, "the mask stream")
+        wait_for(lambda: d.frames.last_mask_s is not None, 5.0, "the mask stream")
         for i, stamp in enumerate((10**9, bad_stamp, bad_stamp + 10**8)):
             src.stereo(stamp, pose_at(0.01 * i), seed=i)
         wait_for(lambda: d.health.counts.get("errors.frames.stereo", 0) == 1, 5.0, "the bug counted")
@@ -318,7 +318,7 @@ def test_unhealthy_state_is_logged_once_not_every_second(
 ) -> None:
     monkeypatch.setenv("WATCHDOG_USEC", "200000")  # the watchdog task runs every 0.1 s
     monkeypatch.delenv("WATCHDOG_PID", raising=False)
-    caplog.set_level(logging.ERROR, logger="pugsd.daemon.app")
+    caplog.set_level(logging.ERROR, logger="pugsd")
     pipe = FakePipeline(train_delay_s=1.5, ready_after=1000)
     cfg = load_config_dict(daemon_config_dict(port, stall_timeout_s=0.2))
     dt, src = start_with_source(cfg, client, pipe)
@@ -390,7 +390,7 @@ def test_frames_get_poses_again_after_the_pose_clock_jumps_back(
     """A pose source restarted with an earlier clock: its old, later-stamped poses used to stay
     "newest" and, once the ring was full, evict every new pose on arrival, so no frame got a pose
     again. Now the buffer starts afresh, the daemon logs it and counts it in its status."""
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     cfg = daemon_config_dict(port)
     cfg["queues"] = {"poses": 8}
     pipe = FakePipeline()
@@ -560,7 +560,7 @@ def test_a_silent_input_is_reported_stale_and_its_return_logged(
 ) -> None:
     """A camera or pose source that stops is named in the status, the STATUS= line and the log
     (once), without touching the watchdog; its return is logged and clears it."""
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     cfg = daemon_config_dict(port, input_stale_s=0.4, status_rate_hz=20.0)
     pipe = FakePipeline()
     notifier = RecordingNotifier()
@@ -598,9 +598,8 @@ def test_the_first_frame_waits_for_its_mask_before_any_mask_was_seen(
     port: int, client: zenoh.Session
 ) -> None:
     """zenoh does not order different keys: a first frame's images can come before its mask.
-    The daemon waited for masks only once one had arrived, so that frame went on without its
-    mask, and a real pipeline put the whole background into the store (15 000 points instead of
-    1 100 in a bench run). Now, until a frame has waited side_image_wait_s in vain, it waits."""
+    Without a mask a real pipeline puts the whole background into the store, so until a frame
+    has waited side_image_wait_s in vain, the first frame waits for its mask."""
     masks_seen: list[bool] = []
 
     class Recording(FakePipeline):
@@ -617,9 +616,9 @@ def test_the_first_frame_waits_for_its_mask_before_any_mask_was_seen(
     try:
         src.stereo(10**9, pose_at(0.0))  # the images and the pose first, no mask seen yet
         # wait for the frame to reach the gate (a fixed sleep raced its delivery), then see it stay
-        wait_for(lambda: len(d.gate) == 1 or bool(masks_seen), 5.0, "the first frame at the gate")
+        wait_for(lambda: len(d.frames.gate) == 1 or bool(masks_seen), 5.0, "the first frame at the gate")
         time.sleep(0.2)
-        assert masks_seen == [] and len(d.gate) == 1, "the first frame went on without its mask"
+        assert masks_seen == [] and len(d.frames.gate) == 1, "the first frame went on without its mask"
         src.put("mask", codec.encode_image(np.full((h, w), 255, np.uint8), 10**9, "left", "mono8"))
         wait_for(lambda: masks_seen == [True], 5.0, "the first frame, with its mask")
     finally:
@@ -693,8 +692,8 @@ def test_a_query_flood_is_bounded_and_every_query_answered(port: int, client: ze
         assert all("busy" in r.err.payload.to_string() for r in busy)
         assert len(ok) <= 4 + 1 and len(busy) >= 35  # the bound (one may have left meanwhile)
         # the loop replies, then leaves the gate: the last reply can arrive a moment before that
-        wait_for(lambda: d.query_ingress.pending == 0, 2.0, "the last query to leave the gate")
-        assert d.query_ingress.dropped == len(busy)
+        wait_for(lambda: d.bridge.query_ingress.pending == 0, 2.0, "the last query to leave the gate")
+        assert d.bridge.query_ingress.dropped == len(busy)
         st = query_json(client, "pugs/status")
         assert st["query_ingress"] == {"pending": 1, "dropped": len(busy)}  # 1: this status query
     finally:
@@ -711,7 +710,7 @@ def test_zenoh_delete_samples_on_inputs_are_counted_not_rejected(port: int, clie
     try:
         for role in ("left_image", "pose"):
             client.delete(src.pubs[role].key)
-        wait_for(lambda: d.deletes_ignored == 2, 5.0, "two deletes counted")
+        wait_for(lambda: d.bridge.deletes_ignored == 2, 5.0, "two deletes counted")
         src.stereo(10**9, pose_at(0.0))
         src.put("pose", codec.encode_pose_with_covariance(2 * 10**9, pose_at(0.1), COV))
         wait_for(lambda: _passed_on(d, pipe) == 1, 10.0, "the good frame")
@@ -728,11 +727,11 @@ def test_an_error_in_the_zenoh_callback_is_counted_and_the_next_samples_flow(
     """A bug in the zenoh-thread part of the input path (here the sequence tracker) costs only
     that sample: counted per input in ``bridge_errors``, logged, never raised into zenoh's thread;
     later samples reach the loop."""
-    caplog.set_level(logging.ERROR, logger="pugsd.daemon.app")
+    caplog.set_level(logging.ERROR, logger="pugsd")
     pipe = FakePipeline()
     dt, src = start_with_source(load_config_dict(daemon_config_dict(port)), client, pipe)
     d = dt.daemon
-    real = d.upstream.observe_publisher
+    real = d.bridge.upstream.observe_publisher
     calls = {"pose": 0}
 
     def flaky(role: str, att: bytes | None, now_s: float | None = None) -> tuple[int, bytes | None]:
@@ -742,12 +741,12 @@ def test_an_error_in_the_zenoh_callback_is_counted_and_the_next_samples_flow(
                 raise RuntimeError("tracker bug")
         return real(role, att, now_s)
 
-    monkeypatch.setattr(d.upstream, "observe_publisher", flaky)
+    monkeypatch.setattr(d.bridge.upstream, "observe_publisher", flaky)
     try:
         src.put("pose", codec.encode_pose_with_covariance(10**9, pose_at(0.0), COV))  # lost
         # the zenoh thread counts, then logs: wait for both (the test thread can look in between)
         wait_for(
-            lambda: d.bridge_errors.get("pose") == 1
+            lambda: d.bridge.errors.get("pose") == 1
             and any("pose sample lost in the zenoh callback (#1)" in r.getMessage() for r in caplog.records),
             5.0,
             "the lost sample counted and logged",

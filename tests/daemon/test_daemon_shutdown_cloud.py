@@ -39,7 +39,7 @@ class EndlessCloud(FakePipeline):
 def test_a_stop_during_the_cloud_computation_abandons_nothing(
     port: int, client: zenoh.Session, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     pipe = EndlessCloud(ready_after=1)
     raw = daemon_config_dict(port, publish_cloud=True, shutdown_timeout_s=10.0)
     dt, src = start_with_source(load_config_dict(raw), client, pipe, 0.1)

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Issue #6 acceptance: a recording played through the running daemon over zenoh gives the same
+"""A recording played through the running daemon over zenoh gives the same
 top grasp as `pugsd replay` on the same file.
 
 Stated tolerance: a grasp is the same if its wrist position is within 5 mm and its approach axis
@@ -7,10 +7,8 @@ within 5 degrees. The daemon publishes the same candidates as the replay, the sa
 baseline confidence, and PUGS confidences that follow Eq. 13 from the sigma^2_occ it publishes
 with them. The PUGS top grasp is not asserted: the daemon trains its SVGP incrementally, for a
 number of steps that depends on timing, while `replay` fits in batch, so sigma^2_occ differs
-(the streaming-vs-batch agreement is the benchmark's, issue #4) and the PUGS order of two close
-candidates can differ: on this recording the daemon's PUGS top was the replay's second (13 %
-below its first) in 1 of 3 runs, and with the old recording replay itself flipped 1 run in 5.
-It is printed. Playback runs at rate 0.1 so that the daemon (drop-oldest mailboxes) integrates
+(the streaming-vs-batch agreement is the benchmark's) and the PUGS order of two close candidates
+can differ. It is printed. Playback runs at rate 0.1 so that the daemon (drop-oldest mailboxes) integrates
 every frame.
 """
 

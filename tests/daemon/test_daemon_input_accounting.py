@@ -1,15 +1,13 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The daemon's input path and its accounting, pinned (a mutation audit of pugsd/daemon/app.py):
-bad input gets a counted rejection charged to the input at fault, with a log line that names the
-sizes, rate-limited; every drop counts in ``dropped_total``; the status message carries the
-counters it claims. The daemon is driven on the calling thread (no zenoh session): samples go
-straight to ``_on_inbound``."""
+"""The daemon's input path and its accounting: bad input gets a counted rejection charged to the
+input at fault, with a log line that names the sizes, rate-limited; every drop counts in
+``dropped_total``; the status message carries the counters it claims. The daemon is driven on the
+calling thread (no zenoh session): samples go straight to ``_on_inbound``."""
 
 from __future__ import annotations
 
 import logging
 import time
-from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
@@ -17,19 +15,9 @@ import numpy as np
 import pytest
 
 from pugsd.config import load_config_dict
-from pugsd.daemon.app import (
-    Command,
-    Daemon,
-    Inbound,
-    IngressGate,
-    InputRejected,
-    _jsonable,
-    _log_nth,
-    _short,
-    reason_class,
-    require_size,
-)
-from pugsd.errors import DecodeError, PugsdError
+from pugsd.daemon.app import Command, Daemon, Inbound
+from pugsd.errors import PugsdError
+from pugsd.stream.assembler import InputRejected, reason_class
 from pugsd.wire import codec
 from pugsd.wire.topics import key_for
 from tests.daemon.conftest import RIG, FakePipeline, daemon_config_dict
@@ -61,118 +49,23 @@ def _pose(stamp_ns: int, frame_id: str = "world") -> bytes:
 IMG = np.random.default_rng(0).integers(0, 255, (H, W), dtype=np.uint8)
 
 
-# --- module-level helpers -------------------------------------------------------------------------
-
-
-def test_require_size_names_both_sizes_and_the_input_it_charges() -> None:
-    narrow = codec.ImageMsg(5, "right", "mono8", np.zeros((H, W // 2), np.uint8))
-    with pytest.raises(InputRejected) as ei:
-        require_size(narrow, (H, W), "right_image: image", "right_image")
-    assert ei.value.reason == "wrong_size" and ei.value.role == "right_image"
-    assert str(ei.value) == f"right_image: image is ({H}, {W // 2}), camera expects ({H}, {W})"
-    with pytest.raises(InputRejected) as ei:
-        require_size(codec.ImageMsg(5, "d", "32FC1", np.zeros((H - 1, W), np.float32)), (H, W), "depth image")
-    assert ei.value.role is None
-    assert str(ei.value) == f"depth image is ({H - 1}, {W}), camera expects ({H}, {W})"
-    # a colour image is judged by its height and width only
-    require_size(codec.ImageMsg(5, "left", "rgb8", np.zeros((H, W, 3), np.uint8)), (H, W), "left")
-
-
-@pytest.mark.parametrize(
-    ("text", "cls"),
-    [
-        ("Voxel Hash exhausted", "out_of_map_range"),  # matched case-insensitively
-        ("a point too far for any voxel index", "beyond_any_map"),
-        ("images too small for the disparity search", "too_small_for_stereo"),
-        ("Malformed CDR", "malformed_cdr"),
-        ("truncated CDR at byte 3", "malformed_cdr"),
-        ("unknown CDR encapsulation 0x0009", "malformed_cdr"),
-        ("payload is not bytes", "malformed_cdr"),
-        ("pose: type 'x' not accepted (expected y)", "wrong_type"),
-        ("unsupported pose type", "wrong_type"),
-        ("not an rmw_zenoh key", "wrong_type"),
-        ("depth: no CameraInfo for the depth image yet", "no_camera_info"),
-        ("covariance not positive semi-definite", "non_psd_covariance"),
-        ("covariance not symmetric", "non_psd_covariance"),
-        ("non-finite covariance", "non_psd_covariance"),
-        ("non-finite pose", "bad_pose"),
-        ("quaternion of norm 0", "bad_pose"),
-        ("not rigid", "bad_pose"),
-        ("rotation not orthonormal", "bad_pose"),
-        ("T_W_C must be 4x4", "bad_pose"),
-        ("unsupported encoding 'yuv422'", "wrong_encoding"),
-        ("stereo pair encoding mismatch: mono8 vs rgb8", "wrong_encoding"),  # encoding before mismatch
-        ("data has 3 bytes", "wrong_size"),
-        ("step 3 < width", "wrong_size"),
-        ("wrong size", "wrong_size"),
-        ("bad shape", "wrong_size"),
-        ("sizes mismatch", "wrong_size"),
-        ("camera expects (4, 4)", "wrong_size"),
-        ("empty image", "wrong_size"),
-        ("CameraInfo size 0x0", "wrong_size"),  # size before camerainfo
-        ("CameraInfo K is zero", "bad_camera_info"),
-        ("baseline 0", "bad_camera_info"),
-        ("bad intrinsics", "bad_camera_info"),
-        ("not rectified", "bad_camera_info"),
-        ("bad stamp", "bad_stamp"),
-    ],
-)
-def test_reason_class_maps_each_known_message_to_its_class(text: str, cls: str) -> None:
-    assert reason_class(PugsdError(text)) == cls
-
-
-def test_reason_class_takes_a_fixed_class_before_the_text_and_falls_back_to_the_type() -> None:
-    assert reason_class(InputRejected("custom", "voxel hash")) == "custom"
-    assert reason_class(DecodeError("voxel hash", reason="wrong_type")) == "wrong_type"
-    assert reason_class(DecodeError("voxel hash")) == "out_of_map_range"
-    assert reason_class(PugsdError("nothing known")) == "PugsdError"
-    assert reason_class(ValueError("nothing known")) == "ValueError"
-
-
-def test_ingress_gate_admits_up_to_its_limit_and_counts_each_refusal() -> None:
-    g = IngressGate(2)
-    assert [g.enter() for _ in range(4)] == [True, True, False, False]
-    assert g.pending == 2 and g.dropped == 2
-    g.leave()
-    assert g.pending == 1
-    assert [g.enter(), g.enter()] == [True, False]
-    assert g.pending == 2 and g.dropped == 3
-
-
-def test_log_nth_logs_the_first_five_then_every_hundredth() -> None:
-    assert [n for n in range(1, 1001) if _log_nth(n)] == [1, 2, 3, 4, 5, *range(100, 1001, 100)]
-    assert [n for n in range(1, 201) if _log_nth(n, first=2)] == [1, 2, 100, 200]
-
-
-def test_short_keeps_the_head_before_the_first_parenthesis_after_a_space() -> None:
-    assert _short("duplicate_stamp (a second left_image for stamp 5)") == "duplicate_stamp"
-    assert _short("f(x) (12 ms) (more)") == "f(x)"
-    assert _short("no pose") == "no pose"
-
-
-def test_jsonable_stringifies_keys_and_unknown_objects() -> None:
-    out = _jsonable({1: Path("/x/a.mcap"), "s": {2.5: np.int32(7)}, "none": None})
-    assert out == {"1": "/x/a.mcap", "s": {"2.5": 7}, "none": None}
-    assert type(out["s"]["2.5"]) is int
-
-
 # --- counting and logging -------------------------------------------------------------------------
 
 
 def test_drops_count_under_the_reasons_head_and_log_the_first_five_then_each_hundred_crossed(
     port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     d = _daemon(port)
     for i in range(1, 206):
-        d._drop("unpaired", f"duplicate_stamp (a second left_image for stamp {i})")
+        d.report.drop("unpaired", f"duplicate_stamp (a second left_image for stamp {i})")
     assert dict(d.health.dropped) == {"unpaired: duplicate_stamp": 205}
     lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("dropped 1 at unpaired")]
     assert [int(ln.split("(#")[1].split(")")[0]) for ln in lines] == [1, 2, 3, 4, 5, 100, 200]
     assert lines[-1] == "dropped 1 at unpaired (#200): duplicate_stamp (a second left_image for stamp 200)"
     caplog.clear()
     for _ in range(40):  # drops of 3: totals 3, 6, ..., 120; logged while under 5 before, and at 102
-        d._drop("pose_wait", "no pose (waited 0.5 s)", 3)
+        d.report.drop("pose_wait", "no pose (waited 0.5 s)", 3)
     lines = [r.getMessage() for r in caplog.records if "at pose_wait" in r.getMessage()]
     assert lines == [
         "dropped 3 at pose_wait (#3): no pose (waited 0.5 s)",
@@ -185,11 +78,11 @@ def test_drops_count_under_the_reasons_head_and_log_the_first_five_then_each_hun
 def test_a_rejection_is_charged_to_the_input_at_fault_and_logged_rate_limited(
     port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = _daemon(port)
     for _ in range(105):
-        d._reject("left_image", InputRejected("wrong_size", "right is small", "right_image"))
-    d._reject("left_image", PugsdError("bad stamp"))
+        d.report.reject("left_image", InputRejected("wrong_size", "right is small", "right_image"))
+    d.report.reject("left_image", PugsdError("bad stamp"))
     assert dict(d.health.rejected) == {"right_image: wrong_size": 105, "left_image: bad_stamp": 1}
     assert d.health.counts["rejected"] == 106
     lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("rejected")]
@@ -201,10 +94,10 @@ def test_a_rejection_is_charged_to_the_input_at_fault_and_logged_rate_limited(
 def test_an_internal_error_logs_its_traceback_once_then_one_line_rate_limited(
     port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.ERROR, logger="pugsd.daemon.app")
+    caplog.set_level(logging.ERROR, logger="pugsd")
     d = _daemon(port)
     for i in range(100):
-        d._internal_error("errors.input.pose", "handling pose input", ValueError(f"boom {i}"))
+        d.report.internal_error("errors.input.pose", "handling pose input", ValueError(f"boom {i}"))
     recs = [r for r in caplog.records if r.getMessage().startswith("handling pose input failed")]
     assert [r.getMessage() for r in recs] == [
         "handling pose input failed: boom 0",
@@ -220,15 +113,15 @@ def test_dropped_total_sums_every_kind_of_drop(port: int) -> None:
         d.stereo_box.offer((None, 0.0))  # type: ignore[arg-type]
     for _ in range(4):
         d.depth_box.offer((None, 0.0))  # type: ignore[arg-type]
-    assert [d.ingress.enter() for _ in range(6)] == [True] + [False] * 5
-    d.ingress.leave()
+    assert [d.bridge.ingress.enter() for _ in range(6)] == [True] + [False] * 5
+    d.bridge.ingress.leave()
     small = np.zeros((4, 4), np.uint8)
     for i in range(8):  # left halves without partners (no CameraInfo: not judged on arrival)
-        assert d.ingress.enter()
+        assert d.bridge.ingress.enter()
         _feed(d, "left_image", codec.encode_image(small, (i + 1) * 10**9, "left"))
-    assert d.ingress.enter()  # one sample handed over, not yet handled
-    d._drop("pose_wait", "no pose", 11)
-    assert (d.stereo_box.dropped, d.depth_box.dropped, d.pairer.unpaired_dropped) == (2, 3, 7)
+    assert d.bridge.ingress.enter()  # one sample handed over, not yet handled
+    d.report.drop("pose_wait", "no pose", 11)
+    assert (d.stereo_box.dropped, d.depth_box.dropped, d.frames.pairer.unpaired_dropped) == (2, 3, 7)
     st = d.status()
     assert d.dropped_total() == st["dropped_total"] == 2 + 3 + 5 + 7 + 11
     assert st["ingress"] == {"pending": 1, "dropped": 5}
@@ -240,23 +133,23 @@ def test_dropped_total_sums_every_kind_of_drop(port: int) -> None:
 
 def test_inbound_accounting_received_gaps_ages_backlog_and_no_handling_when_stopping(port: int) -> None:
     d = _daemon(port)
-    d._pose_backlog_s.extend([1.0, 2.0])
-    assert d.ingress.enter()
+    d.bridge.pose_backlog_s.extend([1.0, 2.0])
+    assert d.bridge.ingress.enter()
     _feed(d, "pose", _pose(10**9, "odom"), lost_before=2)
-    assert d.ingress.pending == 0
-    assert list(d._pose_backlog_s) == [2.0]
+    assert d.bridge.ingress.pending == 0
+    assert list(d.bridge.pose_backlog_s) == [2.0]
     assert d.health.counts["received.pose"] == 1 and d.health.counts["upstream_gaps.pose"] == 1
-    assert d.health.counts["poses"] == 1 and len(d.poses) == 1
-    assert d._frame_id == "odom"  # the outputs' frame follows the poses'
+    assert d.health.counts["poses"] == 1 and len(d.frames.poses) == 1
+    assert d.frames.frame_id == "odom"  # the outputs' frame follows the poses'
     _feed(d, "pose", _pose(2 * 10**9, ""))
-    assert d._frame_id == "odom" and "upstream_gaps.pose" in d.health.counts
+    assert d.frames.frame_id == "odom" and "upstream_gaps.pose" in d.health.counts
     assert d.health.counts["upstream_gaps.pose"] == 1
     li, ri = codec.encode_stereo_infos(RIG, 0)
     _feed(d, "left_info", li)
-    assert sorted(d._last_recv_s) == ["pose"]  # CameraInfo is not a stream
+    assert sorted(d.inputs.last_recv_s) == ["pose"]  # CameraInfo is not a stream
     d._stopping = True
     _feed(d, "right_info", ri)
-    assert d.health.counts["received.right_info"] == 1 and "right_info" not in d._infos
+    assert d.health.counts["received.right_info"] == 1 and "right_info" not in d.frames.infos
     assert "rejected" not in d.health.counts
 
 
@@ -266,15 +159,15 @@ def test_a_frame_whose_infos_came_late_charges_the_bad_half_and_the_good_frames_
     """Images before any CameraInfo are judged when the frame is released: a right half of the
     wrong size is charged to ``right_image`` (not the frame's default, ``left_image``), and so is
     a right half of another encoding than its left."""
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = _daemon(port, side_image_wait_s=0.0)
     s1, s2, s3 = 10**9, 2 * 10**9, 3 * 10**9
     _feed(d, "pose", _pose(s1))
     _feed(d, "left_image", codec.encode_image(IMG, s1, "left"))
     _feed(d, "right_image", codec.encode_image(np.ascontiguousarray(IMG[:, : W // 2]), s1, "right"))
-    assert not d.health.rejected and len(d.gate) == 1  # waiting for CameraInfo
+    assert not d.health.rejected and len(d.frames.gate) == 1  # waiting for CameraInfo
     _infos(d)  # releases the frame
-    assert dict(d.health.rejected) == {"right_image: wrong_size": 1} and len(d.gate) == 0
+    assert dict(d.health.rejected) == {"right_image: wrong_size": 1} and len(d.frames.gate) == 0
     (line,) = [r.getMessage() for r in caplog.records if r.getMessage().startswith("rejected")]
     assert line == (
         f"rejected right_image input (wrong_size, #1): right_image: image is ({H}, {W // 2}), "
@@ -294,9 +187,9 @@ def test_a_frame_whose_infos_came_late_charges_the_bad_half_and_the_good_frames_
 def test_a_new_right_camera_info_rebuilds_the_rig(port: int) -> None:
     d = _daemon(port)
     _infos(d)
-    assert d._stereo_rig().baseline_m == pytest.approx(0.05)
+    assert d.frames.stereo_rig().baseline_m == pytest.approx(0.05)
     _feed(d, "right_info", codec.encode_camera_info(RIG.right, 0, "right", 0.1))
-    assert d._stereo_rig().baseline_m == pytest.approx(0.1)
+    assert d.frames.stereo_rig().baseline_m == pytest.approx(0.1)
 
 
 def test_a_frame_waiting_for_its_mask_goes_on_when_the_mask_comes_and_uses_it(port: int) -> None:
@@ -308,7 +201,7 @@ def test_a_frame_waiting_for_its_mask_goes_on_when_the_mask_comes_and_uses_it(po
     _feed(d, "pose", _pose(s))
     _feed(d, "left_image", codec.encode_image(IMG, s, "left"))
     _feed(d, "right_image", codec.encode_image(IMG, s, "right"))
-    assert d.health.counts.get("frames.stereo", 0) == 0 and len(d.gate) == 1
+    assert d.health.counts.get("frames.stereo", 0) == 0 and len(d.frames.gate) == 1
     mask = np.zeros((H, W), np.uint8)
     mask[:, W // 2 :] = 7
     _feed(d, "mask", codec.encode_image(mask, s, "left", "mono8"))
@@ -325,7 +218,7 @@ def test_a_depth_frame_waiting_for_its_std_goes_on_when_the_std_comes(port: int)
     _feed(d, "pose", _pose(s))
     _feed(d, "mask", codec.encode_image(np.full((H, W), 255, np.uint8), s, "left", "mono8"))
     _feed(d, "depth", codec.encode_image(np.full((H, W), 0.5, np.float32), s, "depth"))
-    assert d.health.counts.get("frames.depth", 0) == 0 and len(d.gate) == 1
+    assert d.health.counts.get("frames.depth", 0) == 0 and len(d.frames.gate) == 1
     std = np.full((H, W), 0.01, np.float32)
     _feed(d, "depth_std", codec.encode_image(std, s, "depth", "32FC1"))
     assert d.health.counts["frames.depth"] == 1
@@ -342,7 +235,7 @@ def test_frames_skipped_by_the_rate_limit_let_their_std_images_go(port: int) -> 
         _feed(d, "depth_std", codec.encode_image(np.full((H, W), 0.01, np.float32), s, "depth", "32FC1"))
         _feed(d, "depth", codec.encode_image(np.full((H, W), 0.5, np.float32), s, "depth"))
     assert d.health.counts["frames.skipped_rate"] == 6 and d.health.counts["frames.depth"] == 3
-    assert not d._stds, "the std images of skipped frames are let go"
+    assert not d.frames.stds, "the std images of skipped frames are let go"
 
 
 # --- the status message ---------------------------------------------------------------------------
@@ -355,8 +248,8 @@ class _NoStats(FakePipeline):
 
 def test_status_carries_its_counters(port: int) -> None:
     d = Daemon(load_config_dict(daemon_config_dict(port)), _NoStats())
-    d.deletes_ignored = 3
-    d.bridge_errors["pose"] = 2
+    d.bridge.deletes_ignored = 3
+    d.bridge.errors["pose"] = 2
     d.was_ready, d.ready = True, False
     d.recorder = SimpleNamespace(stats=SimpleNamespace(as_dict=lambda: {"written": 4}))
     gid = bytes(range(16))
@@ -380,19 +273,19 @@ def test_status_carries_its_counters(port: int) -> None:
 
 def test_input_ages_and_staleness_at_a_given_time(port: int) -> None:
     d = _daemon(port, input_stale_s=5.0)
-    d._last_recv_s.update({"pose": 100.0, "depth": 105.0})
+    d.inputs.last_recv_s.update({"pose": 100.0, "depth": 105.0})
     assert d.input_ages_s(110.1234) == {"depth": 5.123, "pose": 10.123}
     assert d.stale_inputs(110.0) == ["pose"]  # depth is exactly 5 s old: not yet stale
     assert d.stale_inputs(110.001) == ["depth", "pose"]
     off = _daemon(port, input_stale_s=0.0)
-    off._last_recv_s["pose"] = 0.0
+    off.inputs.last_recv_s["pose"] = 0.0
     assert off.stale_inputs(1e6) == []
 
 
 def test_a_refused_command_is_counted_as_queue_full_or_as_shutting_down(
     port: int, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = _daemon(port)
     n = d.cfg.queues.commands
     assert all(d._offer_command(Command("reset", None)) for _ in range(n))
@@ -413,24 +306,24 @@ def test_a_second_half_of_a_waiting_stamp_is_a_counted_duplicate_drop(port: int)
     _feed(d, "left_image", codec.encode_image(IMG, 10**9, "left"))
     _feed(d, "left_image", codec.encode_image(IMG, 10**9, "left"))
     assert dict(d.health.dropped) == {"unpaired: duplicate_stamp": 1}
-    assert d.pairer.pending() == 1 and d.dropped_total() == 1
+    assert d.frames.pairer.pending() == 1 and d.dropped_total() == 1
 
 
 @pytest.mark.parametrize("role", ["mask", "depth_std"])
 def test_a_side_image_of_another_size_is_charged_to_its_own_input_and_left_out(port: int, role: str) -> None:
     d = _daemon(port)
     same = np.ones((H, W), np.float32)
-    assert d._side_image(role, same, (H, W)) is same
-    assert d._side_image(role, None, (H, W)) is None
+    assert d.frames.side_image(role, same, (H, W)) is same
+    assert d.frames.side_image(role, None, (H, W)) is None
     small = np.ones((H // 2, W), np.float32)
-    assert d._side_image(role, small, (H, W)) is None  # the frame goes on without it
+    assert d.frames.side_image(role, small, (H, W)) is None  # the frame goes on without it
     assert dict(d.health.rejected) == {f"{role}: wrong_size": 1}
 
 
 def test_the_status_lists_the_inputs_silent_for_longer_than_input_stale_s(port: int) -> None:
     d = _daemon(port, input_stale_s=5.0)
     now = time.monotonic()
-    d._last_recv_s.update({"pose": now - 60.0, "left_image": now - 1.0})  # one long silent, one fresh
+    d.inputs.last_recv_s.update({"pose": now - 60.0, "left_image": now - 1.0})  # one long silent, one fresh
     assert d.status()["inputs"]["stale"] == ["pose"]
 
 
@@ -440,7 +333,7 @@ def test_frames_pushed_out_of_the_full_pose_wait_queue_are_counted_oldest_first(
     for i in range(1, 5):  # no pose comes: four frames for a queue of two
         _feed(d, "depth", codec.encode_image(np.full((H, W), 0.5, np.float32), i * 10**9, "depth"))
     assert dict(d.health.dropped) == {"pose_wait: pose wait queue full": 2}
-    assert len(d.gate) == 2
+    assert len(d.frames.gate) == 2
 
 
 @pytest.mark.parametrize("kind", ["stereo", "depth"])
@@ -452,7 +345,7 @@ def test_a_frame_the_core_refuses_for_its_pose_is_charged_to_the_pose(
     def refuse(**_: Any) -> None:
         raise PugsdError("pose covariance is not positive semi-definite")
 
-    monkeypatch.setattr(f"pugsd.daemon.app.{kind.capitalize()}Frame", refuse)
+    monkeypatch.setattr(f"pugsd.stream.assembler.{kind.capitalize()}Frame", refuse)
     d = _daemon(port, side_image_wait_s=0.0)
     s = 10**9
     if kind == "stereo":

@@ -1,10 +1,10 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Small pieces of pugsd/daemon/app.py that earlier audits skipped, pinned (a mutation audit):
-``apply_malloc_arena_max`` (each condition under which it leaves glibc alone, and the exact
-``mallopt(M_ARENA_MAX = -8, n)`` call otherwise, against a stand-in libc); the rate-limited
-``errors.<stage>`` lines of ``_guard`` (the traceback once, then one line for the 2nd to 5th and
-every 100th, while every failure is counted); and the recorder in ``run()`` and the status when
-it cannot write (the daemon still starts and says why), and the shutdown line naming its files."""
+"""The daemon's process set-up, stage guard and start-up: ``apply_malloc_arena_max`` (each condition
+under which it leaves glibc alone, and the exact ``mallopt(M_ARENA_MAX = -8, n)`` call otherwise,
+against a stand-in libc); the rate-limited ``errors.<stage>`` lines of ``_guard`` (the traceback
+once, then one line for the 2nd to 5th and every 100th, while every failure is counted); and the
+recorder in ``run()`` and the status when it cannot write (the daemon still starts and says why),
+the shutdown line naming its files, and the serving line naming the endpoints as configured."""
 
 from __future__ import annotations
 
@@ -17,13 +17,15 @@ from typing import Any
 import pytest
 
 import pugsd.daemon.app as app_mod
+import pugsd.daemon.process as process_mod
 from pugsd.config import load_config_dict
-from pugsd.daemon.app import Daemon, InputRejected, apply_malloc_arena_max
+from pugsd.daemon.app import Daemon, InputRejected
 from pugsd.daemon.notify import Notifier
+from pugsd.daemon.process import apply_malloc_arena_max
 from pugsd.errors import PugsdError
 from pugsd.record.recorder import default_record_keys
 from tests.daemon.conftest import FakePipeline
-from tests.daemon.test_app_workers_audit import DeclSession, stop_at_ready
+from tests.daemon.test_daemon_workers import DeclSession, stop_at_ready
 
 # --- apply_malloc_arena_max ---------------------------------------------------------------------------
 
@@ -65,9 +67,9 @@ class FakeLibc:
 @pytest.fixture
 def libc(monkeypatch: pytest.MonkeyPatch) -> FakeLibc:
     fake = FakeLibc()
-    monkeypatch.setattr(app_mod.ctypes, "CDLL", fake)
+    monkeypatch.setattr(process_mod.ctypes, "CDLL", fake)
     monkeypatch.delenv("MALLOC_ARENA_MAX", raising=False)
-    monkeypatch.setattr(app_mod.sys, "platform", "linux")
+    monkeypatch.setattr(process_mod.sys, "platform", "linux")
     return fake
 
 
@@ -105,13 +107,13 @@ def test_arena_max_leaves_an_environment_choice_alone(
 def test_arena_max_off_linux_leaves_malloc_alone(
     libc: FakeLibc, monkeypatch: pytest.MonkeyPatch, platform: str
 ) -> None:
-    monkeypatch.setattr(app_mod.sys, "platform", platform)
+    monkeypatch.setattr(process_mod.sys, "platform", platform)
     assert apply_malloc_arena_max(2) is False
     assert libc.opened == []
 
 
 def test_arena_max_on_any_linux_platform_string(libc: FakeLibc, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(app_mod.sys, "platform", "linux2")  # the Python 2 era spelling: still linux
+    monkeypatch.setattr(process_mod.sys, "platform", "linux2")  # the Python 2 era spelling: still linux
     assert apply_malloc_arena_max(2) is True and libc.calls == [(-8, 2)]
 
 
@@ -145,9 +147,9 @@ def test_guard_logs_the_first_failure_with_its_traceback_then_2_to_5_and_every_1
         raise RuntimeError(f"boom {i}")
 
     async def main() -> list[Any]:
-        return [await d._guard("grasps", bad(i)) for i in range(1, 206)]
+        return [await d.report.guard("grasps", bad(i)) for i in range(1, 206)]
 
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     try:
         assert asyncio.run(main()) == [None] * 205
     finally:
@@ -179,12 +181,12 @@ def test_guard_counts_per_stage_and_a_rejection_is_not_an_error(caplog: pytest.L
 
     async def main() -> None:
         for _ in range(3):
-            await d._guard("depth", bad())
-        await d._guard("grasps", bad())  # its own count: logged with the traceback again
-        await d._guard("train", rejected())
-        await d._guard("integrate", off_map())  # every later frame fails alike: a failure too
+            await d.report.guard("depth", bad())
+        await d.report.guard("grasps", bad())  # its own count: logged with the traceback again
+        await d.report.guard("train", rejected())
+        await d.report.guard("integrate", off_map())  # every later frame fails alike: a failure too
 
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     try:
         asyncio.run(main())
     finally:
@@ -207,11 +209,11 @@ def test_bridge_errors_are_all_counted_per_input_and_logged_rate_limited(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     d = _daemon()
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     try:
         for i in range(1, 206):
-            d._bridge_error("pose", ValueError(f"bad attachment {i}"))
-        d._bridge_error("depth", KeyError("k"))
+            d.bridge.error("pose", ValueError(f"bad attachment {i}"))
+        d.bridge.error("depth", KeyError("k"))
     finally:
         _shutdown(d)
     assert [r.getMessage() for r in caplog.records] == [
@@ -220,18 +222,18 @@ def test_bridge_errors_are_all_counted_per_input_and_logged_rate_limited(
         "depth sample lost in the zenoh callback (#1): KeyError: 'k'",
     ]  # fmt: skip
     assert all(r.levelno == logging.ERROR for r in caplog.records)
-    assert d.bridge_errors == {"pose": 205, "depth": 1}
+    assert d.bridge.errors == {"pose": 205, "depth": 1}
 
 
 def test_upstream_gaps_are_all_counted_and_logged_rate_limited(caplog: pytest.LogCaptureFixture) -> None:
     d = _daemon()
     d._stopping = True  # counted and logged on arrival; nothing is dispatched
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     try:
         for i in range(1, 106):
-            assert d.ingress.enter()
+            assert d.bridge.ingress.enter()
             d._on_inbound(app_mod.Inbound("left_info", "k", b"", 1.0, lost_before=i % 7 + 1))
-        assert d.ingress.enter()
+        assert d.bridge.ingress.enter()
         d._on_inbound(app_mod.Inbound("left_info", "k", b"", 1.0))  # no gap: not counted
     finally:
         _shutdown(d)
@@ -242,7 +244,7 @@ def test_upstream_gaps_are_all_counted_and_logged_rate_limited(caplog: pytest.Lo
         for n in (1, 2, 3, 4, 5, 100)
     ]
     assert d.health.counts["upstream_gaps.left_info"] == 105
-    assert d.health.counts["received.left_info"] == 106 and d.ingress.pending == 0
+    assert d.health.counts["received.left_info"] == 106 and d.bridge.ingress.pending == 0
 
 
 # --- the recorder: started by run(), reported in the status, its files named at shutdown -------------
@@ -313,7 +315,7 @@ def test_close_names_five_files_and_counts_the_rest_only_past_five(
     d = _daemon()
     d._own_session = False
     d.recorder = _Rec(n)
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     try:
         d._close()
     finally:
@@ -321,3 +323,13 @@ def test_close_names_five_files_and_counts_the_rest_only_past_five(
     msgs = [r.getMessage() for r in caplog.records]
     assert [m for m in msgs if m.startswith("recording finished")] == [line]
     assert d.recorder is None
+
+
+def test_the_serving_line_names_the_endpoints_as_configured() -> None:
+    from pugsd.daemon.bridge import endpoints as _endpoints
+
+    z = {"listen": {"endpoints": ["tcp/127.0.0.1:7447", "tcp/127.0.0.1:7448"]}, "connect": {"endpoints": []}}
+    assert _endpoints(z, "listen") == "tcp/127.0.0.1:7447, tcp/127.0.0.1:7448"
+    assert _endpoints(z, "connect") == "none" and _endpoints({}, "listen") == "none"
+    per_mode = {"connect": {"endpoints": {"peer": ["tcp/127.0.0.1:1"], "client": ["tcp/127.0.0.1:2"]}}}
+    assert _endpoints(per_mode, "connect") == "tcp/127.0.0.1:1, tcp/127.0.0.1:2"

@@ -1,6 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
 """``machine_info`` and ``cpu_model`` of pugsd/bench/measure.py, pinned field by field from
-stand-in sources (a mutation audit): the report names the machine the figures came from."""
+stand-in sources: the report names the machine the figures came from."""
 
 from __future__ import annotations
 

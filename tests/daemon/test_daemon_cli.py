@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""pugsd/daemon/cli.py (mutation audit): ``pugsd demo``'s options as they reach ``run_demo``,
+"""pugsd/daemon/cli.py: ``pugsd demo``'s options as they reach ``run_demo``,
 ``pugsd run``'s set-up order (config, malloc arenas, logging) with the daemon replaced by a stub,
 the hard exit after abandoned work, and the signal handlers ``serve`` installs and removes."""
 

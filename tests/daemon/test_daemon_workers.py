@@ -1,12 +1,10 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The daemon's worker loops, pinned (a mutation audit of pugsd/daemon/app.py beyond its input
-path, tests/daemon/test_app_audit.py, and its outputs, tests/daemon/test_app_outputs_audit.py):
-depth estimation hands its frames on and drops those a reset overtook; ingest trains
-``train_steps_per_frame`` steps after each frame and idles on with ``idle_train_steps`` rounds,
-backing off exponentially while training fails; every model call holds the model lock; a reset
-waits for an arm motion, bumps the generation and always ends; the status, watchdog, gate and
-arm workers say and do what they claim; shutdown awaits only the workers inside a call and
-bounds them; ``run()`` never sends READY when stopped while starting. No zenoh session: the
+"""The daemon's worker loops: depth estimation hands its frames on and drops those a reset overtook;
+ingest trains ``train_steps_per_frame`` steps after each frame and idles on with
+``idle_train_steps`` rounds, backing off exponentially while training fails; every model call holds
+the model lock; a reset waits for an arm motion, bumps the generation and always ends; the status,
+watchdog, gate and arm workers say and do what they claim; shutdown awaits only the workers inside a
+call and bounds them; ``run()`` never sends READY when stopped while starting. No zenoh session: the
 workers run on their own with stand-in sessions, arms, notifiers and a stand-in clock."""
 
 from __future__ import annotations
@@ -28,6 +26,7 @@ import pugsd.daemon.app as app_mod
 from pugsd.config import load_config_dict
 from pugsd.core.types import DepthFrame, StereoFrame
 from pugsd.daemon.app import Command, Daemon
+from pugsd.daemon.health import jsonable
 from pugsd.daemon.notify import Notifier
 from pugsd.errors import EmptyCloudError, PugsdError
 from pugsd.record.recorder import default_record_keys
@@ -41,7 +40,7 @@ PIXELS = RIG.left.width * RIG.left.height
 def _daemon(pipe: FakePipeline | None = None, notifier: Notifier | None = None, **daemon: Any) -> Daemon:
     cfg = load_config_dict({"daemon": daemon})
     d = Daemon(cfg, pipe or FakePipeline(), notifier=notifier or Notifier(""))
-    d._publishers = {r: RecordingPublisher() for r in ROLES}  # type: ignore[misc]
+    d.outputs.publishers = {r: RecordingPublisher() for r in ROLES}  # type: ignore[misc]
     return d
 
 
@@ -202,7 +201,7 @@ def _drive_model(d: Daemon, rounds: list[Callable[[], Any]]) -> list[float]:
 
 def test_each_integrated_frame_is_counted_and_followed_by_train_steps_per_frame(clock: Clock) -> None:
     d, pipe = _lock_daemon(train_steps_per_frame=3, idle_train_steps=0)
-    d._grasps_urgent = True  # only idle rounds give way to urgent grasps
+    d.schedule.grasps_urgent = True  # only idle rounds give way to urgent grasps
     seen: list[int] = []
 
     def frame(stamp: int, recv_s: float) -> Callable[[], Any]:
@@ -217,9 +216,9 @@ def test_each_integrated_frame_is_counted_and_followed_by_train_steps_per_frame(
     assert timeouts == [0.5, 0.5, 0.5]  # idle_train_steps = 0: never an idle round
     c = d.health.counts
     assert (c["integrated"], c["points"], c["train_steps"]) == (2, 2 * PIXELS, 6)
-    assert d._steps_since_frame == 3  # counted from the newest frame
-    assert (d._last_frame_s, d._newest_recv_s) == (100.0, 99.75)
-    assert d._changed and d._frame_unpublished
+    assert d.schedule.steps_since_frame == 3  # counted from the newest frame
+    assert (d.schedule.last_frame_s, d._newest_recv_s) == (100.0, 99.75)
+    assert d.schedule.changed and d.schedule.frame_unpublished
     assert d.health.latency["frame_age_at_integrate"].summary()["n"] == 2
     assert all(held for _, held in pipe.held), pipe.held  # integrate and train under the model lock
 
@@ -240,7 +239,7 @@ def test_a_failed_integration_is_not_counted_and_not_trained_on(clock: Clock) ->
     _drive_model(d, [lambda: (_depth(5), 100.0)])
     assert pipe.steps == 0 and "integrated" not in d.health.counts
     assert d.health.counts["errors.integrate"] == 1 and d.health.failures["integrate"] == 1
-    assert d._last_frame_s is None and not d._changed and not d._frame_unpublished
+    assert d.schedule.last_frame_s is None and not d.schedule.changed and not d.schedule.frame_unpublished
 
 
 def test_a_stop_during_integration_skips_the_training(clock: Clock) -> None:
@@ -270,14 +269,14 @@ def test_idle_rounds_train_after_a_frame_until_idle_train_s_unless_grasps_are_ur
         return r
 
     def urgent(v: bool) -> Callable[[], None]:
-        return lambda: setattr(d, "_grasps_urgent", v)
+        return lambda: setattr(d.schedule, "grasps_urgent", v)
 
     def at(t: float) -> Callable[[], None]:
         return lambda: setattr(clock, "t", t)
 
     def retry_at(t: float) -> None:
-        d._grasps_urgent = False
-        d._retry_train_at = t
+        d.schedule.grasps_urgent = False
+        d.schedule.retry_train_at = t
 
     timeouts = _drive_model(
         d,
@@ -313,7 +312,7 @@ def test_idle_steps_run_at_decaying_rates_and_a_frame_restores_them(clock: Clock
     )
     decayed = [1.0 / (1.0 + k / 4.0) for k in range(6)]
     assert pipe.rate_scales == pytest.approx([1.0, 1.0, *decayed, 1.0, 1.0, *decayed[:3]], abs=1e-12)
-    assert d._idle_steps == 3
+    assert d.schedule.idle_steps == 3
 
 
 def test_idle_steps_before_the_model_is_ready_run_at_full_rates_and_do_not_count(clock: Clock) -> None:
@@ -323,7 +322,7 @@ def test_idle_steps_before_the_model_is_ready_run_at_full_rates_and_do_not_count
     pipe.ready_after = 3  # ready once 3 steps are done: after the 2nd idle step
     _drive_model(d, [lambda: (_depth(5), 100.0), lambda: None, lambda: None])
     assert pipe.rate_scales == pytest.approx([1.0, 1.0, 1.0, 1.0, 1 / 1.25, 1 / 1.5, 1 / 1.75], abs=1e-12)
-    assert d.ready and d._idle_steps == 4
+    assert d.ready and d.schedule.idle_steps == 4
 
 
 def test_idle_rate_decay_steps_0_keeps_the_rates_constant(clock: Clock) -> None:
@@ -335,7 +334,7 @@ def test_idle_rate_decay_steps_0_keeps_the_rates_constant(clock: Clock) -> None:
 
 def test_the_default_idle_decay_halves_the_rates_after_100_idle_steps(clock: Clock) -> None:
     d, pipe = _lock_daemon(train_steps_per_frame=0, idle_train_steps=101)
-    d._last_frame_s = 100.0
+    d.schedule.last_frame_s = 100.0
     d.ready = True
     pipe.ready_after, pipe.integrated = 0, [1]  # and it stays ready
     _drive_model(d, [lambda: None])
@@ -345,11 +344,11 @@ def test_the_default_idle_decay_halves_the_rates_after_100_idle_steps(clock: Clo
 
 def test_an_idle_round_stops_as_soon_as_grasps_become_urgent(clock: Clock) -> None:
     d, pipe = _lock_daemon(train_steps_per_frame=0, idle_train_steps=4)
-    d._last_frame_s = 100.0
+    d.schedule.last_frame_s = 100.0
     real = pipe.train_steps
 
     def urgent_after(n: int, rate_scale: float = 1.0) -> TrainStats:
-        d._grasps_urgent = True  # grasps for a new frame began during this step
+        d.schedule.grasps_urgent = True  # grasps for a new frame began during this step
         return real(n, rate_scale)
 
     pipe.train_steps = urgent_after  # type: ignore[method-assign]
@@ -359,28 +358,28 @@ def test_an_idle_round_stops_as_soon_as_grasps_become_urgent(clock: Clock) -> No
 
 def test_an_idle_round_skipped_for_urgent_grasps_leaves_the_retry_time_alone(clock: Clock) -> None:
     d, pipe = _lock_daemon(train_steps_per_frame=0, idle_train_steps=2)
-    d._last_frame_s = 100.0
-    d._grasps_urgent = True
+    d.schedule.last_frame_s = 100.0
+    d.schedule.grasps_urgent = True
     d.health.failures["train"] = 2  # a failing model: a round would set the next retry 0.2 s out
     _drive_model(d, [lambda: None])
-    assert pipe.steps == 0 and d._retry_train_at == 0.0
+    assert pipe.steps == 0 and d.schedule.retry_train_at == 0.0
 
 
 def test_failed_idle_training_is_retried_with_a_doubling_backoff_capped_at_5_s(clock: Clock) -> None:
     d, pipe = _lock_daemon(train_steps_per_frame=0, idle_train_steps=3, max_consecutive_failures=100)
     pipe.fail = True
-    d._last_frame_s = 100.0  # a frame was integrated: idle rounds run for idle_train_s (60 s)
+    d.schedule.last_frame_s = 100.0  # a frame was integrated: idle rounds run for idle_train_s (60 s)
     waits: list[float] = []
     errors: list[int] = []
 
     def rnd() -> None:
         errors.append(d.health.counts.get("errors.train", 0))
-        waits.append(d._retry_train_at - clock.t)
-        clock.t = d._retry_train_at  # the retry is due: the next round tries again
+        waits.append(d.schedule.retry_train_at - clock.t)
+        clock.t = d.schedule.retry_train_at  # the retry is due: the next round tries again
         if len(errors) == 9:
             pipe.fail = False
 
-    _drive_model(d, [rnd] * 10 + [lambda: waits.append(d._retry_train_at - clock.t)])
+    _drive_model(d, [rnd] * 10 + [lambda: waits.append(d.schedule.retry_train_at - clock.t)])
     # each round fails at its first step (and ends there); the wait doubles from 0.1 s up to 5 s
     assert errors == [0, 1, 2, 3, 4, 5, 6, 7, 8, 8]
     assert waits[1:9] == pytest.approx([0.1, 0.2, 0.4, 0.8, 1.6, 3.2, 5.0, 5.0], abs=1e-9)
@@ -396,18 +395,18 @@ def test_train_yields_to_a_waiting_frame_unless_the_last_step_is_overdue(clock: 
     async def main() -> list[int]:
         out = []
         d.depth_box.offer((_depth(1), 100.0))
-        d._last_train_s = 99.5  # exactly min_train_interval_s ago: not overdue
+        d.schedule.last_train_s = 99.5  # exactly min_train_interval_s ago: not overdue
         await d._train(4)
         out.append(pipe.steps)
-        assert not d._changed  # no step: the model is unchanged
-        d._last_train_s = 99.25  # overdue: one step is forced, then the frame goes first
+        assert not d.schedule.changed  # no step: the model is unchanged
+        d.schedule.last_train_s = 99.25  # overdue: one step is forced, then the frame goes first
         await d._train(4)
         out.append(pipe.steps)
-        assert d._changed  # a step changed the model: grasps are due again
+        assert d.schedule.changed  # a step changed the model: grasps are due again
         d.depth_box.clear()
         await d._train(4)  # nothing waiting: all four
         out.append(pipe.steps)
-        d._grasps_urgent = True
+        d.schedule.grasps_urgent = True
         await d._train(4, idle=True)  # an idle round gives way to urgent grasps
         out.append(pipe.steps)
         await d._train(2)  # a round after a frame does not
@@ -421,7 +420,8 @@ def test_train_yields_to_a_waiting_frame_unless_the_last_step_is_overdue(clock: 
         assert asyncio.run(main()) == [0, 1, 5, 5, 7, 7]
     finally:
         _shutdown(d)
-    assert d.health.counts["train_steps"] == 7 and d._steps_since_frame == 7 and d._last_train_s == 100.0
+    assert d.health.counts["train_steps"] == 7
+    assert d.schedule.steps_since_frame == 7 and d.schedule.last_train_s == 100.0
 
 
 def test_a_round_that_meets_an_emptied_map_ends_without_changing_the_model(clock: Clock) -> None:
@@ -436,7 +436,8 @@ def test_a_round_that_meets_an_emptied_map_ends_without_changing_the_model(clock
     finally:
         _shutdown(d)
     assert [w for w, _ in pipe.held] == ["train"]  # the round ended at its first step
-    assert not d._changed and d._steps_since_frame == 0 and "train_steps" not in d.health.counts
+    assert not d.schedule.changed and d.schedule.steps_since_frame == 0
+    assert "train_steps" not in d.health.counts
     assert not d.health.failures and not d.health.rejected
 
 
@@ -534,7 +535,7 @@ def test_max_consecutive_failures_makes_a_stage_unhealthy_and_one_success_heals_
     async def main() -> list[list[str]]:
         out = []
         for coro in (bad, bad, bad, good):
-            await d._guard("depth", coro())
+            await d.report.guard("depth", coro())
             out.append(d.health.problems())
         return out
 
@@ -548,7 +549,7 @@ def test_max_consecutive_failures_makes_a_stage_unhealthy_and_one_success_heals_
 def test_a_queued_reset_waits_for_the_arm_motion_and_other_commands_do_nothing(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     pipe = FakePipeline()
     d = _daemon(pipe)
 
@@ -597,8 +598,8 @@ def test_a_reset_drops_what_waits_in_the_queues_and_the_pose_gate() -> None:
     d.stereo_box.offer((_stereo(1), 1.0))
     d.depth_box.offer((_depth(1), 1.0))
     d.depth_box.offer((_depth(2), 1.0))
-    d.gate.clear = lambda: 3  # type: ignore[method-assign,assignment]
-    d.pairer.clear = lambda: 2  # type: ignore[method-assign,assignment]
+    d.frames.gate.clear = lambda: 3  # type: ignore[method-assign,assignment]
+    d.frames.pairer.clear = lambda: 2  # type: ignore[method-assign,assignment]
     try:
         asyncio.run(d._reset())
     finally:
@@ -622,8 +623,8 @@ def test_the_status_worker_publishes_the_status_and_the_status_line(sleeps: list
     c["frames.stereo"], c["frames.depth"], c["integrated"] = 3, 2, 4
     d.health.reject("pose", "stale")
     d.health.drop("pose_wait", "no pose", 2)
-    d.grasps_published, d.ready = 7, True
-    d._last_recv_s["pose"] = time.monotonic() - 100.0  # silent for longer than input_stale_s
+    d.outputs.grasps_published, d.ready = 7, True
+    d.inputs.last_recv_s["pose"] = time.monotonic() - 100.0  # silent for longer than input_stale_s
 
     try:
         asyncio.run(asyncio.wait_for(d._status_worker(), 10.0))
@@ -634,10 +635,10 @@ def test_the_status_worker_publishes_the_status_and_the_status_line(sleeps: list
     ]
     assert sleeps == [0.25]  # one period of 1 / status_rate_hz before each status
     st = d.latest_status
-    assert st["inputs"]["stale"] == ["pose"] and d._stale_reported == {"pose"}  # logged once
-    pub = d._publishers["status"]
+    assert st["inputs"]["stale"] == ["pose"] and d.inputs.stale_reported == {"pose"}  # logged once
+    pub = d.outputs.publishers["status"]
     assert isinstance(pub, RecordingPublisher)
-    assert pub.puts == [codec.encode_status(app_mod._jsonable(st))]
+    assert pub.puts == [codec.encode_status(jsonable(st))]
 
 
 def test_a_status_round_that_raises_is_counted_and_the_worker_goes_on(
@@ -731,7 +732,7 @@ def test_a_watchdog_round_that_raises_withholds_that_ping_is_counted_and_the_wor
     daemon's task group. Now that round sends no ping (no verdict), the error is counted and
     logged, and the next round judges again."""
     _watchdog_env(monkeypatch, "20000")
-    caplog.set_level(logging.ERROR, logger="pugsd.daemon.app")
+    caplog.set_level(logging.ERROR, logger="pugsd")
     notifier = RecordingNotifier()
     d = _daemon(notifier=notifier)
     real_problems = d.problems
@@ -762,7 +763,7 @@ def test_an_unhealthy_daemon_withholds_pings_and_logs_each_new_problem_once(
     monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, clock: Clock
 ) -> None:
     _watchdog_env(monkeypatch, "20000")
-    caplog.set_level(logging.ERROR, logger="pugsd.daemon.app")
+    caplog.set_level(logging.ERROR, logger="pugsd")
     notifier = RecordingNotifier()
     d = _daemon(notifier=notifier, max_consecutive_failures=3)
     f = d.health.failures
@@ -790,7 +791,7 @@ def test_an_unhealthy_daemon_withholds_pings_and_logs_each_new_problem_once(
             set_failures(),  # healthy: a ping
             set_failures(train=3),  # unhealthy again: logged
             later(299.0, train=3),  # unchanged, within the re-log period
-            later(1.0, train=3),  # unchanged for _UNHEALTHY_RELOG_S: logged again
+            later(1.0, train=3),  # unchanged for UNHEALTHY_RELOG_S: logged again
         ],
     )
     assert notifier.sent == ["WATCHDOG=1"]
@@ -808,7 +809,7 @@ def test_a_problem_that_returns_after_a_healthy_round_is_logged_again(
     monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
     _watchdog_env(monkeypatch, "20000")
-    caplog.set_level(logging.ERROR, logger="pugsd.daemon.app")
+    caplog.set_level(logging.ERROR, logger="pugsd")
     d = _daemon(max_consecutive_failures=3)
     f = d.health.failures
     _drive_watchdog(d, [lambda: f.update(train=3), f.clear, lambda: f.update(train=3)])
@@ -837,8 +838,8 @@ def test_the_gate_worker_polls_only_a_waiting_gate_and_survives_a_failing_poll(s
         if len(polls) == 1:
             raise RuntimeError("lookup bug")
 
-    d.gate = Gate()  # type: ignore[assignment]
-    d._poll_gate = poll  # type: ignore[method-assign]
+    d.frames.gate = Gate()  # type: ignore[assignment]
+    d.frames.poll = poll  # type: ignore[method-assign]
     try:
         asyncio.run(asyncio.wait_for(d._gate_worker(), 10.0))
     finally:
@@ -878,22 +879,22 @@ class ScriptedArm:
 def test_the_arm_worker_reports_each_outcome_on_the_report_key_and_clears_busy(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d = _daemon()
     session = PutSession()
     d._session = session  # type: ignore[assignment]
     arm = ScriptedArm(d, {3: PugsdError("out of reach"), 4: ValueError("bad joint")})
-    d.arm = arm
+    d.arm.controller = arm
     d._generation = 2
 
     async def main() -> list[dict[str, Any] | None]:
         kept: list[dict[str, Any] | None] = []
-        task = asyncio.create_task(d._arm_worker())
+        task = asyncio.create_task(d.arm.worker())
         try:
             for i, (gid, gen) in enumerate([(1, 2), (2, 1), (3, 2), (4, 2)]):
-                assert d.arm_box.offer(("grasps", gid, 0.04, gen))
+                assert d.arm.box.offer(("grasps", gid, 0.04, gen))
                 await _until(lambda i=i: len(session.puts) == i + 1, f"report {i}")  # type: ignore[misc]
-                kept.append(d.arm_report)
+                kept.append(d.arm.report)
                 assert d._busy["arm"] is False
         finally:
             task.cancel()
@@ -945,14 +946,14 @@ def test_the_arm_and_command_workers_end_by_themselves_after_a_call_during_shutd
 
     async def main() -> None:
         arm = SlowArm()
-        d.arm = arm
-        task = asyncio.create_task(d._arm_worker())
-        assert d.arm_box.offer(("grasps", 1, None, 0))
+        d.arm.controller = arm
+        task = asyncio.create_task(d.arm.worker())
+        assert d.arm.box.offer(("grasps", 1, None, 0))
         await asyncio.wait_for(arm.started.wait(), 5.0)
         d._stopping = True
         arm.go.set()
         await asyncio.wait_for(task, 2.0)  # ended by itself
-        assert d.arm_report == {"grasp_id": 1, "ok": True}
+        assert d.arm.report == {"grasp_id": 1, "ok": True}
         d._stopping = False
         task = asyncio.create_task(d._command_worker())
         d.commands.offer(Command("reset", None))
@@ -1021,7 +1022,7 @@ def test_the_arm_starts_only_when_enabled_and_declares_its_keys(monkeypatch: pyt
     off = _daemon()
     off._session = DeclSession()  # type: ignore[assignment]
     asyncio.run(off._start_arm())
-    assert off.arm is None and off._entities == [] and FakeController.instances == []
+    assert off.arm.controller is None and off._entities == [] and FakeController.instances == []
     _shutdown(off)
 
     s = DeclSession()
@@ -1033,7 +1034,7 @@ def test_the_arm_starts_only_when_enabled_and_declares_its_keys(monkeypatch: pyt
 
     asyncio.run(start())
     (arm,) = FakeController.instances
-    assert d.arm is arm and arm.started == 1 and arm.cfg is d.cfg.arm
+    assert d.arm.controller is arm and arm.started == 1 and arm.cfg is d.cfg.arm
     assert s.log == [
         "queryable pugs/arm/execute",
         "queryable pugs/arm/stop",
@@ -1047,20 +1048,20 @@ def test_the_arm_starts_only_when_enabled_and_declares_its_keys(monkeypatch: pyt
 def test_stopping_the_arm_closes_it_once_and_a_failing_close_is_logged_not_raised(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    caplog.set_level(logging.ERROR, logger="pugsd.daemon.app")
+    caplog.set_level(logging.ERROR, logger="pugsd")
     d = _daemon()
-    asyncio.run(d._stop_arm())  # no arm: nothing to do
+    asyncio.run(d.arm.close())  # no arm: nothing to do
     ok, bad = FakeController(None), FakeController(None)
-    d.arm = ok
-    asyncio.run(d._stop_arm())
-    assert ok.closed == 1 and d.arm is None
-    d.arm = bad
+    d.arm.controller = ok
+    asyncio.run(d.arm.close())
+    assert ok.closed == 1 and d.arm.controller is None
+    d.arm.controller = bad
     FakeController.close_error = RuntimeError("link down")
     try:
-        asyncio.run(d._stop_arm())
+        asyncio.run(d.arm.close())
     finally:
         FakeController.close_error = None
-    assert bad.closed == 1 and d.arm is None
+    assert bad.closed == 1 and d.arm.controller is None
     assert [r.getMessage() for r in caplog.records] == ["arm: stop on shutdown failed: link down"]
     _shutdown(d)
 
@@ -1113,13 +1114,13 @@ def test_shutdown_lets_the_worker_in_a_call_finish_and_cancels_the_others(worker
     assert finished == [worker] and not tasks[worker].cancelled()
     assert all(t.cancelled() for n, t in tasks.items() if n != worker)
     assert undeclared == [1] and d._subscribers == []
-    assert all(b.closed for b in (d.stereo_box, d.depth_box, d.commands, d.arm_box))
+    assert all(b.closed for b in (d.stereo_box, d.depth_box, d.commands, d.arm.box))
 
 
 def test_shutdown_abandons_a_call_that_outlasts_the_timeout_then_reports_what_was_left(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     d = _daemon(shutdown_timeout_s=0.05)
     d.stereo_box.offer((_stereo(1), 1.0))
 
@@ -1152,7 +1153,7 @@ def test_shutdown_abandons_a_call_that_outlasts_the_timeout_then_reports_what_wa
 def test_the_recorder_starts_only_when_enabled_and_subscribes_its_keys(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     off = _daemon()
     off._start_recorder()  # no session: it must not be needed
     assert off.recorder is None

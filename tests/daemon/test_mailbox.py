@@ -51,3 +51,14 @@ def test_take_waits_and_take_within_times_out() -> None:
 def test_maxsize_must_be_positive() -> None:
     with pytest.raises(ValueError):
         Mailbox("x", 0, Overflow.REJECT)
+
+
+def test_a_drained_mailbox_waits_again() -> None:
+    box: Mailbox[int] = Mailbox("depth", 4, Overflow.DROP_OLDEST)
+    box.offer(1)
+    box.offer(2)
+    assert box._nonempty.is_set()
+    assert box.take_nowait() == 1 and box._nonempty.is_set()
+    assert box.take_nowait() == 2
+    assert not box._nonempty.is_set()  # take() now waits instead of spinning on the loop
+    assert box.stats()["taken"] == 2

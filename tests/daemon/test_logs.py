@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""pugsd.daemon.logs (mutation audit): the fields of a JSON log line (what the journal and a log
+"""pugsd.daemon.logs: the fields of a JSON log line (what the journal and a log
 shipper parse), and what ``setup_logging`` does to the root logger (level, one handler, stderr,
 the text format)."""
 

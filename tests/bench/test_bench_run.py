@@ -1,10 +1,10 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Mutation audit of the benchmark runner (pugsd/bench/run.py, options.py) with the measurements
-replaced by fakes: every figure the runner derives (ratios, roundings, which arrays a Spearman
-compares, which sections run) is checked against a closed form, and nothing is rendered or fitted.
+"""The benchmark runner (pugsd/bench/run.py, options.py) with the measurements replaced by fakes:
+every figure the runner derives (ratios, roundings, which arrays a Spearman compares, which sections
+run) is checked against a closed form, and nothing is rendered or fitted.
 
-The fake Spearman of two arrays is the product of their tags (each array is filled with a prime),
-so a field's value names the two arrays it compared."""
+The fake Spearman of two arrays is the product of their tags (each array is filled with a prime), so
+a field's value names the two arrays it compared."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """Time synchronisation of the inputs: stereo pairs by exact stamp, poses interpolated on SE(3).
 
-Pure buffers (no asyncio, no zenoh): the daemon feeds them on the loop thread and polls them.
+Pure buffers (no asyncio, no zenoh): the frame assembler feeds and polls them.
 ``T_W_C`` is camera -> world; ``pose_cov`` is the 6x6 (dt, phi) covariance of pugsd.core.types.
 """
 

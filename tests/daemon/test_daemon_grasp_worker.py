@@ -1,15 +1,13 @@
 # SPDX-License-Identifier: Apache-2.0
 """The grasp worker, the overload warning and ``run()``'s start-up with the recorder and the ROS
-graph tokens, pinned (a mutation audit of pugsd/daemon/app.py after tests/daemon/test_app_audit.py,
-test_app_outputs_audit.py and test_app_workers_audit.py): grasp rounds follow the grasp rate and
-the model's changes, the whole cloud goes out every ``cloud_interval_s`` while frames stream (the
-first one too), a round whose pipeline raises is counted and logged and the worker goes on, the
-urgency of grasps for a new frame lasts exactly one round; the overload warning says how many
-frames were pushed out, over how long, and the rates in and integrated, in that window; ``run()``
-starts the recorder once the inputs listen and declares the node's and its publishers' graph
-tokens before anything else and the subscriptions' after their subscribers. No zenoh session: the
-workers run on their own with a stand-in clock, a scripted ``asyncio.sleep`` and stand-in
-sessions."""
+graph tokens: grasp rounds follow the grasp rate and the model's changes, the whole cloud goes out
+every ``cloud_interval_s`` while frames stream (the first one too), a round whose pipeline raises is
+counted and logged and the worker goes on, the urgency of grasps for a new frame lasts exactly one
+round; the overload warning says how many frames were pushed out, over how long, and the rates in
+and integrated, in that window; ``run()`` starts the recorder once the inputs listen and declares
+the node's and its publishers' graph tokens before anything else and the subscriptions' after their
+subscribers. No zenoh session: the workers run on their own with a stand-in clock, a scripted
+``asyncio.sleep`` and stand-in sessions."""
 
 from __future__ import annotations
 
@@ -28,19 +26,19 @@ from pugsd.daemon.notify import Notifier
 from pugsd.record.recorder import default_record_keys
 from pugsd.wire.topics import INPUT_ROLES, OUTPUT_ROLES, ros_graph_tokens
 from tests.daemon.conftest import FakePipeline, RecordingPublisher
-from tests.daemon.test_app_workers_audit import Clock, DeclSession, _depth, stop_at_ready
+from tests.daemon.test_daemon_workers import Clock, DeclSession, _depth, stop_at_ready
 
 ROLES = ("grasps", "markers", "cloud", "status")
 
 
 def _daemon(pipe: FakePipeline | None = None, **daemon: Any) -> Daemon:
     d = Daemon(load_config_dict({"daemon": daemon}), pipe or FakePipeline(), notifier=Notifier(""))
-    d._publishers = {r: RecordingPublisher() for r in ROLES}  # type: ignore[misc]
+    d.outputs.publishers = {r: RecordingPublisher() for r in ROLES}  # type: ignore[misc]
     return d
 
 
 def _puts(d: Daemon, role: str) -> list[bytes]:
-    pub = d._publishers[role]
+    pub = d.outputs.publishers[role]
     assert isinstance(pub, RecordingPublisher)
     return pub.puts
 
@@ -74,7 +72,7 @@ class RoundPipeline(FakePipeline):
     def grasp_input(self) -> int:
         assert self.daemon is not None
         self.rounds.append(self.clock.t)
-        self.urgent.append(self.daemon._grasps_urgent)
+        self.urgent.append(self.daemon.schedule.grasps_urgent)
         return super().grasp_input()
 
     def propose(self, inp: int) -> int:
@@ -143,9 +141,9 @@ def _at(
     def step() -> None:
         clock.t = t
         if changed:
-            d._changed = True
+            d.schedule.changed = True
         if new_frame:
-            d._frame_unpublished = True
+            d.schedule.frame_unpublished = True
 
     return step
 
@@ -176,7 +174,7 @@ def test_while_frames_stream_the_cloud_goes_out_every_cloud_interval_and_rounds_
     delays = _scripted_rounds(d, monkeypatch, steps)
     assert pipe.rounds == [100.0, 101.0, 110.0, 111.0, 119.0, 120.0, 130.0, 131.0]
     assert pipe.clouds == [110.0, 120.0, 130.0, 131.0]
-    assert d.grasps_published == 8 and len(_puts(d, "cloud")) == 4
+    assert d.outputs.grasps_published == 8 and len(_puts(d, "cloud")) == 4
     assert delays == [0.02] * (len(steps) + 1)  # one 20 ms wait per round, the last ends it
 
 
@@ -188,11 +186,11 @@ def test_a_frame_within_pause_publish_s_counts_as_streaming_for_the_cloud(
     the round at 100.5 s is after a pause and has its cloud; a frame at 101 s streams again and
     the cloud interval runs from 100.5 s."""
     d, pipe = _round_daemon(clock, grasp_rate_hz=10.0, cloud_interval_s=10.0, pause_publish_s=0.5)
-    d._last_frame_s = 100.0
+    d.schedule.last_frame_s = 100.0
     again = _at(d, clock, 101.0)
 
     def frame_again() -> None:
-        d._last_frame_s = 101.0
+        d.schedule.last_frame_s = 101.0
         again()
 
     steps = [_at(d, clock, t) for t in (100.0, 100.3, 100.5)] + [frame_again, _at(d, clock, 110.5)]
@@ -221,7 +219,7 @@ def test_grasps_for_a_new_frame_are_urgent_for_their_round_only_and_carry_its_re
     pipe.propose = propose  # type: ignore[method-assign]
     _scripted_rounds(d, monkeypatch, steps)
     assert pipe.rounds == [100.0, 102.0, 103.0]
-    assert pipe.urgent == [True, False, True] and not d._grasps_urgent
+    assert pipe.urgent == [True, False, True] and not d.schedule.grasps_urgent
     # newest frame to grasps: 100 - 97.5, then 102 - 101 and 103 - 101 (the stand-in clock)
     lat = d.health.latency["newest_frame_to_grasps"].summary()
     assert (lat["n"], lat["max_ms"], lat["last_ms"]) == (3, 2500.0, 2000.0)
@@ -236,17 +234,18 @@ def test_a_round_whose_grasps_fail_is_counted_logged_and_the_next_round_publishe
     change of the model is published and heals the stage."""
     d, pipe = _round_daemon(clock, grasp_rate_hz=1.0, publish_cloud=False)
     pipe.fail = fails
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     checked: list[tuple[Any, ...]] = []
 
     def after_failure() -> None:
         c, f = d.health.counts, d.health.failures
-        checked.append((c["errors.grasps"], f["grasps"], d._grasps_urgent, d.grasps_published))
+        urgent, published = d.schedule.grasps_urgent, d.outputs.grasps_published
+        checked.append((c["errors.grasps"], f["grasps"], urgent, published))
         _at(d, clock, 102.0)()
 
     _scripted_rounds(d, monkeypatch, [_at(d, clock, 100.0, new_frame=True), after_failure])
     assert checked == [(1, 1, False, 0)]
-    assert pipe.rounds == [100.0, 102.0] and d.grasps_published == 1 and len(_puts(d, "grasps")) == 1
+    assert pipe.rounds == [100.0, 102.0] and d.outputs.grasps_published == 1 and len(_puts(d, "grasps")) == 1
     assert d.health.counts["errors.grasps"] == 1 and "grasps" not in d.health.failures
     (rec,) = [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert rec.getMessage() == "grasps stage failed; continuing" and rec.exc_info is not None
@@ -260,12 +259,12 @@ def test_a_failing_cloud_leaves_the_grasps_published_and_counts_a_grasps_error(
 ) -> None:
     d, pipe = _round_daemon(clock, grasp_rate_hz=1.0)
     pipe.fail = "finish_cloud"
-    before = d._last_cloud_published_s
+    before = d.schedule.last_cloud_published_s
     _scripted_rounds(d, monkeypatch, [_at(d, clock, 100.0), _at(d, clock, 101.0)])
     assert pipe.clouds == [100.0, 101.0] and pipe.rounds == [100.0, 101.0]
-    assert d.grasps_published == 2 and len(_puts(d, "cloud")) == 1
+    assert d.outputs.grasps_published == 2 and len(_puts(d, "cloud")) == 1
     assert d.health.counts["errors.grasps"] == 1 and "clouds_preempted" not in d.health.counts
-    assert d._last_cloud_published_s == 101.0 != before
+    assert d.schedule.last_cloud_published_s == 101.0 != before
 
 
 def test_a_stop_during_the_wait_starts_no_round(clock: Clock, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -276,7 +275,7 @@ def test_a_stop_during_the_wait_starts_no_round(clock: Clock, monkeypatch: pytes
         d._stopping = True  # shutdown begins while the worker waits
 
     _scripted_rounds(d, monkeypatch, [stop])
-    assert pipe.rounds == [] and d._changed and d.grasps_published == 0
+    assert pipe.rounds == [] and d.schedule.changed and d.outputs.grasps_published == 0
 
 
 def test_the_cloud_is_asked_to_give_way_to_fresh_grasps(
@@ -291,8 +290,8 @@ def test_the_cloud_is_asked_to_give_way_to_fresh_grasps(
             assert self.daemon is not None and should_stop is not None
             own = should_stop.__func__ is Daemon._cloud_gives_way
             seen.append(own and should_stop.__self__ is self.daemon)
-            self.daemon._frame_unpublished = True  # a newer frame came, then the input paused
-            self.daemon._last_cloud_published_s = self.clock.t - 1.0  # a cloud went out recently
+            self.daemon.schedule.frame_unpublished = True  # a newer frame came, then the input paused
+            self.daemon.schedule.last_cloud_published_s = self.clock.t - 1.0  # a cloud went out recently
             return None if should_stop() else super().finish_cloud(result, should_stop)
 
     pipe = GiveWay(clock)
@@ -300,7 +299,7 @@ def test_the_cloud_is_asked_to_give_way_to_fresh_grasps(
     pipe.daemon, d.ready = d, True
     _scripted_rounds(d, monkeypatch, [_at(d, clock, 100.0)])
     assert seen == [True] and d.health.counts["clouds_preempted"] == 1 and _puts(d, "cloud") == []
-    assert d.grasps_published == 1
+    assert d.outputs.grasps_published == 1
 
 
 # --- the overload warning ----------------------------------------------------------------------------
@@ -327,7 +326,7 @@ def test_the_overload_line_counts_only_the_window_and_divides_by_its_real_length
     the rates divide by the time since the window began (13 s: the status worker may be late),
     and the median wait before fusion is given in seconds."""
     d = _daemon()
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     _overflow(d.stereo_box, 3)
     d.health.count("frames.stereo", 50)
     d.health.count("frames.depth", 20)
@@ -351,7 +350,7 @@ def test_the_overload_line_counts_only_the_window_and_divides_by_its_real_length
 
 def test_without_a_measured_wait_the_line_says_so(caplog: pytest.LogCaptureFixture) -> None:
     d = _daemon()
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     d._report_overload(0.0)
     _overflow(d.depth_box, 6)
     d.health.count("frames.depth", 20)
@@ -366,7 +365,7 @@ def test_the_overload_warning_is_repeated_once_a_minute_has_passed_exactly(
     """Windows of 10 s, each with frames pushed out: a line at 10 s, none for the next 50 s, the
     next at 70 s (60 s after the first); calls within a window neither log nor move it."""
     d = _daemon()
-    caplog.set_level(logging.WARNING, logger="pugsd.daemon.app")
+    caplog.set_level(logging.WARNING, logger="pugsd")
     logged: list[float] = []
     for t in range(0, 81, 5):
         _overflow(d.depth_box, 6)
@@ -394,7 +393,7 @@ def test_run_starts_the_recorder_after_the_inputs_and_stops_it_at_the_end(
     )
     s = DeclSession(order)
     d = Daemon(cfg, FakePipeline(), notifier=notifier, session=s)  # type: ignore[arg-type]
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     asyncio.run(asyncio.wait_for(d.run(stop), 10.0))
     keys = default_record_keys(cfg)
     ready = order.index("READY=1")
@@ -420,7 +419,7 @@ def test_run_declares_the_graph_tokens_node_first_and_subscriptions_after_their_
     cfg = load_config_dict({"topics": {"ros_graph_tokens": "on", "domain_id": 7}})
     s = DeclSession(order)
     d = Daemon(cfg, FakePipeline(), notifier=notifier, session=s)  # type: ignore[arg-type]
-    caplog.set_level(logging.INFO, logger="pugsd.daemon.app")
+    caplog.set_level(logging.INFO, logger="pugsd")
     asyncio.run(asyncio.wait_for(d.run(stop), 10.0))
     graph = ros_graph_tokens(cfg.topics, cfg.daemon.node_name, "0123")
     tokens = [e.split(" ", 1)[1] for e in order if e.startswith("token @ros2_lv/")]

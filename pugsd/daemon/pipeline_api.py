@@ -1,0 +1,36 @@
+# SPDX-License-Identifier: Apache-2.0
+"""What the daemon needs from :class:`pugsd.core.pipeline.PugsPipeline` (tests give it stand-ins)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, Protocol
+
+from pugsd.core.types import DepthFrame, StereoFrame
+
+
+class Pipeline(Protocol):
+    """What the daemon needs from :class:`pugsd.core.pipeline.PugsPipeline`."""
+
+    @property
+    def ready(self) -> bool: ...
+
+    def depth_from_stereo(self, frame: StereoFrame) -> DepthFrame: ...
+
+    def integrate(self, depth: DepthFrame) -> int: ...
+
+    def train_steps(self, n: int, rate_scale: float = 1.0) -> Any: ...
+
+    def grasp_input(self) -> Any: ...
+
+    def propose(self, inp: Any) -> Any: ...
+
+    def score(self, proposal: Any) -> Any: ...
+
+    def cloud_job(self, result: Any) -> Any: ...
+
+    def finish_cloud(self, job: Any, should_stop: Callable[[], bool] | None = None) -> Any: ...
+
+    def reset(self) -> None: ...
+
+    def stats(self) -> dict[str, Any]: ...

@@ -1,0 +1,36 @@
+# SPDX-License-Identifier: Apache-2.0
+"""Process-wide settings the daemon applies at start: torch's thread count and glibc's malloc
+arenas."""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import sys
+from typing import Any
+
+
+def apply_thread_limits(cfg: Any) -> None:
+    """``[daemon] torch_threads`` (process-wide; a no-op until the pipeline has imported torch)."""
+    torch = sys.modules.get("torch")
+    if cfg.daemon.torch_threads > 0 and torch is not None:
+        torch.set_num_threads(cfg.daemon.torch_threads)
+
+
+_M_ARENA_MAX = -8  # glibc malloc.h
+
+
+def apply_malloc_arena_max(n: int) -> bool:
+    """``[daemon] malloc_arena_max``: cap glibc's malloc arenas (``mallopt(M_ARENA_MAX, n)``) for
+    the arenas created from now on, so call it before the threads start. Returns whether it was
+    set: not for ``n`` = 0, off glibc, or when the ``MALLOC_ARENA_MAX`` environment variable
+    already chose (glibc read it at start)."""
+    if n <= 0 or "MALLOC_ARENA_MAX" in os.environ or not sys.platform.startswith("linux"):
+        return False
+    try:
+        mallopt = ctypes.CDLL("libc.so.6").mallopt
+    except (OSError, AttributeError):  # musl and others: no mallopt
+        return False
+    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+    mallopt.restype = ctypes.c_int
+    return bool(mallopt(_M_ARENA_MAX, n))
