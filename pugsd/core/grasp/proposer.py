@@ -504,8 +504,13 @@ class SingleContactProposer:
             if res is None:
                 continue
             k, centre_x, width, conf = res
-            a, b = A[k], B[k]
-            z0 = self._pad_depth(th[k])
+            # the frame in float64, orthonormal to rounding (the search ran in float32)
+            b = B[k].astype(np.float64)
+            b /= np.linalg.norm(b)
+            a = A[k].astype(np.float64)
+            a -= (a @ b) * b
+            a /= np.linalg.norm(a)
+            z0 = self._pad_depth(float(th[k]))
             centre = p + centre_x * b + z0 * a
             out_c[i] = centre - 0.5 * width * b
             out_b[i], out_a[i], out_w[i], out_conf[i] = b, a, width, conf
