@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from pugsd.config import CoreConfig, CubatureConfig
+from pugsd.core.config import CoreConfig, CubatureConfig
 from pugsd.core.cubature import algorithm1
 from pugsd.core.fof import FofStore, resolve_query_device, resolve_query_workers
 from pugsd.core.grasp.proposer import GraspSet, make_proposer

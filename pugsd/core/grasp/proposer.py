@@ -22,7 +22,7 @@ import numpy as np
 import open3d as _o3d
 from scipy.spatial import cKDTree
 
-from pugsd.config import GraspConfig, GripperConfig
+from pugsd.core.config import GraspConfig, GripperConfig
 from pugsd.core.geometry import grid_centre
 from pugsd.errors import ConfigError, EmptyCloudError, PugsdError
 
