@@ -393,7 +393,7 @@ def test_offline_set_wins_over_the_sequences_own_overrides(monkeypatch: pytest.M
     ``--set`` wins over the sequence's ``core_overrides``, as in ``pugsd evaluate``."""
     import types
 
-    import pugsd.models
+    import pugsd.pipeline_factory
     import pugsd.sim
     from pugsd.cli import main
 
@@ -408,7 +408,7 @@ def test_offline_set_wins_over_the_sequences_own_overrides(monkeypatch: pytest.M
 
     seq = types.SimpleNamespace(core_overrides={"stereo.sigma_d2_m2": 0.01})
     monkeypatch.setattr(pugsd.sim, "make_sequence", lambda *a, **kw: seq)
-    monkeypatch.setattr(pugsd.models, "make_pipeline", fake_pipeline)
+    monkeypatch.setattr(pugsd.pipeline_factory, "make_pipeline", fake_pipeline)
     for argv in (["offline"], ["offline", "--set", "stereo.sigma_d2_m2=0.002"]):
         with pytest.raises(Stop):
             main(argv)
