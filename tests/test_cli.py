@@ -160,9 +160,9 @@ def test_dump_config_shows_the_given_file(tmp_path: Path, capsys: pytest.Capture
     f = tmp_path / "c.toml"
     f.write_text("[grasp]\ngamma = 3.5\n")
     assert main(["dump-config", "--config", str(f)]) == 0
-    assert "\ngamma = 3.5\n" in capsys.readouterr().out
+    assert "\ngrasp.gamma = 3.5\n" in capsys.readouterr().out
     assert main(["dump-config"]) == 0
-    assert "\ngamma = 3.5\n" not in capsys.readouterr().out
+    assert "\ngrasp.gamma = 3.5\n" not in capsys.readouterr().out
 
 
 def test_format_grasps_table() -> None:

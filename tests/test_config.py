@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import re
 import subprocess
 import sys
 import tomllib
@@ -30,12 +31,46 @@ def test_reference_file_equals_defaults() -> None:
 def test_every_key_is_documented() -> None:
     text = dump_config()
     lines = text.splitlines()
-    for i, line in enumerate(lines):
-        if " = " in line and not line.startswith("#"):
-            section = next(ln for ln in reversed(lines[:i]) if ln.startswith("["))
-            if section.startswith("[zenoh"):
-                continue  # passed through to zenoh, documented there
-            assert lines[i - 1].startswith("# ") and len(lines[i - 1]) > 5, line
+    keys = [i for i, line in enumerate(lines) if " = " in line and not line.startswith("#")]
+    assert len(keys) == len(_dotted_keys(to_dict(PugsdConfig())))
+    for i in keys:
+        start = i
+        while start > 0 and lines[start - 1].startswith("# ") and not _TABLE_HEADING.match(lines[start - 1]):
+            start -= 1
+        doc = " ".join(ln[2:] for ln in lines[start:i])
+        assert len(doc) > 3 and not doc.startswith("["), lines[i]  # a meaning, not only a unit
+
+
+_TABLE_HEADING = re.compile(r"# \[[a-z_.]+\]( |$)")  # "# [stereo] Stereo matching ..."
+
+
+def _dotted_keys(d: dict, prefix: str = "") -> list[str]:
+    out: list[str] = []
+    for k, v in d.items():
+        out += _dotted_keys(v, f"{prefix}{k}.") if isinstance(v, dict) else [f"{prefix}{k}"]
+    return out
+
+
+def test_the_keys_a_deployment_sets_come_before_the_advanced_part() -> None:
+    lines = dump_config().splitlines()
+    order = [ln.split(" = ")[0] for ln in lines if " = " in ln and not ln.startswith("#")]
+    assert sorted(order) == sorted(_dotted_keys(to_dict(PugsdConfig())))  # each key once
+    advanced = next(i for i, ln in enumerate(lines) if ln.startswith("# Advanced"))
+    n_user = sum(1 for ln in lines[:advanced] if " = " in ln and not ln.startswith("#"))
+    user = {
+        "topics.left_image", "topics.pose", "topics.domain_id", "zenoh.listen.endpoints",
+        "zenoh.connect.endpoints", "daemon.T_B_C_xyz_m", "daemon.T_B_C_quat_xyzw", "svgp.device",
+        "fof.query_device", "grasp.gripper.max_width_m", "grasp.gamma", "record.enabled",
+        "record.directory",
+    }  # fmt: skip
+    assert user <= set(order[:n_user])
+    assert {"stereo.downsample", "svgp.kernel", "daemon.ingress_limit", "queues.depth"} <= set(order[n_user:])
+
+
+def test_a_file_of_section_tables_loads_like_the_dotted_reference() -> None:
+    dotted = load_config_dict(tomllib.loads("grasp.gamma = 3.0\ngrasp.gripper.depth_m = 0.1\n"))
+    tables = load_config_dict(tomllib.loads("[grasp]\ngamma = 3.0\n[grasp.gripper]\ndepth_m = 0.1\n"))
+    assert dotted == tables and tables.grasp.gamma == 3.0 and tables.grasp.gripper.depth_m == 0.1
 
 
 @pytest.mark.parametrize(

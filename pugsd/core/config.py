@@ -142,9 +142,8 @@ class SvgpConfig:
     num_inducing: int = opt(
         0,
         "inducing points M of the streaming model; 0 = auto: 250 on the CPU, 500 when the SVGP "
-        "runs on CUDA (paper: 500; on a 2-core CPU one step costs O(M^3) and 250 keeps it "
-        "real-time at 10 Hz; a CUDA step is launch-bound and costs the same at 500; see "
-        "docs/performance.md)",
+        "runs on CUDA (paper: 500; a CPU step costs O(M^3), a CUDA step is bound by its kernel "
+        "launches rather than by M; see docs/performance.md)",
         ge=0,
         le=5000,
     )
@@ -220,8 +219,8 @@ class SvgpConfig:
     predict_chunk: int = opt(20000, "points per batched prediction call on the CPU", ge=256)
     predict_chunk_cuda: int = opt(
         65536,
-        "points per batched prediction call on CUDA (fewer, larger calls: 140k sigma points take "
-        "25 ms in chunks of 20000 and 10 ms in one call on an H100)",
+        "points per batched prediction call on CUDA (larger than on the CPU: each call's kernel "
+        "launches cost the same whatever its size, so fewer, larger calls are faster)",
         ge=256,
     )
     output_units: str = opt(
@@ -248,8 +247,8 @@ class CubatureConfig:
     variance_form: str = opt(
         "paper_literal",
         "sigma^2_occ: paper_literal = sum w sigma2_pred (A); total = law of total variance (B), "
-        "whose spread term peaks where the density is highest (measured: it penalises the densely "
-        "observed surface, not the torn edge)",
+        "whose spread term peaks where the density is highest, so it penalises the densely "
+        "observed surface rather than the torn edge",
         choices=("total", "paper_literal"),
     )
     max_query_points: int = opt(5000, "random subsample cap on the query cloud given to Algorithm 1", ge=100)
