@@ -38,6 +38,7 @@ from pugsd.wire.topics import graph_token_problems, graph_tokens_enabled
 
 __all__ = [
     "USER_KEYS",
+    "ZENOH_KEY_DOCS",
     "ArmConfig",
     "CoreConfig",
     "CubatureConfig",
