@@ -23,6 +23,7 @@ from pugsd.core.config import (
     CoreConfig,
     CubatureConfig,
     FofConfig,
+    FreeSpaceConfig,
     GraspConfig,
     GripperConfig,
     ObservationConfig,
@@ -44,6 +45,7 @@ __all__ = [
     "CubatureConfig",
     "DaemonConfig",
     "FofConfig",
+    "FreeSpaceConfig",
     "GraspConfig",
     "GripperConfig",
     "ObservationConfig",
@@ -74,6 +76,7 @@ class PugsdConfig:
     svgp: SvgpConfig = dataclasses.field(default_factory=SvgpConfig)
     cubature: CubatureConfig = dataclasses.field(default_factory=CubatureConfig)
     reconstruction: ReconstructionConfig = dataclasses.field(default_factory=ReconstructionConfig)
+    freespace: FreeSpaceConfig = dataclasses.field(default_factory=FreeSpaceConfig)
     grasp: GraspConfig = dataclasses.field(default_factory=GraspConfig)
     daemon: DaemonConfig = dataclasses.field(default_factory=DaemonConfig)
     topics: TopicsConfig = dataclasses.field(default_factory=TopicsConfig)
@@ -221,6 +224,7 @@ USER_KEYS: tuple[tuple[str, tuple[str, ...]], ...] = (
             "grasp.gripper",
             "grasp.proposer",
             "grasp.model_path",
+            "grasp.uncertainty",
             "grasp.gamma",
             "grasp.top_k",
             "daemon.grasp_rate_hz",

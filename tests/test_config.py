@@ -640,7 +640,34 @@ BOUNDS: list[tuple[str, str, float]] = [
     ("reconstruction.sample_points", "ge", 100),
     ("reconstruction.outlier_nb_neighbors", "ge", 1),
     ("reconstruction.outlier_std_ratio", "gt", 0.0),
+    ("freespace.voxel_m", "gt", 0.0),
+    ("freespace.voxel_m", "le", 1.0),
+    ("freespace.margin_m", "ge", 0.0),
+    ("freespace.margin_m", "le", 1.0),
+    ("freespace.extent_m", "gt", 0.0),
+    ("freespace.extent_m", "le", 5.0),
+    ("freespace.background_range_m", "ge", 0.0),
+    ("freespace.background_range_m", "le", 100.0),
+    ("freespace.max_blocks", "ge", 1),
+    ("freespace.max_blocks", "le", 10_000_000),
     ("grasp.gamma", "ge", 0.0),
+    ("grasp.gamma", "le", 1e12),
+    ("grasp.unknown_weight", "ge", 0.0),
+    ("grasp.unknown_weight", "le", 1e6),
+    ("grasp.unknown_decay_m", "gt", 0.0),
+    ("grasp.unknown_decay_m", "le", 10.0),
+    ("grasp.swept_step_m", "gt", 0.0),
+    ("grasp.swept_step_m", "le", 0.5),
+    ("grasp.single_contact_max_contacts", "ge", 1),
+    ("grasp.single_contact_max_contacts", "le", 100_000),
+    ("grasp.single_contact_face_deg", "gt", 0.0),
+    ("grasp.single_contact_face_deg", "lt", 90.0),
+    ("grasp.single_contact_voxel_m", "ge", 0.0),
+    ("grasp.single_contact_voxel_m", "le", 0.05),
+    ("grasp.single_contact_approaches", "ge", 1),
+    ("grasp.single_contact_approaches", "le", 64),
+    ("grasp.single_contact_rolls", "ge", 1),
+    ("grasp.single_contact_rolls", "le", 64),
     ("grasp.top_k", "ge", 1),
     ("grasp.thin_distance_m", "ge", 0.0),
     ("grasp.normal_radius_m", "gt", 0.0),
@@ -717,7 +744,8 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "svgp.inducing_policy": ("spread", "coverage"),
     "svgp.output_units": ("density", "normalised"),
     "cubature.variance_form": ("total", "paper_literal"),
-    "grasp.proposer": ("antipodal", "torchscript"),
+    "grasp.proposer": ("single_contact", "antipodal", "torchscript"),
+    "grasp.uncertainty": ("swept", "contact"),
     "daemon.log_level": ("debug", "info", "warning", "error"),
     "topics.key_style": ("rmw_zenoh", "ros2dds"),
     "topics.hash_mode": ("rihs01", "humble"),
@@ -726,8 +754,8 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "record.compression": ("zstd", "lz4", "none"),
 }
 
-SECTIONS = ("stereo", "observation", "fof", "svgp", "cubature", "reconstruction", "grasp", "daemon",
-            "topics", "queues", "record")  # fmt: skip
+SECTIONS = ("stereo", "observation", "fof", "svgp", "cubature", "reconstruction", "freespace", "grasp",
+            "daemon", "topics", "queues", "record")  # fmt: skip
 
 # keys whose accepted edge needs a companion setting to pass the section's cross-key check:
 # max_depth_m must exceed min_depth_m > 0, so its smallest accepted value is two steps above 0
@@ -1149,5 +1177,5 @@ def test_core_of_takes_exactly_the_core_sections() -> None:
     assert isinstance(core, CoreConfig)
     assert core.grasp is cfg.grasp and core.fof is cfg.fof and core.stereo is cfg.stereo
     assert [f.name for f in dataclasses.fields(CoreConfig)] == [
-        "stereo", "observation", "fof", "svgp", "cubature", "reconstruction", "grasp"
+        "stereo", "observation", "fof", "svgp", "cubature", "reconstruction", "freespace", "grasp"
     ]  # fmt: skip

@@ -53,9 +53,10 @@ def test_the_loaded_network_is_in_eval_mode_and_on_the_cpu(tmp_path: Path) -> No
 
 def test_make_pipeline_loads_a_network_only_for_the_torchscript_proposer(tmp_path: Path) -> None:
     missing = tmp_path / "missing.pt"
-    # the antipodal proposer never reads model_path, even when it names no file
-    pipe = make_pipeline(CoreConfig(grasp=GraspConfig(model_path=str(missing))))
-    assert type(pipe.proposer).__name__ == "AntipodalProposer"
+    # the other proposers never read model_path, even when it names no file
+    for proposer, name in (("single_contact", "SingleContactProposer"), ("antipodal", "AntipodalProposer")):
+        pipe = make_pipeline(CoreConfig(grasp=GraspConfig(proposer=proposer, model_path=str(missing))))
+        assert type(pipe.proposer).__name__ == name
     with pytest.raises(PugsdError, match=f"^grasp.model_path: no TorchScript model at {missing}$"):
         make_pipeline(CoreConfig(grasp=GraspConfig(proposer="torchscript", model_path=str(missing))))
 

@@ -306,8 +306,8 @@ class ArmLink:
     def due_poll(self) -> list[Packet]:
         """A motion loop's share of the telemetry: the poll's REQUESTs if one is due now, to be
         sent *ahead of* the setpoints in the same write. The replies then show each device's
-        mode just before our setpoint (which switches a POSITION_HOLD device back to POSITION,
-        reach-bpl.md table, MODE): a safe mode commanded from elsewhere between two setpoints is
+        mode just before our setpoint (which switches a POSITION_HOLD device back to POSITION):
+        a safe mode commanded from elsewhere between two setpoints is
         always seen. Not on RS-485 (the paced writer sends commands before REQUESTs) and not in
         heartbeat mode (the devices report on their own)."""
         if self.rs485 or self.telemetry_mode != "poll":
@@ -989,7 +989,7 @@ class ArmController:
     def _hold_packets(self, devices: Sequence[int]) -> list[Packet]:
         """Per device: MODE STANDBY if it is in DISABLE/PASSIVE (or not known), where control
         packets are ignored; then a POSITION setpoint at its latest measured position, which
-        switches it to POSITION (reach-bpl.md, MODE) without engaging an older setpoint."""
+        switches it to POSITION without engaging an older setpoint."""
         pk: list[Packet] = []
         # joints in the frame the streamed setpoints use (_send_setpoint), not the wrapped report
         raw = dict(zip(JOINT_DEVICES, self.model.to_device(self._measured_q()).tolist()))

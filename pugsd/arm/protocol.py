@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """Reach "BPL" serial protocol (V1): packet ids, modes, devices, framing, typed payloads.
 
-Framing (``docs/arm.md``, spec ``reach-bpl.md`` §1): ``DATA | PACKET_ID | DEVICE_ID | LENGTH |
+Framing (``docs/arm.md``; Reach System Communication Protocol): ``DATA | PACKET_ID | DEVICE_ID | LENGTH |
 CRC8`` with ``LENGTH = len(DATA) + 4`` and the CRC over everything before it, then COBS and one
 ``0x00`` terminator. Floats are little-endian binary32, integers single unsigned bytes.
 """
@@ -137,7 +137,7 @@ class DeviceID(enum.IntEnum):
     BROADCAST = 0xFF
 
 
-#: DH joint 1..6 -> device id (assumption in the spec: joint i drives 0x08 - i).
+#: DH joint 1..6 -> device id (an assumption: joint i drives 0x08 - i; ``docs/arm.md``).
 JOINT_DEVICES: tuple[int, ...] = (0x07, 0x06, 0x05, 0x04, 0x03, 0x02)
 JAW_DEVICE = 0x01
 ALL_AXES: tuple[int, ...] = (*JOINT_DEVICES, JAW_DEVICE)

@@ -290,12 +290,120 @@ class GripperConfig:
 
 
 @dataclass(frozen=True, slots=True)
+class FreeSpaceConfig:
+    """What the depth maps say about space around the object: seen free, surface, or unknown
+    (``pugsd.core.freespace``); the swept-volume uncertainty of a grasp reads it."""
+
+    enabled: bool = opt(True, "keep the free-space map (grasp.uncertainty = swept needs it)")
+    voxel_m: float = opt(0.015, "voxel edge", unit="m", gt=0.0, le=1.0)
+    margin_m: float = opt(
+        0.01,
+        "a voxel centre within this of the measured depth is on the surface; nearer is seen free",
+        unit="m",
+        ge=0.0,
+        le=1.0,
+    )
+    extent_m: float = opt(
+        0.35,
+        "how far around each frame's observed surface space is tracked (at least the grasp's "
+        "approach stand-off plus the gripper's depth)",
+        unit="m",
+        gt=0.0,
+        le=5.0,
+    )
+    background_range_m: float = opt(
+        1.0,
+        "a pixel the frame's mask marks as background has its ray free this far (0: masks say "
+        "nothing about free space)",
+        unit="m",
+        ge=0.0,
+        le=100.0,
+    )
+    max_blocks: int = opt(
+        20000,
+        "blocks (8^3 voxels, 2 KiB each) kept; the least recently updated are evicted beyond",
+        ge=1,
+        le=10_000_000,
+    )
+
+
+@dataclass(frozen=True, slots=True)
 class GraspConfig:
     """Grasp proposal, Eq. 13 reweighting, ranking and thinning."""
 
-    proposer: str = opt("antipodal", "grasp proposer", choices=("antipodal", "torchscript"))
+    proposer: str = opt(
+        "single_contact",
+        "grasp proposer: single_contact (a contact on the observed surface, approach and roll "
+        "enumerated, the far finger allowed where nothing was observed), antipodal (both contacts "
+        "observed) or torchscript (a user's network)",
+        choices=("single_contact", "antipodal", "torchscript"),
+    )
     model_path: str = opt("", "TorchScript model file for proposer = torchscript")
-    gamma: float = opt(5.0, "Eq. 13 weight gamma (paper: 5)", ge=0.0)
+    uncertainty: str = opt(
+        "swept",
+        "sigma^2 of a grasp in Eq. 13: swept (sigma^2_occ at the contact over the SVGP's prior "
+        "variance, plus unknown_weight times the share of the gripper's swept volume never "
+        "observed; unit-free) or contact (the paper's sigma^2_occ at the contact, density units)",
+        choices=("swept", "contact"),
+    )
+    gamma: float = opt(
+        1.0,
+        "Eq. 13 weight gamma: GS / (1 + gamma sigma^2) (paper: 5, on its contact-point sigma^2 in "
+        "density units; chosen on tuning seeds for the unit-free swept sigma^2)",
+        ge=0.0,
+        le=1e12,
+    )
+    unknown_weight: float = opt(
+        20.0,
+        "grasp.uncertainty = swept: weight of the never-observed share of the swept volume",
+        ge=0.0,
+        le=1e6,
+    )
+    unknown_decay_m: float = opt(
+        0.02,
+        "grasp.uncertainty = swept: a swept sample's never-observed space counts by exp(-d / this), "
+        "d its distance to the observed cloud (unknown space far from everything seen is likely "
+        "empty)",
+        unit="m",
+        gt=0.0,
+        le=10.0,
+    )
+    swept_step_m: float = opt(
+        0.02,
+        "spacing of the swept-volume samples along the approach (and within the gripper)",
+        unit="m",
+        gt=0.0,
+        le=0.5,
+    )
+    single_contact_max_contacts: int = opt(
+        150, "single_contact: contacts sampled (farthest point) per proposal", ge=1, le=100_000
+    )
+    single_contact_face_deg: float = opt(
+        45.0,
+        "single_contact: a jaw's face counts as observed where its points' mean normal lies "
+        "within this angle of the closing direction",
+        unit="deg",
+        gt=0.0,
+        lt=90.0,
+    )
+    single_contact_voxel_m: float = opt(
+        0.004,
+        "single_contact: the cloud is thinned to one point per voxel of this edge for the jaw "
+        "placement and collision tests (the contacts and normals come from the whole cloud)",
+        unit="m",
+        ge=0.0,
+        le=0.05,
+    )
+    single_contact_approaches: int = opt(
+        7,
+        "single_contact: approach directions per contact, from along the outward normal "
+        "(inwards) to tangent on either side, about the principal-curvature axis",
+        ge=1,
+        le=64,
+    )
+    single_contact_rolls: int = opt(
+        4, "single_contact: closing directions (rolls about the approach) per approach", ge=1, le=64
+    )
     top_k: int = opt(10, "grasps kept after ranking", ge=1)
     thin_distance_m: float = opt(
         0.01, "farthest-point thinning: minimum distance between kept grasps", unit="m", ge=0.0
@@ -334,4 +442,5 @@ class CoreConfig:
     svgp: SvgpConfig = dataclasses.field(default_factory=SvgpConfig)
     cubature: CubatureConfig = dataclasses.field(default_factory=CubatureConfig)
     reconstruction: ReconstructionConfig = dataclasses.field(default_factory=ReconstructionConfig)
+    freespace: FreeSpaceConfig = dataclasses.field(default_factory=FreeSpaceConfig)
     grasp: GraspConfig = dataclasses.field(default_factory=GraspConfig)

@@ -405,11 +405,9 @@ class FofStore:
         the kept voxels' Gaussians, fused covariances and neighbour lists move with them, and a
         voxel whose neighbour list held an evicted voxel is marked (``_lost``: its K nearest changed:
         its Eq. 5-6 and Eq. 4 targets, and those of the voxels whose lists hold it, are
-        recomputed; ``update_targets``). Before, every eviction refreshed the whole store: on a
-        simulated transect with the store full (200 000 voxels, 20 000 points a frame) a frame's
-        insert and refresh took 1.66 s (median), 0.55 s with this, 0.35 s with the chunked refresh
-        of ``update_targets`` (0.19 s before the store fills;
-        ``docs/bench-history/2026-11-24-fof-eviction``)."""
+        recomputed; ``update_targets``). Refreshing the whole store at every eviction instead
+        would cost a full store's targets per frame once the store is full, several times the
+        local refresh."""
         n = self._n
         keep = np.argsort(-self._last_seen[:n], kind="stable")[: self.cfg.max_voxels]
         keep.sort()

@@ -4,7 +4,8 @@
 Stages, with the equations they implement:
   StereoDepth (depth + sigma) -> Observation (Eq. 1-3) -> FofStore (Eq. 4-6 targets)
   -> OccupancySVGP (Eq. 7-8) ; Reconstruction (TSDF cloud) -> proposer -> Algorithm 1
-  (Eq. 9-12 on the cloud) -> Eq. 13 ranking.
+  (Eq. 9-12 on the cloud) -> Eq. 13 ranking; FreeSpaceMap (seen free / surface / unknown) ->
+  the swept-volume uncertainty of each grasp (``grasp.uncertainty = "swept"``).
 
 Thread model: ``depth_from_stereo`` and ``propose`` are stateless. ``integrate``, ``train_steps``,
 ``fit``, ``grasp_input``, ``score``, ``complete_cloud`` and ``compute`` share state and must be
@@ -21,12 +22,15 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from pugsd.core.config import CoreConfig, CubatureConfig
 from pugsd.core.cubature import algorithm1
 from pugsd.core.fof import FofStore, resolve_query_device, resolve_query_workers
-from pugsd.core.grasp.proposer import GraspSet, make_proposer
+from pugsd.core.freespace import FreeSpaceMap
+from pugsd.core.grasp.proposer import GraspProposer, GraspSet, make_proposer
 from pugsd.core.grasp.scoring import rank_grasps, reweight
+from pugsd.core.grasp.swept import grasp_sigma2, swept_samples, unknown_share
 from pugsd.core.observation import Observation
 from pugsd.core.predictive import OccupancySVGP, SvgpSnapshot, TrainStats
 from pugsd.core.reconstruction import Reconstruction
@@ -49,6 +53,12 @@ class PipelineResult:
     candidates: GraspSet
     model_version: int
     timings_s: dict[str, float] = field(default_factory=dict)
+    # grasp.uncertainty = swept, per candidate (aligned with ``candidates``; NaN where invalid):
+    # the never-observed share of the swept volume and the unit-free sigma^2 of Eq. 13
+    unknown_share: np.ndarray | None = None
+    sigma2_grasp: np.ndarray | None = None
+    # sigma^2_occ of the contacts is divided by this in the swept form (1 for contact)
+    sigma2_ref: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -143,7 +153,10 @@ class PugsPipeline:
             )
         )
         self.recon = Reconstruction(self.cfg.reconstruction)
+        self.free = FreeSpaceMap(self.cfg.freespace)
         self.proposer = make_proposer(self.cfg.grasp, seed, grasp_model)
+        g = self.cfg.grasp
+        self._swept_G = swept_samples(g.gripper, g.approach_check_m, g.swept_step_m)
         self._pending: list[np.ndarray] = []
         self._scale: float | None = None
         self.frames = 0
@@ -172,11 +185,13 @@ class PugsPipeline:
         t2 = time.perf_counter()
         self.recon.integrate(depth)
         t3 = time.perf_counter()
+        self.free.integrate(depth)
+        t4 = time.perf_counter()
         self._pending.append(touched)
         self.frames += 1
         self.points += len(batch)
         self.last_stamp_ns = max(self.last_stamp_ns, depth.stamp_ns)
-        self.timings_s.update(backproject=t1 - t0, fof=t2 - t1, tsdf=t3 - t2)
+        self.timings_s.update(backproject=t1 - t0, fof=t2 - t1, tsdf=t3 - t2, freespace=t4 - t3)
         return len(batch)
 
     def add_stereo(self, frame: StereoFrame) -> DepthFrame:
@@ -290,20 +305,21 @@ class PugsPipeline:
         )
         return GraspInput(cloud_W=cloud, views_W=views, timings_s={"cloud": time.perf_counter() - t0})
 
-    def propose(self, inp: GraspInput) -> Proposal:
-        """Phase 2 of ``compute``: grasp candidates on the snapshot. Touches no pipeline state (the
-        proposer is stateless), so the daemon runs it without the model lock while frames are
-        integrated and the SVGP trains."""
+    def propose(self, inp: GraspInput, proposer: GraspProposer | None = None) -> Proposal:
+        """Phase 2 of ``compute``: grasp candidates on the snapshot (by ``proposer``, default the
+        configured one). Touches no pipeline state (the proposer is stateless), so the daemon runs
+        it without the model lock while frames are integrated and the SVGP trains."""
         t0 = time.perf_counter()
-        cands = self.proposer.propose(inp.cloud_W, None, inp.views_W)
+        cands = (proposer or self.proposer).propose(inp.cloud_W, None, inp.views_W)
         timings = {**inp.timings_s, "propose": time.perf_counter() - t0}
         return Proposal(cloud_W=inp.cloud_W, candidates=cands, timings_s=timings)
 
-    def score(self, proposal: Proposal) -> PipelineResult:
+    def score(self, proposal: Proposal, uncertainty: str | None = None) -> PipelineResult:
         """Phase 3 of ``compute``: Algorithm 1 (Eq. 9-12) at the contact points of the valid
         candidates with the current store and SVGP, then the Eq. 13 ranking. The query cloud's
         other entries of ``mu_occ`` and ``sigma2_occ`` are NaN (``complete_cloud`` fills them).
-        Reads the store and the model: call it under the same lock as ``integrate``."""
+        Reads the store and the model: call it under the same lock as ``integrate``.
+        ``uncertainty`` overrides ``grasp.uncertainty`` (swept or contact) for this call."""
         cloud, cands = proposal.cloud_W, proposal.candidates
         t2 = time.perf_counter()
         mu_occ = np.full(len(cloud), np.nan)
@@ -314,16 +330,33 @@ class PugsPipeline:
             mu_occ[need], s2[need] = self.sigma2_occ(cloud[need])
         t3 = time.perf_counter()
         g = self.cfg.grasp
+        ref, unk, s2g = 1.0, None, None
+        if (uncertainty or g.uncertainty) == "swept":
+            # unit-free: the contacts' sigma^2_occ over their median on this scan, plus the
+            # never-observed share of each grasp's swept volume (pugsd.core.grasp.swept)
+            contact_s2 = s2[cands.src_index[v]]
+            finite = contact_s2[np.isfinite(contact_s2) & (contact_s2 > 0)]
+            ref = float(np.median(finite)) if len(finite) else 1.0
+            unk = np.full(len(cands), np.nan)
+            s2g = np.full(len(cands), np.nan)
+            if v.any():
+                tree = cKDTree(cloud)
+                unk[v] = unknown_share(
+                    self.free, cands.pose[v], *self._swept_G, tree, g.unknown_decay_m
+                )
+                s2g[v] = grasp_sigma2(contact_s2, ref, unk[v], g.unknown_weight)
+        t4 = time.perf_counter()
         ranked = rank_grasps(
-            cands, s2, g.gamma, g.top_k, g.thin_distance_m, "pugs", self.last_stamp_ns
+            cands, s2, g.gamma, g.top_k, g.thin_distance_m, "pugs", self.last_stamp_ns, s2g, unk
         )
         base = rank_grasps(
-            cands, s2, g.gamma, g.top_k, g.thin_distance_m, "baseline", self.last_stamp_ns
+            cands, s2, g.gamma, g.top_k, g.thin_distance_m, "baseline", self.last_stamp_ns, s2g, unk
         )
-        t4 = time.perf_counter()
+        t5 = time.perf_counter()
         pc = np.zeros(len(cloud))
-        pc[cands.src_index[v]] = reweight(cands.confidence[v], s2[cands.src_index[v]], g.gamma)
-        timings = {**proposal.timings_s, "algorithm1": t3 - t2, "eq13": t4 - t3}
+        per_grasp = s2[cands.src_index[v]] if s2g is None else s2g[v]
+        pc[cands.src_index[v]] = reweight(cands.confidence[v], per_grasp, g.gamma)
+        timings = {**proposal.timings_s, "algorithm1": t3 - t2, "swept": t4 - t3, "eq13": t5 - t4}
         self.timings_s.update(timings)
         return PipelineResult(
             grasps=ranked,
@@ -331,11 +364,14 @@ class PugsPipeline:
             cloud_W=cloud,
             mu_occ=mu_occ,
             sigma2_occ=s2,
-            occupancy_confidence=1.0 / (1.0 + g.gamma * s2),
+            occupancy_confidence=1.0 / (1.0 + g.gamma * s2 / ref),
             pugs_conf_points=pc,
             candidates=cands,
             model_version=self.svgp.version,
             timings_s=timings,
+            unknown_share=unk,
+            sigma2_grasp=s2g,
+            sigma2_ref=ref,
         )
 
     def compute(self, cloud_W: np.ndarray | None = None, *, full_cloud: bool = True) -> PipelineResult:
@@ -389,7 +425,7 @@ class PugsPipeline:
             result,
             mu_occ=mu_occ,
             sigma2_occ=s2,
-            occupancy_confidence=1.0 / (1.0 + self.cfg.grasp.gamma * s2),
+            occupancy_confidence=1.0 / (1.0 + self.cfg.grasp.gamma * s2 / result.sigma2_ref),
             timings_s=timings,
         )
 
@@ -410,6 +446,7 @@ class PugsPipeline:
         self.store.reset()
         self.svgp.reset()
         self.recon.reset()
+        self.free.reset()
         self._pending.clear()
         self._scale = None
         self.frames = 0
@@ -425,6 +462,7 @@ class PugsPipeline:
             "evicted": self.store.evicted,
             "tsdf_blocks": self.recon.blocks,
             "tsdf_blocks_evicted": self.recon.blocks_evicted,
+            "freespace_blocks": len(self.free),
             "model_version": self.svgp.version,
             "svgp_steps": self.svgp.total_steps,
             "elbo": float(t.elbo) if t is not None else float("nan"),

@@ -6,12 +6,12 @@ Eq. 8: ``sigma_pred^2 = sigma_z^2 / (1 + |mu_z|)``: dense regions get their vari
 
 Targets are the FOF values divided by a scale ``s`` (``FofStore.compute_scale``), so the field the
 GP sees is dimensionless and of order one (conditioning). Predictions are mapped back to density
-units (mu s, sigma^2 s^2) before Eq. 8 by default, as the math spec (2.6) recommends;
+units (mu s, sigma^2 s^2) before Eq. 8 by default;
 ``output_units = normalised`` keeps them dimensionless.
 
 Two training schemes share one model object:
 - ``fit_paper``: the paper's batch fit (Adam, lr 1e-3, 100 epochs over all points).
-- ``update``: streaming (math spec 5.3): warm-started natural-gradient steps on q(u) plus Adam on
+- ``update``: streaming: warm-started natural-gradient steps on q(u) plus Adam on
   the hyperparameters and inducing locations, minibatches mixing the newest points with a replay
   sample of the whole store, ``num_data`` equal to the store size, inducing points moved into newly
   observed regions with q(u) re-projected.
@@ -66,7 +66,7 @@ def local_origin(x: np.ndarray) -> np.ndarray:
 def resolve_num_inducing(num_inducing: int, device_type: str) -> int:
     """``svgp.num_inducing`` with 0 (auto) resolved: 250 on the CPU, where one step costs O(M^3)
     and 250 keeps a 2-core computer real-time at 10 Hz; 500 (the paper's M) on CUDA, where a step
-    is launch-bound and costs what 250 costs (docs/performance.md, "CUDA")."""
+    is launch-bound and costs what 250 costs (docs/performance.md, "On a GPU")."""
     if num_inducing > 0:
         return num_inducing
     return NUM_INDUCING_AUTO_CUDA if device_type == "cuda" else NUM_INDUCING_AUTO_CPU
@@ -84,10 +84,10 @@ def release_modules(*modules: torch.nn.Module | None, keep: tuple[torch.nn.Modul
     method as a ``load_state_dict`` pre-hook (module -> hook -> module), and a variational
     strategy holds its model (model -> strategy -> model), so every dropped model, likelihood,
     ELBO and prediction snapshot (with its memoised factorisations: ~1 MB at M = 250) was garbage
-    that only a full (generation-2) collection frees, and in the daemon (~380 000 tracked objects)
-    that came once an hour: under map resets and the grasp thread's snapshots ~150 MB of it piled
-    up, and glibc kept the heap's peak after it was freed (RSS +300 MB in 55 minutes, 2026-11-24
-    soak). Only for modules that are dropped: a released variational strategy has no model any
+    that only a full (generation-2) collection frees, and in the daemon (hundreds of thousands of
+    tracked objects) that comes rarely: under map resets and the grasp thread's snapshots such
+    garbage piles up to hundreds of MB, and glibc keeps the heap's peak after it is freed. Only
+    for modules that are dropped: a released variational strategy has no model any
     more. Submodules in ``keep`` (and theirs) are left alone: a likelihood that outlives its ELBO."""
     for m in _cycle_links(modules, keep):
         m._load_state_dict_pre_hooks.clear()
@@ -306,11 +306,10 @@ class OccupancySVGP:
         grows or recovers). 1 restores the configured rates, as ``reset`` does; ``fit_paper``
         always runs at the paper's rate.
 
-        A minibatch step at a constant rate keeps the model jittering about its optimum: on the
-        bench's complete orbit, sigma^2_occ moved by 8-12 % (median over the query cloud) from one
-        grasp round to the next (25 idle steps apart), so near-tied grasps swapped ranks each time
-        the daemon republished them. Decaying rates (Robbins-Monro) let it settle
-        (docs/bench-history/2026-11-28-idle-rate-decay/)."""
+        A minibatch step at a constant rate keeps the model jittering about its optimum:
+        sigma^2_occ moves by several percent from one grasp round to the next, so near-tied grasps
+        swap ranks each time the daemon republishes them. Decaying rates (Robbins-Monro) let it
+        settle."""
         if not (math.isfinite(scale) and 0.0 < scale <= 1.0):
             raise ValueError(f"rate scale must be in (0, 1], got {scale}")
         if scale != self._rate_scale:
@@ -621,9 +620,9 @@ class OccupancySVGP:
         Exact and cheap: a KD-tree over a strided subsample (at most ``ORPHAN_FPS_POINTS``)
         clears every inducing point within the distance of a subsample point; only the rest (an
         inducing point on a patch too small for the stride to sample, or a true orphan) are
-        measured against every stored point. On 200 000 stored points: 6 ms without candidates,
-        20-28 ms for 5-16 (products), 75 ms for more (a KD-tree over the store; products took
-        430 ms for 250). An inducing point placed on a stored point is at
+        measured against every stored point: by products for a few candidates, by a KD-tree over
+        the store for more (products for all M would cost several times more). An inducing point
+        placed on a stored point is at
         distance 0 while the store keeps that point."""
         assert self.model is not None
         ls = self.model.covar_module.base_kernel.lengthscale.detach().double().cpu().numpy().reshape(3)

@@ -151,10 +151,9 @@ class Reconstruction:
     def _make_room(self, blocks: Any) -> None:
         """Keep the grid within its ``block_count`` capacity: before a frame would overfill it,
         the blocks observed longest ago that the frame does not touch are evicted (like the
-        point store's ``max_voxels``). Without it the grid grew with the explored space for as long as
-        the daemon ran: open3d doubles its hash map and every block's buffers each time it is
-        full (150 unmasked frames of a survey leg peaked at 9.6 GiB, 0.63 GiB with the bound:
-        docs/bench-history/2026-11-24-tsdf-survey-memory/). An evicted block's slot
+        point store's ``max_voxels``). Without it the grid would grow with the explored space for
+        as long as the daemon runs: open3d doubles its hash map and every block's buffers each
+        time it is full (an unmasked survey leg reaches several GiB). An evicted block's slot
         is cleared: open3d reuses the slot for the next new block and does not clear it."""
         hm = self._vbg.hashmap()
         # open3d grows the map when its size plus the frame's blocks, found or not, exceed the

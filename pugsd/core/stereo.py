@@ -2,7 +2,7 @@
 """Stage 1: depth with per-pixel noise from a rectified stereo pair (OpenCV SGBM).
 
 Depth is z-depth ``z = f_x B / disp`` (metres) at the downsampled resolution; invalid pixels are
-NaN, never zero. Noise (Sec. 2.2 of the math spec): ``fixed`` gives the paper's constant
+NaN, never zero. Noise: ``fixed`` gives the paper's constant
 ``sigma_d^2``; ``disparity`` gives ``sigma_z = z^2 sigma_disp / (f_x B)``.
 
 The disparity search must reach the nearest surface: SGBM does not mark a surface nearer than its

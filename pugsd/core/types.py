@@ -131,6 +131,10 @@ class ScoredGrasps:
     pugs_confidence: np.ndarray  # (M,) Eq. 13
     grasp_id: np.ndarray  # (M,) int64, stable within one result
     stamp_ns: int = 0
+    # grasp.uncertainty = swept: the unit-free sigma^2 of the grasp Eq. 13 used and the share of
+    # the gripper's swept volume never observed (None for the contact-point form)
+    sigma2_grasp: np.ndarray | None = None  # (M,)
+    unknown_share: np.ndarray | None = None  # (M,) in [0, 1]
 
     def __len__(self) -> int:
         return int(self.width_m.shape[0])

@@ -39,6 +39,7 @@ def _rescore(args: argparse.Namespace) -> int:
 def _evaluate(args: argparse.Namespace) -> int:
     from pugsd.sim.evaluate import (
         METHODS,
+        MODES,
         RECONS,
         EvalOptions,
         markdown_table,
@@ -54,10 +55,12 @@ def _evaluate(args: argparse.Namespace) -> int:
     objects = _csv(args.objects)
     recons = _csv(args.recon)
     methods = _csv(args.methods)
+    modes = _csv(args.mode)
     for name, vals, known in (
         ("--objects", objects, tuple(BUILTIN_OBJECTS)),
         ("--recon", recons, RECONS),
         ("--methods", methods, METHODS),
+        ("--mode", modes, MODES),
     ):
         bad = [v for v in vals if v not in known]
         if bad and not (name == "--objects" and args.object_mesh):
@@ -68,6 +71,8 @@ def _evaluate(args: argparse.Namespace) -> int:
         raise InputError(f"--pose: unknown {args.pose}; known: {', '.join(POSES)}")
     if args.trials < 1:
         raise InputError("--trials must be >= 1")
+    if args.auc_candidates < 0:
+        raise InputError("--auc-candidates must be >= 0")
     if args.object_mesh and args.mass is None:
         raise InputError("--object-mesh needs --mass KG")
     if args.resolution not in ("160x120", "320x240", "640x480"):
@@ -79,7 +84,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         methods=methods,
         trials=args.trials,
         seed=args.seed,
-        mode=args.mode,
+        modes=modes,
         pose=args.pose,
         width=w,
         height=h,
@@ -92,8 +97,9 @@ def _evaluate(args: argparse.Namespace) -> int:
         workers=args.workers,
         figures_dir=args.figures,
         figures_per_cell=args.figures_per_cell,
+        auc_candidates=args.auc_candidates,
     )
-    total = len(recons) * args.trials * (1 if args.object_mesh else len(objects))
+    total = len(recons) * args.trials * (1 if args.object_mesh else len(objects)) * len(modes)
     done = [0]
 
     partial_path = None
@@ -117,7 +123,7 @@ def _evaluate(args: argparse.Namespace) -> int:
                 for m, v in r["methods"].items()
             )
             sys.stderr.write(
-                f"[{done[0]}/{total}] {r['object']} {r['recon']} seed {r['seed']}: {marks}\n"
+                f"[{done[0]}/{total}] {r['object']} {r['recon']} seed {r['seed']} {r['mode']}: {marks}\n"
             )
 
     results = run_evaluation(opts, progress)
@@ -134,19 +140,25 @@ def _evaluate(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser(
         "evaluate",
-        help="simulated grasp evaluation (the paper's Table I): baseline vs PUGS",
+        help="simulated grasp evaluation (the paper's Table I): baselines vs PUGS",
         description="Render stereo sequences of synthetic objects, run the PUGS pipeline, and test "
-        "the baseline's and PUGS's top grasps in MuJoCo (traversal, closed, lifted).",
+        "each method's top grasp in MuJoCo (traversal, closed, lifted).",
     )
     p.add_argument("--objects", default="kettlebell,mug",
                    help="comma list of kettlebell, mug, box, bottle, mallet")
     p.add_argument("--recon", default="complete,partial,noisy_partial",
                    help="comma list of complete, partial, noisy_partial")
-    p.add_argument("--methods", default="baseline,pugs", help="comma list of baseline, pugs")
-    p.add_argument("--trials", type=int, default=20, help="trials (seeds) per cell")
+    p.add_argument("--methods", default="baseline,antipodal,pugs,pugs_contact",
+                   help="comma list of baseline, antipodal, pugs, pugs_contact (default: all)")
+    p.add_argument("--trials", type=int, default=40, help="trials (seeds) per cell (default: 40)")
     p.add_argument("--seed", type=int, default=0, help="first seed; trial i uses seed + i")
-    p.add_argument("--mode", choices=("streaming", "paper"), default="streaming",
-                   help="SVGP training: the daemon's streaming steps, or the paper's 100 epochs")
+    p.add_argument("--mode", default="streaming",
+                   help="SVGP training, comma list: streaming (the daemon's incremental steps), "
+                   "paper (the 100-epoch batch fit); both run side by side on the same sequences "
+                   "(default: streaming)")
+    p.add_argument("--auc-candidates", type=int, default=8,
+                   help="single-contact candidates per sequence given the traversal check only, "
+                   "for the AUC of each score (default: 8)")
     p.add_argument("--pose", default="upright", help="upright, lying, tilted or sideways")
     p.add_argument("--resolution", default="320x240",
                    help="rendered size (downsampled to 160x120 before matching, as in the paper)")

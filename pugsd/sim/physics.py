@@ -245,8 +245,9 @@ class GraspTrial:
         data.qpos[self._obj_qadr : self._obj_qadr + 7] = qpos0
         data.qvel[self._obj_vadr : self._obj_vadr + 6] = 0.0
 
-    def run(self, pose_W: np.ndarray) -> TrialResult:
-        """Evaluate one grasp (4x4 Contact-GraspNet pose: columns b, a x b, a; wrist origin)."""
+    def run(self, pose_W: np.ndarray, traversal_only: bool = False) -> TrialResult:
+        """Evaluate one grasp (4x4 Contact-GraspNet pose: columns b, a x b, a; wrist origin);
+        ``traversal_only`` stops after the traversal (closed and lifted are then False)."""
         mj = self._mj
         cfg = self.cfg
         m = self.model
@@ -289,8 +290,8 @@ class GraspTrial:
         traversal = first_hit is None
         details["traversal_max_penetration_m"] = worst
         details["traversal_first_collision_fraction"] = first_hit
-        if not traversal:
-            return TrialResult(False, False, False, details)
+        if not traversal or traversal_only:
+            return TrialResult(traversal, False, False, details)
 
         # 2. close
         n_ramp = round(cfg.close_ramp_s / dt)

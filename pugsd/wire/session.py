@@ -118,7 +118,7 @@ def _check_readback(zcfg: zenoh.Config) -> None:
 def loopback_config(
     listen_port: int | None = None, connect_ports: Iterable[int] = (), *, shm: bool = True
 ) -> dict[str, Any]:
-    """The safe peer config of ecosystem.md 1.3 (listen on and/or connect to 127.0.0.1 ports)."""
+    """The safe peer config: listen on and/or connect to 127.0.0.1 ports, scouting and gossip off."""
     return {
         "mode": "peer",
         "listen": {"endpoints": [] if listen_port is None else [f"tcp/127.0.0.1:{listen_port}"]},

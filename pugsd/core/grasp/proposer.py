@@ -367,13 +367,279 @@ class TorchScriptProposer:
         )
 
 
-def make_proposer(cfg: GraspConfig, seed: int = 0, model: Any = None) -> GraspProposer:
-    """The configured proposer; ``proposer = "torchscript"`` needs the loaded ``model``."""
-    if cfg.proposer == "torchscript":
+def voxel_subset(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Indices of one point per occupied voxel of edge ``voxel_m`` (the first in index order),
+    ascending; every index for ``voxel_m`` = 0."""
+    if voxel_m <= 0 or len(points) == 0:
+        return np.arange(len(points), dtype=np.int64)
+    key = np.floor((points - points.min(0)) / voxel_m).astype(np.int64)
+    _, first = np.unique(key, axis=0, return_index=True)
+    return np.sort(first).astype(np.int64)
+
+
+def principal_frames(
+    tree: cKDTree, points: np.ndarray, index: np.ndarray, radius_m: float, normals: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """At ``points[index]``: the principal-curvature axis k1 (the direction the surface bends
+    least along: a handle's or a rim's axis) and k2 = n x k1, (C, 3) each. As GPD: k1 is the
+    eigenvector of the smallest eigenvalue of the sum of ``n n^T`` over the normals within
+    ``radius_m`` (normals turn about the axis, not along it), made orthogonal to the normal."""
+    n = normals[index]
+    M = np.zeros((len(index), 3, 3))
+    for j, nb in enumerate(tree.query_ball_point(points[index], radius_m)):
+        q = normals[nb]
+        M[j] = q.T @ q
+    _, vec = np.linalg.eigh(M)
+    k1 = vec[:, :, 0]
+    k1 = k1 - (k1 * n).sum(1, keepdims=True) * n
+    bad = np.linalg.norm(k1, axis=1) < 1e-6
+    if bad.any():
+        k1[bad] = _orthonormal(n[bad])[0]
+    k1 /= np.linalg.norm(k1, axis=1, keepdims=True)
+    return k1, _cross(n, k1)
+
+
+class SingleContactProposer:
+    """GPD-style single-contact sampling: a contact on the observed surface, its frame from the
+    normal n and the principal-curvature axis k1, approach and roll enumerated; the far finger may
+    lie where nothing was observed.
+
+    For each contact p (farthest-point subset of the cloud), approaches
+    ``a(theta) = -cos(theta) n + sin(theta) k2`` for ``single_contact_approaches`` angles theta
+    from -90 to 90 deg (about k1, as GPD rotates about the curvature axis), and for each
+    ``single_contact_rolls`` closing directions b about a, starting from
+    ``b0 = sin(theta) n + cos(theta) k2``. For theta = 0 the hand comes down the inward normal
+    and closes across the part (a handle, a rim: the jaws centred on the observed extent of the
+    closing slab, width from it); at theta = +-90 deg it comes in tangentially and closes along
+    the normal, the near finger at the observed face and the far finger behind it.
+
+    Jaw placement in the closing slab (|y| <= finger width / 2 and the pads' span along a) of the
+    observed points: where both extreme faces of the slab along b are observed (their normals
+    lie along b), the jaws are centred on them and the width is their distance; where only one
+    is (a single layer of surface: the face towards the nearest camera), the near finger stands
+    twice ``clearance_m`` off that face (its clearance box then clears it) and the jaws open to
+    the maximum width into the side away from the camera (the visibility-naive choice a per-point
+    network makes). Collisions are checked against observed points only, as for ``AntipodalProposer``:
+    the open fingers, the palm and the palm's straight approach from ``approach_check_m`` back.
+
+    Confidence in [0, 1], geometric only (it does not know what was never observed):
+    ``f_lo f_hi (1 - exp(-support / 20))`` with f the mean |n . b| of each jaw's face (normals
+    are oriented towards the cameras, so their sign at a silhouette says nothing), and 1/2 in
+    place of the face that was not observed (a pair of observed faces is better evidence than
+    one); the best orientation per contact is returned.
+    """
+
+    def __init__(self, cfg: GraspConfig, seed: int = 0) -> None:
+        self.cfg = cfg
+        self.g: GripperConfig = cfg.gripper
+        self.seed = seed
+
+    def orientations(
+        self, n: np.ndarray, k1: np.ndarray, k2: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(A, B, theta) of every enumerated orientation at one contact: (K, 3), (K, 3), (K,)."""
+        cfg = self.cfg
+        na = cfg.single_contact_approaches
+        th = np.linspace(-0.5 * np.pi, 0.5 * np.pi, na) if na > 1 else np.zeros(1)
+        a0 = -np.cos(th)[:, None] * n + np.sin(th)[:, None] * k2
+        b0 = np.sin(th)[:, None] * n + np.cos(th)[:, None] * k2
+        c0 = _cross(a0, b0)
+        phi = np.pi * np.arange(cfg.single_contact_rolls) / cfg.single_contact_rolls
+        A = np.repeat(a0, len(phi), axis=0)
+        cos_p, sin_p = np.cos(phi)[None, :, None], np.sin(phi)[None, :, None]
+        B = (cos_p * b0[:, None] + sin_p * c0[:, None]).reshape(-1, 3)
+        return A, B, np.repeat(th, len(phi))
+
+    def propose(
+        self, points_W: np.ndarray, normals_W: np.ndarray | None, view_origins_W: np.ndarray
+    ) -> GraspSet:
+        if len(points_W) < 10:
+            raise EmptyCloudError(f"grasp proposal needs a cloud, got {len(points_W)} points")
+        cfg, g = self.cfg, self.g
+        origin_W = grid_centre(points_W, 1.0)
+        pts = np.asarray(points_W, dtype=np.float64) - origin_W
+        views = np.atleast_2d(view_origins_W) - origin_W
+        normals = estimate_normals(pts, cfg.normal_radius_m, views) if normals_W is None else normals_W
+        tree = cKDTree(pts)
+        contacts = farthest_point_subset(pts, min(cfg.single_contact_max_contacts, len(pts)), self.seed)
+        k1, k2 = principal_frames(tree, pts, contacts, 1.5 * cfg.normal_radius_m, normals)
+        thin = voxel_subset(pts, cfg.single_contact_voxel_m)
+        pts_t = pts[thin].astype(np.float32)
+        nrm_t = normals[thin].astype(np.float32)
+        tree_t = cKDTree(pts_t)
+        m = len(contacts)
+        out_c = pts[contacts].copy()
+        out_b = -normals[contacts].copy()
+        out_a = _orthonormal(out_b)[0]
+        out_w = np.zeros(m)
+        out_conf = np.zeros(m)
+        out_valid = np.zeros(m, dtype=bool)
+        reach = float(
+            np.sqrt(
+                (g.max_width_m + g.finger_thickness_m + cfg.clearance_m) ** 2
+                + (g.finger_length_m + g.palm_depth_m + cfg.approach_check_m + cfg.clearance_m) ** 2
+                + (max(g.finger_width_m, g.palm_width_m) / 2 + cfg.clearance_m) ** 2
+            )
+        )
+        # the jaws and their closing slab lie within hand_r of the contact; only the palm's approach
+        # reaches farther (to reach)
+        hand_r = float(
+            np.sqrt(
+                (g.max_width_m + g.finger_thickness_m + cfg.clearance_m) ** 2
+                + (g.finger_length_m + cfg.clearance_m) ** 2
+                + (max(g.finger_width_m, g.palm_width_m) / 2 + cfg.clearance_m) ** 2
+            )
+        )
+        for i, ci in enumerate(contacts):
+            p = pts[ci]
+            near = np.asarray(tree_t.query_ball_point(p, reach), dtype=np.int64)
+            local = pts_t[near] - p.astype(np.float32)
+            close = (local**2).sum(1) <= hand_r**2
+            A, B, th = (v.astype(np.float32) for v in self.orientations(normals[ci], k1[i], k2[i]))
+            cam = views[np.argmin(((views - p) ** 2).sum(1))] - p
+            cam = (cam / max(float(np.linalg.norm(cam)), 1e-12)).astype(np.float32)
+            res = self._best(local[close], nrm_t[near[close]], A, B, th, local[~close], cam)
+            if res is None:
+                continue
+            k, centre_x, width, conf = res
+            a, b = A[k], B[k]
+            z0 = self._pad_depth(th[k])
+            centre = p + centre_x * b + z0 * a
+            out_c[i] = centre - 0.5 * width * b
+            out_b[i], out_a[i], out_w[i], out_conf[i] = b, a, width, conf
+            out_valid[i] = True
+        out_c += origin_W
+        return GraspSet(
+            contact=out_c,
+            baseline=out_b,
+            approach=out_a,
+            width=out_w,
+            confidence=np.clip(out_conf, 0.0, 1.0),
+            pose=grasp_poses(out_c, out_b, out_a, out_w, g.depth_m),
+            valid=out_valid,
+            src_index=contacts.astype(np.int64),
+        )
+
+    def _pad_depth(self, theta: float) -> float:
+        """How far past the contact along the approach the pads' centre line sits: about half a
+        finger when coming down the normal (the pads straddle the part), none when tangential."""
+        g, c = self.g, self.cfg.clearance_m
+        return max(0.0, 0.5 * g.finger_length_m - 2.0 * c) * float(np.cos(theta))
+
+    def _best(
+        self,
+        local: np.ndarray,
+        nrm: np.ndarray,
+        A: np.ndarray,
+        B: np.ndarray,
+        th: np.ndarray,
+        far: np.ndarray | None = None,
+        to_camera: np.ndarray | None = None,
+    ) -> tuple[int, float, float, float] | None:
+        """The most confident collision-free orientation: (index, jaw centre along b, width,
+        confidence), or None. All K orientations at once as (K, P) arrays over the contact's
+        neighbourhood ``local`` (points relative to the contact) with normals ``nrm``; ``far``:
+        the points beyond the hand's reach that only the palm's approach can meet;
+        ``to_camera``: the direction from the contact to its nearest camera."""
+        if to_camera is None:
+            to_camera = np.zeros(3)
+        g, cfg = self.g, self.cfg
+        c = cfg.clearance_m
+        W = g.max_width_m
+        half_l = g.finger_length_m / 2
+        cos_f = np.cos(np.deg2rad(cfg.single_contact_face_deg))
+        z0 = np.array([self._pad_depth(float(t)) for t in th])[:, None]  # (K, 1)
+        Y = _cross(A, B)
+        x = B @ local.T  # (K, P)
+        y = np.abs(Y @ local.T)
+        z = A @ local.T - z0
+        slab = (y <= g.finger_width_m / 2) & (np.abs(z) <= half_l) & (np.abs(x) <= W)
+        K = len(A)
+        rows = np.arange(K)
+        # the contact's own connected run along b: from the contact (x = 0) outwards up to the
+        # first gap wider than a finger's thickness (another part of the object)
+        xs = np.sort(np.where(slab, x, np.inf), axis=1)
+        n_in = slab.sum(1)
+        with np.errstate(invalid="ignore"):  # inf - inf past the slab's points: masked below
+            gap = np.diff(xs, axis=1) > g.finger_thickness_m
+        idx = np.arange(xs.shape[1] - 1)[None, :]
+        gap &= idx < (n_in - 1)[:, None]
+        i0 = (xs < 0.0).sum(1)[:, None]
+        lo = np.where(gap & (idx < i0), idx, -1).max(1) + 1
+        hi = np.where(gap & (idx >= i0), idx, np.iinfo(np.int64).max).min(1)
+        hi = np.minimum(hi, np.maximum(n_in - 1, 0))
+        x_lo = xs[rows, np.minimum(lo, xs.shape[1] - 1)][:, None]
+        x_hi = xs[rows, hi][:, None]
+        part = slab & (x >= x_lo - 1e-9) & (x <= x_hi + 1e-9)
+        support = part.sum(1)
+        extent = (x_hi - x_lo)[:, 0]
+        band = np.maximum(c, 0.1 * extent)[:, None]
+        # |normal . b|: a face's normal is parallel to the closing direction; its sign is not
+        # used, since normals are oriented towards the cameras and flip at silhouettes
+        nb = np.abs(B @ nrm.T)
+        lo_face = part & (x <= x_lo + band)
+        hi_face = part & (x >= x_hi - band)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            f_lo = np.clip((nb * lo_face).sum(1) / lo_face.sum(1), 0.0, 1.0)
+            f_hi = np.clip((nb * hi_face).sum(1) / hi_face.sum(1), 0.0, 1.0)
+        f_lo, f_hi = np.nan_to_num(f_lo), np.nan_to_num(f_hi)
+        lo_seen, hi_seen = f_lo >= cos_f, f_hi >= cos_f
+        both = lo_seen & hi_seen & (extent >= g.min_width_m)
+        # one face: the one towards the camera; the jaws open into the side away from it
+        thin = ~both & (extent < 0.5 * W)
+        cam_hi = (B @ to_camera) >= 0.0
+        only_hi = thin & cam_hi & hi_seen
+        only_lo = thin & ~cam_hi & lo_seen
+        x_lo1, x_hi1 = x_lo[:, 0], x_hi[:, 0]
+        width = np.where(both, extent, W - 2.0 * c)
+        centre = np.select(
+            [both, only_hi, only_lo],
+            [0.5 * (x_lo1 + x_hi1), x_hi1 + 2.0 * c - 0.5 * W, x_lo1 - 2.0 * c + 0.5 * W],
+            0.0,
+        )
+        conf = np.select([both, only_hi, only_lo], [f_lo * f_hi, 0.5 * f_hi, 0.5 * f_lo], 0.0)
+        conf = conf * (1.0 - np.exp(-support / 20.0))
+        ok = (both | only_hi | only_lo) & (support >= cfg.min_support) & (n_in > 0)
+        ok &= (width >= g.min_width_m) & (width <= W - 2.0 * c)
+        # collisions with observed points: the open fingers, the palm and its straight approach
+        ax = np.abs(x - centre[:, None])
+        outer = W / 2 + g.finger_thickness_m + c
+        finger = (ax >= W / 2 - c) & (ax <= outer) & (y <= g.finger_width_m / 2 + c)
+        finger &= np.abs(z) <= half_l + c
+        ok &= ~finger.any(1)
+        palm_y = max(g.palm_width_m, g.finger_width_m) / 2 + c
+        palm_back = -half_l - g.palm_depth_m - cfg.approach_check_m - c
+        palm = (ax <= outer) & (y <= palm_y) & (z < -half_l + c) & (z >= palm_back)
+        ok &= ~palm.any(1)
+        # the palm's approach against the far points, most confident orientation first
+        for k in np.argsort(-np.where(ok, conf, -1.0), kind="stable"):
+            if not ok[k]:
+                return None
+            if far is not None and len(far):
+                xf = far @ B[k] - centre[k]
+                zf = far @ A[k] - z0[k, 0]
+                yf = np.abs(far @ Y[k])
+                hit = (np.abs(xf) <= outer) & (yf <= palm_y) & (zf < -half_l + c) & (zf >= palm_back)
+                if hit.any():
+                    continue
+            return int(k), float(centre[k]), float(width[k]), float(conf[k])
+        return None
+
+
+def make_proposer(
+    cfg: GraspConfig, seed: int = 0, model: Any = None, kind: str | None = None
+) -> GraspProposer:
+    """The proposer ``kind`` (default ``cfg.proposer``); ``torchscript`` needs the loaded ``model``."""
+    kind = cfg.proposer if kind is None else kind
+    if kind == "torchscript":
         if model is None:
             raise ConfigError(
                 "grasp.proposer = torchscript: load the network outside the core and pass it "
                 "(pugsd.models.make_pipeline does)"
             )
         return TorchScriptProposer(cfg, model)
-    return AntipodalProposer(cfg, seed)
+    if kind == "antipodal":
+        return AntipodalProposer(cfg, seed)
+    if kind == "single_contact":
+        return SingleContactProposer(cfg, seed)
+    raise ConfigError(f"unknown grasp proposer {kind!r}")

@@ -1,8 +1,10 @@
 # SPDX-License-Identifier: Apache-2.0
 """Eq. 13 reweighting, ranking, top-k and farthest-point thinning.
 
-Eq. 13: ``GS~(p_z) = GS(p_z) / (1 + gamma sigma^2_occ(p_z))`` (paper: gamma = 5), applied per
-contact point (``src_index``); the executed grasp is the argmax.
+Eq. 13: ``GS~ = GS / (1 + gamma sigma^2)`` (paper: gamma = 5), the executed grasp the argmax.
+sigma^2 is either the paper's sigma^2_occ at the contact point (``src_index``;
+``grasp.uncertainty = "contact"``) or the grasp-level, unit-free sigma^2 of
+``pugsd.core.grasp.swept`` (``"swept"``).
 """
 
 from __future__ import annotations
@@ -40,12 +42,20 @@ def rank_grasps(
     thin_distance_m: float,
     by: str = "pugs",
     stamp_ns: int = 0,
+    sigma2_grasp: np.ndarray | None = None,
+    unknown_share: np.ndarray | None = None,
 ) -> ScoredGrasps:
-    """Valid grasps ranked by the PUGS (Eq. 13) or the baseline confidence, thinned, top-k."""
+    """Valid grasps ranked by the PUGS (Eq. 13) or the baseline confidence, thinned, top-k.
+
+    ``sigma2_occ_points`` is indexed by ``grasps.src_index``; ``sigma2_grasp`` and
+    ``unknown_share``, when given, are per candidate (aligned with ``grasps``), and Eq. 13 then
+    reads ``sigma2_grasp`` instead of the contact's sigma^2_occ."""
     valid = np.flatnonzero(grasps.valid)
     s2 = np.asarray(sigma2_occ_points)[grasps.src_index[valid]]
     base = grasps.confidence[valid]
-    pugs = reweight(base, s2, gamma)
+    s2g = None if sigma2_grasp is None else np.asarray(sigma2_grasp, dtype=np.float64)[valid]
+    unk = None if unknown_share is None else np.asarray(unknown_share, dtype=np.float64)[valid]
+    pugs = reweight(base, s2 if s2g is None else s2g, gamma)
     key = pugs if by == "pugs" else base
     order = np.argsort(-key, kind="stable")
     centres = grasps.contact[valid] + 0.5 * grasps.width[valid, None] * grasps.baseline[valid]
@@ -60,4 +70,6 @@ def rank_grasps(
         pugs_confidence=pugs[keep],
         grasp_id=grasps.src_index[sel].astype(np.int64),
         stamp_ns=stamp_ns,
+        sigma2_grasp=None if s2g is None else s2g[keep],
+        unknown_share=None if unk is None else unk[keep],
     )
