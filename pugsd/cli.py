@@ -11,11 +11,13 @@ import sys
 import threading
 from collections.abc import Sequence
 
+from pugsd import __version__
 from pugsd.errors import PugsdError
 
 # Each module defines ``register(subparsers)``; a subcommand sets ``func(args) -> int``.
 _COMMAND_MODULES = (
-    "pugsd.cli_core",
+    "pugsd.config_cli",
+    "pugsd.offline_cli",
     "pugsd.arm.cli",
     "pugsd.sim.cli",
     "pugsd.record.cli",
@@ -23,6 +25,11 @@ _COMMAND_MODULES = (
     "pugsd.daemon.client",
     "pugsd.bench.cli",
 )
+
+
+def _version(args: argparse.Namespace) -> int:
+    sys.stdout.write(f"pugsd {__version__}\n")
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -34,6 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="log level (default warning; for `run`, [daemon] log_level, which this overrides)",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub.add_parser("version", help="print the version").set_defaults(func=_version)
     for name in _COMMAND_MODULES:
         importlib.import_module(name).register(sub)
     return parser

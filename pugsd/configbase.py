@@ -14,7 +14,8 @@ import difflib
 import json
 import math
 import re
-from collections.abc import Mapping
+import textwrap
+from collections.abc import Mapping, Sequence
 from typing import Any, TypeVar, get_args, get_origin, get_type_hints
 
 from pugsd.errors import ConfigError
@@ -177,41 +178,105 @@ def _toml_value(v: Any) -> str:
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
 
 
-def _emit_table(lines: list[str], name: str, obj: Any, cls: Any) -> None:
-    """Write one table: documented scalars first, then sub-tables."""
-    doc = (cls.__doc__ or "").strip().splitlines()[0] if cls is not None and cls.__doc__ else ""
-    lines.append("")
-    if doc:
-        lines.append(f"# {doc}")
-    lines.append(f"[{name}]")
-    subtables: list[tuple[str, Any, Any]] = []
+@dataclasses.dataclass(frozen=True)
+class _Key:
+    path: str  # dotted: "grasp.gripper.max_width_m"
+    table: str  # "grasp.gripper"
+    value: Any  # TOML-ready (to_dict)
+    comment: str  # "meaning [unit]"; empty for free-form tables
+
+
+def _keys(obj: Any, table: str, titles: dict[str, str], free_docs: Mapping[str, str]) -> list[_Key]:
+    """Every key under ``obj`` in declaration order; ``titles`` gets each table's heading."""
+    out: list[_Key] = []
     if dataclasses.is_dataclass(obj):
+        doc = (type(obj).__doc__ or "").strip()
+        titles[table] = doc.splitlines()[0] if doc else ""
         for f in dataclasses.fields(obj):
-            v = getattr(obj, f.name)
-            if dataclasses.is_dataclass(v):
-                subtables.append((f.name, v, type(v)))
-                continue
-            d = to_dict(v)
-            if isinstance(d, dict):
-                subtables.append((f.name, d, None))
+            v, path = getattr(obj, f.name), f"{table}.{f.name}"
+            if dataclasses.is_dataclass(v) or isinstance(v, dict):
+                if isinstance(v, dict):
+                    titles[path] = f.metadata.get("doc", "")
+                out.extend(_keys(v, path, titles, free_docs))
                 continue
             unit = f.metadata.get("unit", "")
-            lines.append(f"# {f.metadata.get('doc', '')}" + (f" [{unit}]" if unit else ""))
-            lines.append(f"{f.name} = {_toml_value(d)}")
-    else:
-        for k, v in obj.items():
-            if isinstance(v, dict):
-                subtables.append((k, v, None))
-            else:
-                lines.append(f"{k} = {_toml_value(v)}")
-    for key, sub, sub_cls in subtables:
-        _emit_table(lines, f"{name}.{key}", sub, sub_cls)
+            comment = f.metadata.get("doc", "") + (f"\xa0[{unit}]" if unit else "")  # kept on its line
+            out.append(_Key(path, table, to_dict(v), comment))
+    else:  # a free-form table (zenoh's), under one heading; documented by free_docs, if at all
+
+        def flat(d: Mapping[str, Any], prefix: str) -> None:
+            for k, v in d.items():
+                if isinstance(v, dict):
+                    flat(v, f"{prefix}.{k}")
+                else:
+                    path = f"{prefix}.{k}"
+                    out.append(_Key(path, table, to_dict(v), free_docs.get(path, "")))
+
+        flat(obj, table)
+    return out
 
 
-def to_toml(obj: Any, header: str = "") -> str:
-    """Render a top-level config object as a documented TOML file."""
-    lines: list[str] = [f"# {h}" if h else "#" for h in header.splitlines()]
+def _rule(title: str) -> list[str]:
+    bar = "# " + "=" * 98
+    return ["", bar, *_comment(title), bar]
+
+
+def _comment(text: str) -> list[str]:
+    """``text`` as comment lines of at most 100 characters (a no-break space joins, then is a space)."""
+    lines = textwrap.wrap(
+        text, width=100, initial_indent="# ", subsequent_indent="# ", break_long_words=False,
+        break_on_hyphens=False,
+    )  # fmt: skip
+    return [line.replace("\xa0", " ") for line in lines]
+
+
+def _emit(lines: list[str], key: _Key) -> None:
+    lines.extend(_comment(key.comment))
+    lines.append(f"{key.path} = {_toml_value(key.value)}")
+
+
+def to_toml(
+    obj: Any,
+    header: str = "",
+    first: Sequence[tuple[str, Sequence[str]]] = (),
+    rest_title: str = "",
+    free_docs: Mapping[str, str] | None = None,
+) -> str:
+    """Render a top-level config object as a documented TOML file of dotted keys
+    (``section.key = value``, the form an override takes), each under its meaning and unit.
+
+    The groups of ``first`` come first, each under its title and in its order; an entry names a
+    key or a whole table (every key under it). Every other key follows under ``rest_title``, in
+    declaration order, under a heading per table. ``free_docs`` documents keys of free-form
+    tables (dotted path to meaning). Dotted keys let one table's keys appear in both
+    parts, which ``[table]`` headers cannot: TOML defines a header's table once.
+    """
+    titles: dict[str, str] = {}
+    keys: list[_Key] = []
     for f in dataclasses.fields(obj):
         v = getattr(obj, f.name)
-        _emit_table(lines, f.name, v, type(v) if dataclasses.is_dataclass(v) else None)
+        if not dataclasses.is_dataclass(v):
+            titles[f.name] = f.metadata.get("doc", "")
+        keys.extend(_keys(v, f.name, titles, free_docs or {}))
+    lines: list[str] = [f"# {h}" if h else "#" for h in header.splitlines()]
+    shown: set[str] = set()
+    for title, entries in first:
+        lines.extend([*_rule(title), ""])
+        for entry in entries:
+            chosen = [k for k in keys if k.path == entry or k.path.startswith(entry + ".")]
+            if not chosen or any(k.path in shown for k in chosen):
+                raise ValueError(f"{entry!r}: no such key, or already shown")
+            for k in chosen:
+                _emit(lines, k)
+                shown.add(k.path)
+    rest = [k for k in keys if k.path not in shown]
+    if rest and first:
+        lines.extend(_rule(rest_title))
+    table = None
+    for k in rest:
+        if k.table != table:
+            table = k.table
+            title = titles.get(table, "")
+            lines.extend(["", *_comment(f"[{table}]" + (f" {title}" if title else ""))])
+        _emit(lines, k)
     return "\n".join(lines).lstrip("\n") + "\n"

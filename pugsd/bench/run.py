@@ -19,7 +19,7 @@ from pugsd.bench.options import BenchOptions
 from pugsd.bench.targets import evaluate_targets
 from pugsd.config import PugsdConfig, core_of, load_config_dict
 from pugsd.core.predictive import NUM_INDUCING_AUTO_CPU, NUM_INDUCING_AUTO_CUDA, resolve_num_inducing
-from pugsd.models import make_pipeline
+from pugsd.pipeline_factory import make_pipeline
 
 SCHEMA = "pugsd-bench/1"
 

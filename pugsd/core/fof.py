@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from pugsd.config import FofConfig
+from pugsd.core.config import FofConfig
 from pugsd.errors import ConfigError, EmptyCloudError, InputError
 
 _LOG_2PI = float(np.log(2.0 * np.pi))

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pugsd.config import FreeSpaceConfig
+from pugsd.core.config import FreeSpaceConfig
 from pugsd.core.types import DepthFrame
 
 UNKNOWN, FREE, SURFACE = 0, 1, 2

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pugsd.config import ObservationConfig
+from pugsd.core.config import ObservationConfig
 from pugsd.core.geometry import skew
 from pugsd.core.types import DepthFrame
 from pugsd.errors import CovarianceError, EmptyCloudError

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pugsd.config import CoreConfig, CubatureConfig
+from pugsd.core.config import CoreConfig, CubatureConfig
 from pugsd.core.cubature import algorithm1
 from pugsd.core.fof import FofStore, resolve_query_device, resolve_query_workers
 from pugsd.core.freespace import FreeSpaceMap
@@ -137,7 +137,7 @@ class PugsPipeline:
         self, cfg: CoreConfig | None = None, seed: int = 0, grasp_model: Any = None
     ) -> None:
         """``grasp_model``: the loaded network for ``grasp.proposer = "torchscript"`` (the core
-        reads no files; ``pugsd.models.make_pipeline`` loads it)."""
+        reads no files; ``pugsd.pipeline_factory.make_pipeline`` loads it)."""
         self.cfg = cfg if cfg is not None else CoreConfig()
         self.seed = seed
         self.stereo = StereoDepth(self.cfg.stereo)

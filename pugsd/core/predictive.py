@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from pugsd.config import SvgpConfig
+from pugsd.core.config import SvgpConfig
 from pugsd.core.geometry import grid_centre
 from pugsd.errors import ConfigError, EmptyCloudError, ModelNotReadyError
 

@@ -17,8 +17,8 @@ import cv2
 import numpy as np
 import open3d as _o3d
 
-from pugsd.config import ReconstructionConfig
 from pugsd.core.camera import PinholeCamera
+from pugsd.core.config import ReconstructionConfig
 from pugsd.core.types import DepthFrame
 from pugsd.errors import EmptyCloudError
 

@@ -19,8 +19,8 @@ import logging
 import cv2
 import numpy as np
 
-from pugsd.config import StereoConfig
 from pugsd.core.camera import StereoRig
+from pugsd.core.config import StereoConfig
 from pugsd.core.types import DepthFrame, StereoFrame
 from pugsd.errors import ImageSizeError
 

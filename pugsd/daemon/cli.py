@@ -52,7 +52,7 @@ def _run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, args.set or ())
     apply_malloc_arena_max(cfg.daemon.malloc_arena_max)  # before torch and zenoh start threads
     setup_logging(run_log_level(args, cfg), cfg.daemon.log_json)
-    from pugsd.models import make_pipeline  # torch import: only when serving
+    from pugsd.pipeline_factory import make_pipeline  # torch import: only when serving
 
     daemon = Daemon(cfg, make_pipeline(core_of(cfg)))
     apply_thread_limits(cfg)

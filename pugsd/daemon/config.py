@@ -83,8 +83,8 @@ class DaemonConfig:
         2,
         "glibc malloc arenas (M_ARENA_MAX), set when `pugsd run` or `pugsd demo` starts (0: glibc's "
         "default, 8 per core; a MALLOC_ARENA_MAX environment variable wins): with the default, "
-        "image buffers freed across zenoh's and pugsd's threads fragment per-thread arenas, and "
-        "an overloaded, CPU-starved daemon's RSS grew by 200-300 MiB in 20 s",
+        "image buffers freed across zenoh's and pugsd's threads fragment per-thread arenas and "
+        "the RSS grows",
         ge=0,
     )
     max_frame_rate_hz: float = opt(
@@ -92,8 +92,7 @@ class DaemonConfig:
         "keep at most this many frames (stereo pairs or depth images) a second, chosen by their "
         "stamps before depth estimation; the others are skipped and counted (frames.skipped_rate), "
         "not dropped. 0: every frame. For a camera faster than the daemon integrates (the status' "
-        "overload warning), so that frames do not wait in the depth queue (about 1 s at 30 Hz on two "
-        "cores, docs/deploy.md)",
+        "overload warning), so that frames do not wait in the depth queue (docs/deploy.md)",
         unit="Hz",
         ge=0.0,
     )

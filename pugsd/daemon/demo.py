@@ -247,7 +247,7 @@ async def _demo_main(
     t_start: float,
     sweeps: int,
 ) -> tuple[Daemon, GraspPrinter, list[Path], dict[str, Any]]:
-    from pugsd.models import make_pipeline
+    from pugsd.pipeline_factory import make_pipeline
     from pugsd.record.recorder import Recorder
     from pugsd.wire.topics import topic_types
 

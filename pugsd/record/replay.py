@@ -246,7 +246,7 @@ def replay(
             raise file_error(od, exc, "cannot write") from None
     ast = AssembleStats()
     from pugsd.config import core_of
-    from pugsd.models import make_pipeline  # torch and open3d: only when replaying
+    from pugsd.pipeline_factory import make_pipeline  # torch and open3d: only when replaying
 
     pipe = make_pipeline(core_of(cfg), seed)
     n = 0

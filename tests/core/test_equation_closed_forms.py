@@ -1,7 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Closed-form checks of Eq. 1-13 and Algorithm 1 that a manual mutation-testing pass found
-missing: each test here fails on a specific, plausible mistake in the source (a dropped term, a
-transposed factor, a wrong weight, a removed clamp) that the other tests let through."""
+"""Closed-form checks of Eq. 1-13 and Algorithm 1: each test here fails on a specific, plausible
+mistake in the source (a dropped term, a transposed factor, a wrong weight, a removed clamp)."""
 
 from __future__ import annotations
 

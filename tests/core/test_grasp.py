@@ -27,7 +27,7 @@ from pugsd.core.grasp.proposer import (
 from pugsd.core.grasp.scoring import rank_grasps, reweight
 from pugsd.core.predictive import farthest_point_sample
 from pugsd.errors import ConfigError, PugsdError
-from pugsd.models import load_torchscript, make_pipeline
+from pugsd.pipeline_factory import load_torchscript, make_pipeline
 from tests.helpers.scenes import box_mesh, cylinder_mesh
 
 VIEWS = np.array([[0.5, 0, 0.2], [-0.5, 0, 0.2], [0, 0.5, 0.2], [0, -0.5, 0.2], [0, 0, 0.6]])
@@ -238,7 +238,7 @@ def test_torchscript_adapter(tmp_path: Path) -> None:
     (tmp_path / "junk.pt").write_bytes(b"not a model")
     with pytest.raises(PugsdError, match="cannot load"):
         load_torchscript(tmp_path / "junk.pt")
-    # the core reads no files: the network comes from outside (pugsd.models.make_pipeline)
+    # the core reads no files: the network comes from outside (pugsd.pipeline_factory.make_pipeline)
     with pytest.raises(ConfigError, match="outside the core"):
         make_proposer(cfg)
     pipe = make_pipeline(CoreConfig(grasp=cfg))

@@ -69,7 +69,7 @@ class _FakeDaemon:
 def test_run_sets_up_in_order_with_the_global_log_level_and_json(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
-    import pugsd.models
+    import pugsd.pipeline_factory
 
     events: list[Any] = []
     _FakeDaemon.instances = []
@@ -82,7 +82,7 @@ def test_run_sets_up_in_order_with_the_global_log_level_and_json(
         events.append(("pipeline",))
         return "PIPE"
 
-    monkeypatch.setattr(pugsd.models, "make_pipeline", make_pipeline)
+    monkeypatch.setattr(pugsd.pipeline_factory, "make_pipeline", make_pipeline)
 
     async def fake_serve(daemon: Any, stop: Any = None) -> None:
         events.append(("serve", daemon))

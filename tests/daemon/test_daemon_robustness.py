@@ -358,7 +358,7 @@ def test_demo_cleans_up_when_the_daemon_fails(tmp_path: Path, monkeypatch: pytes
     from pugsd.daemon import demo
     from pugsd.wire.session import free_tcp_port
 
-    monkeypatch.setattr("pugsd.models.make_pipeline", lambda core, seed=0: FakePipeline())
+    monkeypatch.setattr("pugsd.pipeline_factory.make_pipeline", lambda core, seed=0: FakePipeline())
 
     async def crashing_watchdog(self: Daemon) -> None:
         await asyncio.sleep(1.0)

@@ -54,7 +54,7 @@ def test_demo_returns_when_interrupted_while_its_daemon_starts(
         await real_run(self, stop)
 
     monkeypatch.setattr(Daemon, "run", run)
-    monkeypatch.setattr("pugsd.models.make_pipeline", lambda core, seed=0: InterruptedWarmUp(stops))
+    monkeypatch.setattr("pugsd.pipeline_factory.make_pipeline", lambda core, seed=0: InterruptedWarmUp(stops))
     cfg = demo.demo_config(f"tcp/127.0.0.1:{free_tcp_port()}", ())
     img = np.random.default_rng(0).integers(0, 255, (RIG.left.height, RIG.left.width), dtype=np.uint8)
 

@@ -358,7 +358,7 @@ def test_demo_main_sends_its_sweeps_prints_grasps_and_stops_on_ctrl_c(
     before its duration; the MCAP is finished and the signal handlers are gone."""
     from pugsd.wire.session import free_tcp_port
 
-    monkeypatch.setattr("pugsd.models.make_pipeline", lambda core, seed=0: FakePipeline())
+    monkeypatch.setattr("pugsd.pipeline_factory.make_pipeline", lambda core, seed=0: FakePipeline())
     cfg = demo.demo_config(f"tcp/127.0.0.1:{free_tcp_port()}", ["daemon.grasp_rate_hz=20"])
     img = np.random.default_rng(0).integers(0, 255, (RIG.left.height, RIG.left.width), dtype=np.uint8)
 
@@ -407,7 +407,7 @@ def test_demo_main_returns_after_its_duration_with_the_camera_looping(
     """No signal and a healthy daemon: the duration ends the run; sweeps = 0 loops the views."""
     from pugsd.wire.session import free_tcp_port
 
-    monkeypatch.setattr("pugsd.models.make_pipeline", lambda core, seed=0: FakePipeline())
+    monkeypatch.setattr("pugsd.pipeline_factory.make_pipeline", lambda core, seed=0: FakePipeline())
     cfg = demo.demo_config(f"tcp/127.0.0.1:{free_tcp_port()}", [])
     img = np.random.default_rng(1).integers(0, 255, (RIG.left.height, RIG.left.width), dtype=np.uint8)
 
@@ -456,7 +456,7 @@ def test_a_daemon_that_fails_to_start_is_reraised_and_the_handlers_removed(
 ) -> None:
     from pugsd.wire.session import free_tcp_port
 
-    monkeypatch.setattr("pugsd.models.make_pipeline", lambda core, seed=0: _BrokenWarmUp())
+    monkeypatch.setattr("pugsd.pipeline_factory.make_pipeline", lambda core, seed=0: _BrokenWarmUp())
     cfg = demo.demo_config(f"tcp/127.0.0.1:{free_tcp_port()}", [])
     before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     lines: list[str] = []

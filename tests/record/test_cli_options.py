@@ -169,7 +169,7 @@ def test_replay_prints_frames_grasps_and_outputs(synth_recording: Any, tmp_path:
                                                  monkeypatch: pytest.MonkeyPatch,
                                                  capsys: pytest.CaptureFixture[str]) -> None:  # fmt: skip
     src, frames = synth_recording
-    monkeypatch.setattr("pugsd.models.make_pipeline", _Pipeline)
+    monkeypatch.setattr("pugsd.pipeline_factory.make_pipeline", _Pipeline)
     assert main(["replay", str(src), "--out", str(tmp_path)]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == f"pugsd replay: {len(frames)} frames, 2 grasps"

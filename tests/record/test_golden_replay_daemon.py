@@ -99,7 +99,7 @@ class _Recorder:
 def test_the_daemon_integrates_the_golden_frames_and_grasps(recording: Path) -> None:
     from pugsd.config import core_of, load_config_dict
     from pugsd.daemon.app import Daemon, Inbound
-    from pugsd.models import make_pipeline
+    from pugsd.pipeline_factory import make_pipeline
     from pugsd.record.mcapio import iter_recording
     from pugsd.record.replay import iter_frames
     from pugsd.wire.keys import strip_topic

@@ -119,7 +119,7 @@ class _Pipeline:
 @pytest.fixture
 def pipeline(monkeypatch: pytest.MonkeyPatch) -> type[_Pipeline]:
     _Pipeline.made = []
-    monkeypatch.setattr("pugsd.models.make_pipeline", _Pipeline)
+    monkeypatch.setattr("pugsd.pipeline_factory.make_pipeline", _Pipeline)
     return _Pipeline
 
 
@@ -152,11 +152,11 @@ def test_replay_out_is_created_or_refused_before_the_pipeline_runs(
     def no_pipeline(*_: Any) -> Any:
         raise AssertionError("the pipeline ran before --out was checked")
 
-    monkeypatch.setattr("pugsd.models.make_pipeline", no_pipeline)
+    monkeypatch.setattr("pugsd.pipeline_factory.make_pipeline", no_pipeline)
     (tmp_path / "afile").write_text("not a directory")
     with pytest.raises(PugsdError, match="afile"):
         replay([path], default_config(), out_dir=tmp_path / "afile" / "sub")
-    monkeypatch.setattr("pugsd.models.make_pipeline", _Pipeline)
+    monkeypatch.setattr("pugsd.pipeline_factory.make_pipeline", _Pipeline)
     res = replay([path], default_config(), out_dir=tmp_path / "new" / "sub")
     assert res.json_path == tmp_path / "new" / "sub" / "grasps.json" and res.json_path.is_file()
     assert res.mcap_path is not None and res.mcap_path.is_file()

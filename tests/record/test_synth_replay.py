@@ -104,7 +104,7 @@ def test_replay_outputs_with_a_stand_in_pipeline(
     synth_recording: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     path, frames = synth_recording
-    monkeypatch.setattr("pugsd.models.make_pipeline", _FakePipeline)
+    monkeypatch.setattr("pugsd.pipeline_factory.make_pipeline", _FakePipeline)
     res = replay([path], default_config(), out_dir=tmp_path)
     assert res.frames == len(frames) and len(res.grasps) == 1
     doc = json.loads((tmp_path / "grasps.json").read_text())
@@ -222,7 +222,7 @@ def test_replay_gives_posestamped_the_configured_covariance(
     p = tmp_path / "ps.mcap"
     _write_pose_recording(p, cfg.topics, [(s, codec.encode_pose_stamped(s, np.eye(4)), POSE_STAMPED)
                                           for s in stamps], stamps)  # fmt: skip
-    monkeypatch.setattr("pugsd.models.make_pipeline", _Capture)
+    monkeypatch.setattr("pugsd.pipeline_factory.make_pipeline", _Capture)
     res = replay([p], cfg)
     assert res.frames == 3 and [f.stamp_ns for f in _Capture.last] == stamps
     want = np.diag([0.003**2] * 3 + [0.02**2] * 3)
@@ -250,7 +250,7 @@ def test_replay_treats_an_all_zero_covariance_as_missing(
 
     p = tmp_path / "zero.mcap"
     _write_pose_recording(p, cfg.topics, [pose(s, c) for s, c in zip(stamps, covs, strict=True)], stamps)
-    monkeypatch.setattr("pugsd.models.make_pipeline", _Capture)
+    monkeypatch.setattr("pugsd.pipeline_factory.make_pipeline", _Capture)
     assert replay([p], cfg).frames == 4
     got = _Capture.last
     assert [f.stamp_ns for f in got] == stamps
@@ -299,7 +299,7 @@ def test_replay_uses_the_daemon_pose_max_gap(tmp_path: Path, monkeypatch: pytest
     assert cfg.daemon.pose_max_gap_s == 0.5
     p = tmp_path / "gap.mcap"
     _write_pose_recording(p, cfg.topics, poses, [1_400_000_000])
-    monkeypatch.setattr("pugsd.models.make_pipeline", _Capture)
+    monkeypatch.setattr("pugsd.pipeline_factory.make_pipeline", _Capture)
     with pytest.raises(InputError, match=r"no usable stereo frames.*no_pose=1"):
         replay([p], cfg)
     wide = load_config_dict({}, ["daemon.pose_max_gap_s=1.0"])
@@ -345,7 +345,7 @@ def test_replay_composes_a_recorded_body_odometry_with_the_camera_mount(
         T[0, 3] = 0.1 * i
         poses.append((s, codec.encode_odometry(s, T, cov_B), ODOMETRY))
     _write_pose_recording(p, cfg.topics, poses, stamps)
-    monkeypatch.setattr("pugsd.models.make_pipeline", _Capture)
+    monkeypatch.setattr("pugsd.pipeline_factory.make_pipeline", _Capture)
     assert replay([p], cfg).frames == 3
     want = cov_B.copy()
     want[1, 1] += 0.25 * s2

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Grasp proposers producing per-point grasps (math spec 3.2) and the default antipodal sampler.
+"""Grasp proposers producing per-point grasps: single-contact (the default), antipodal, TorchScript.
 
 Pose convention (Contact-GraspNet): ``R = [b, a x b, a]`` with baseline b (closing direction, from
 the contact towards its partner) and approach a; translation ``t = c + w/2 b - d_g a`` is the
@@ -22,7 +22,7 @@ import numpy as np
 import open3d as _o3d
 from scipy.spatial import cKDTree
 
-from pugsd.config import GraspConfig, GripperConfig
+from pugsd.core.config import GraspConfig, GripperConfig
 from pugsd.core.geometry import grid_centre
 from pugsd.errors import ConfigError, EmptyCloudError, PugsdError
 
@@ -122,7 +122,7 @@ def _orthonormal(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 class AntipodalProposer:
-    """Geometric antipodal sampling (math spec 3.3; parameters after GPD).
+    """Geometric antipodal sampling (parameters after GPD).
 
     For each contact p (farthest-point subset) with outward normal n_p, the partner q is the first
     observed point along ``p + s b``, ``b = -n_p``, whose normal points along b (it leaves the
@@ -327,7 +327,7 @@ class TorchScriptProposer:
     """
 
     def __init__(self, cfg: GraspConfig, model: Any) -> None:
-        """``model``: the loaded network (``pugsd.models.load_torchscript``; the core reads no
+        """``model``: the loaded network (``pugsd.pipeline_factory.load_torchscript``; the core reads no
         files)."""
         import torch
 
@@ -646,7 +646,7 @@ def make_proposer(
         if model is None:
             raise ConfigError(
                 "grasp.proposer = torchscript: load the network outside the core and pass it "
-                "(pugsd.models.make_pipeline does)"
+                "(pugsd.pipeline_factory.make_pipeline does)"
             )
         return TorchScriptProposer(cfg, model)
     if kind == "antipodal":

@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pugsd.config import GripperConfig
+from pugsd.core.config import GripperConfig
 from pugsd.core.freespace import UNKNOWN, FreeSpaceMap
 
 

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Audit of ``pugsd.core.camera``: the downsampled camera (``PinholeCamera.scaled``) against the
+"""``pugsd.core.camera``: the downsampled camera (``PinholeCamera.scaled``) against the
 pixel-centre convention, with skew and an off-centre principal point."""
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Mutation audit of the streaming SVGP's housekeeping (pugsd/core/predictive.py).
+"""The streaming SVGP's housekeeping (pugsd/core/predictive.py).
 
-Each test pins bookkeeping that the behavioural tests in test_predictive.py leave free: which
+Each test pins bookkeeping that the learning tests in test_predictive.py leave free: which
 inducing points move and how many, the counters and the readiness thresholds, recovery to the
 last good state, the optimizers' wiring to the config, minibatch composition and the model
 version. Small models (M 10-40, a few hundred points), fixed seeds, one torch thread."""

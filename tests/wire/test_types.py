@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The type store (mutation audit): both pugs_msgs types are registered under their ROS 2 names,
+"""The type store (``pugsd.wire.types``): both pugs_msgs types are registered under their ROS 2 names,
 the packaged .msg texts are what the store and the MCAP schemas are built from, and the type
 names and hashes are the ones rmw_zenoh keys carry."""
 

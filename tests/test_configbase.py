@@ -1,18 +1,19 @@
 # SPDX-License-Identifier: Apache-2.0
-"""configbase (mutation audit): the exact error messages of range, choice and unknown-key checks,
+"""pugsd.configbase: the exact error messages of range, choice and unknown-key checks,
 the limits of what the loader accepts (64-bit integers, tuples, JSON tables), and the dotted path
-a cross-key check gets (a section's own ``__post_init__``)."""
+a cross-key check gets (a section's own ``__post_init__``), and the documented TOML it writes."""
 
 from __future__ import annotations
 
 import dataclasses
+import tomllib
 from dataclasses import dataclass, field
 from typing import Any
 
 import pytest
 
 from pugsd.config import load_config_dict
-from pugsd.configbase import build, opt
+from pugsd.configbase import opt, to_dict, to_toml
 from pugsd.errors import ConfigError
 
 
@@ -69,67 +70,66 @@ def test_a_cross_key_message_that_does_not_start_with_a_key_gets_a_colon() -> No
 
 @dataclass(frozen=True)
 class _Inner:
-    lo: tuple[float, ...] = opt((0.0, 1.0), "limits", ge=0.0)
-    mode: str = opt("a", "a mode")
+    """Inner section."""
 
-    def __post_init__(self) -> None:
-        if self.mode == "item":
-            raise ConfigError("lo[1]: below lo[0]")
-        if self.mode == "word":
-            raise ConfigError("bounds: inverted")  # 'bounds' is no key of this section
-        if self.mode == "prose":
-            raise ConfigError("lo and mode disagree")
+    b: int = opt(2, "the b key", unit="m")
+    c: str = opt("x", "the c key")
 
 
 @dataclass(frozen=True)
-class _Outer:
+class _Section:
+    """A section."""
+
+    a: float = opt(1.0, "the a key")
     inner: _Inner = field(default_factory=_Inner)
-    n: int = opt(0, "a 64-bit integer")
 
 
-def _build_error(data: dict[str, Any]) -> str:
-    with pytest.raises(ConfigError) as exc:
-        build(_Outer, data)
-    return str(exc.value)
+@dataclass(frozen=True)
+class _Top:
+    sec: _Section = field(default_factory=_Section)
+    free: dict[str, Any] = field(default_factory=lambda: {"t": {"u": 1}}, metadata={"doc": "free"})
 
 
-@pytest.mark.parametrize(
-    ("mode", "message"),
-    [
-        ("item", "inner.lo[1]: below lo[0]"),
-        ("word", "inner: bounds: inverted"),
-        ("prose", "inner: lo and mode disagree"),
-    ],
-)
-def test_a_cross_key_error_is_prefixed_with_the_sections_path(mode: str, message: str) -> None:
-    assert _build_error({"inner": {"mode": mode}}) == message
+def test_to_toml_writes_the_first_groups_then_the_rest_under_table_headings() -> None:
+    text = to_toml(
+        _Top(), "head", first=[("Set these", ("sec.inner.c", "free"))], rest_title="The rest",
+        free_docs={"free.t.u": "the u key"},
+    )  # fmt: skip
+    lines = [ln for ln in text.splitlines() if ln and not ln.startswith("# ===")]
+    assert lines == [
+        "# head",
+        "# Set these",
+        "# the c key",
+        'sec.inner.c = "x"',
+        "# the u key",
+        "free.t.u = 1",
+        "# The rest",
+        "# [sec] A section.",
+        "# the a key",
+        "sec.a = 1.0",
+        "# [sec.inner] Inner section.",
+        "# the b key [m]",
+        "sec.inner.b = 2",
+    ]
+    assert tomllib.loads(text) == to_dict(_Top())
 
 
-def test_every_item_of_a_tuple_is_range_checked() -> None:
-    assert build(_Outer, {"inner": {"lo": [0, 2.5]}}).inner.lo == (0.0, 2.5)
-    assert _build_error({"inner": {"lo": [0.0, -1.0]}}) == "inner.lo: -1.0 is below the minimum 0.0"
-
-
-@pytest.mark.parametrize("n", [-(1 << 63), (1 << 63) - 1])
-def test_both_ends_of_the_64_bit_range_load(n: int) -> None:
-    assert build(_Outer, {"n": n}).n == n
-
-
-@pytest.mark.parametrize("n", [-(1 << 63) - 1, 1 << 63])
-def test_one_past_either_end_of_the_64_bit_range_is_refused(n: int) -> None:
-    assert _build_error({"n": n}) == "n: expected a 64-bit integer, got one of 64 bits"
-
-
-def test_a_type_the_loader_does_not_check_is_a_config_error_not_a_silent_pass() -> None:
+def test_to_toml_wraps_a_long_meaning_and_keeps_the_unit_on_its_last_line() -> None:
     @dataclass(frozen=True)
-    class Pair:
-        xy: tuple[int, int] = opt((0, 0), "a fixed-length tuple")
+    class Long:
+        k: float = opt(1.0, "word " * 30 + "end", unit="m")
 
     @dataclass(frozen=True)
-    class Listed:
-        xs: list = field(default_factory=list)  # type: ignore[type-arg]
+    class Top:
+        s: Long = field(default_factory=Long)
 
-    with pytest.raises(ConfigError, match=r"^xy: unsupported config type tuple\[int, int\]$"):
-        build(Pair, {"xy": [1, 2]})
-    with pytest.raises(ConfigError, match=r"^xs: unsupported config type list$"):
-        build(Listed, {"xs": [1]})
+    comments = [ln for ln in to_toml(Top()).splitlines() if ln.startswith("# ") and "[s]" not in ln]
+    assert len(comments) == 2 and all(len(ln) <= 100 for ln in comments)
+    assert comments[-1].endswith("end [m]")
+
+
+def test_to_toml_refuses_a_first_entry_that_names_no_key_or_one_shown_twice() -> None:
+    with pytest.raises(ValueError, match=r"'sec\.inner\.d': no such key"):
+        to_toml(_Top(), first=[("x", ("sec.inner.d",))])
+    with pytest.raises(ValueError, match=r"'sec\.inner': no such key, or already shown"):
+        to_toml(_Top(), first=[("x", ("sec.inner.b",)), ("y", ("sec.inner",))])

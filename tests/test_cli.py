@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""``pugsd`` command line (mutation audit of pugsd/cli.py and pugsd/cli_core.py): exit codes,
+"""``pugsd`` command line (pugsd/cli.py, pugsd/config_cli.py and pugsd/offline_cli.py): exit codes,
 the subcommands, the global log level, ``check-config``'s ok line, ``dump-config --config``,
 ``offline`` (its defaults, the streaming and paper modes, its grasp table), with the model and the
 synthetic scene replaced by stubs."""
@@ -17,11 +17,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-import pugsd.cli_core
+import pugsd.cli
 from pugsd.cli import build_parser, main
-from pugsd.cli_core import format_grasps
 from pugsd.core.types import ScoredGrasps
 from pugsd.errors import ConfigError
+from pugsd.offline_cli import format_grasps
 
 
 def _grasps(n: int) -> ScoredGrasps:
@@ -40,8 +40,8 @@ def _grasps(n: int) -> ScoredGrasps:
 
 
 def _stub(monkeypatch: pytest.MonkeyPatch, name: str, func: Any) -> None:
-    """Replace a subcommand of pugsd.cli_core (``register`` looks the name up when main runs)."""
-    monkeypatch.setattr(pugsd.cli_core, name, func)
+    """Replace a subcommand of pugsd.cli (``build_parser`` looks the name up when main runs)."""
+    monkeypatch.setattr(pugsd.cli, name, func)
 
 
 def test_the_subcommands_a_user_types_are_all_registered() -> None:
@@ -160,9 +160,9 @@ def test_dump_config_shows_the_given_file(tmp_path: Path, capsys: pytest.Capture
     f = tmp_path / "c.toml"
     f.write_text("[grasp]\ngamma = 3.5\n")
     assert main(["dump-config", "--config", str(f)]) == 0
-    assert "\ngamma = 3.5\n" in capsys.readouterr().out
+    assert "\ngrasp.gamma = 3.5\n" in capsys.readouterr().out
     assert main(["dump-config"]) == 0
-    assert "\ngamma = 3.5\n" not in capsys.readouterr().out
+    assert "\ngrasp.gamma = 3.5\n" not in capsys.readouterr().out
 
 
 def test_format_grasps_table() -> None:
@@ -210,7 +210,7 @@ class _FakePipe:
 
 @pytest.fixture
 def offline_pipe(monkeypatch: pytest.MonkeyPatch) -> _FakePipe:
-    import pugsd.models
+    import pugsd.pipeline_factory
     import pugsd.sim
 
     pipe = _FakePipe()
@@ -218,7 +218,7 @@ def offline_pipe(monkeypatch: pytest.MonkeyPatch) -> _FakePipe:
         object_name="mug", trajectory="partial", frames=["f0", "f1", "f2"], core_overrides={}
     )
     monkeypatch.setattr(pugsd.sim, "make_sequence", lambda *a, **kw: seq)
-    monkeypatch.setattr(pugsd.models, "make_pipeline", lambda core, seed=0: pipe)
+    monkeypatch.setattr(pugsd.pipeline_factory, "make_pipeline", lambda core, seed=0: pipe)
     return pipe
 
 

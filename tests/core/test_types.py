@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Stage data types (mutation audit): the tolerances of check_pose and check_covariance on both
+"""Stage data types (``pugsd.core.types``): the tolerances of check_pose and check_covariance on both
 sides with their exact messages, frames' size checks and read-only poses, ScoredGrasps' axes."""
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
-"""pugsd.models and pugsd.errors (mutation audit): load_torchscript's refusals with their exact
-messages and no chained traceback, the loaded network in eval mode, make_pipeline loading a
-network only for proposer = "torchscript", and the exception hierarchy the CLI maps."""
+"""pugsd.pipeline_factory: load_torchscript's refusals with their exact messages and no chained
+traceback, the loaded network in eval mode, make_pipeline loading a network only for
+proposer = "torchscript"."""
 
 from __future__ import annotations
 
@@ -10,10 +10,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from pugsd import errors
 from pugsd.config import CoreConfig, GraspConfig
 from pugsd.errors import PugsdError
-from pugsd.models import load_torchscript, make_pipeline
+from pugsd.pipeline_factory import load_torchscript, make_pipeline
 
 
 def _refusal(path: Path | str) -> PugsdError:
@@ -54,9 +53,10 @@ def test_the_loaded_network_is_in_eval_mode_and_on_the_cpu(tmp_path: Path) -> No
 
 def test_make_pipeline_loads_a_network_only_for_the_torchscript_proposer(tmp_path: Path) -> None:
     missing = tmp_path / "missing.pt"
-    # the antipodal proposer never reads model_path, even when it names no file
-    pipe = make_pipeline(CoreConfig(grasp=GraspConfig(model_path=str(missing))))
-    assert type(pipe.proposer).__name__ == "AntipodalProposer"
+    # the other proposers never read model_path, even when it names no file
+    for proposer, name in (("single_contact", "SingleContactProposer"), ("antipodal", "AntipodalProposer")):
+        pipe = make_pipeline(CoreConfig(grasp=GraspConfig(proposer=proposer, model_path=str(missing))))
+        assert type(pipe.proposer).__name__ == name
     with pytest.raises(PugsdError, match=f"^grasp.model_path: no TorchScript model at {missing}$"):
         make_pipeline(CoreConfig(grasp=GraspConfig(proposer="torchscript", model_path=str(missing))))
 
@@ -64,29 +64,3 @@ def test_make_pipeline_loads_a_network_only_for_the_torchscript_proposer(tmp_pat
 def test_make_pipeline_passes_the_seed() -> None:
     pipe = make_pipeline(CoreConfig(), seed=17)
     assert pipe.seed == 17
-
-
-def test_the_exception_hierarchy() -> None:
-    parents = {
-        "ConfigError": "PugsdError",
-        "InputError": "PugsdError",
-        "ImageSizeError": "InputError",
-        "PoseError": "InputError",
-        "CovarianceError": "InputError",
-        "EmptyCloudError": "InputError",
-        "ModelNotReadyError": "PugsdError",
-        "DecodeError": "PugsdError",
-        "ArmError": "PugsdError",
-        "PortInUseError": "ArmError",
-        "SafetyError": "ArmError",
-        "PugsdError": "Exception",
-    }
-    for name, parent in parents.items():
-        cls = getattr(errors, name)
-        assert [b.__name__ for b in cls.__bases__] == [parent], name
-
-
-def test_a_decode_error_carries_its_reason() -> None:
-    e = errors.DecodeError("bad cdr: 'x'", "malformed cdr")
-    assert (str(e), e.reason, e.args) == ("bad cdr: 'x'", "malformed cdr", ("bad cdr: 'x'",))
-    assert errors.DecodeError("short").reason is None

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""SE(3) helpers (mutation audit): skew, grid_centre, make_T and look_at in closed form, look_at's
+"""SE(3) helpers (``pugsd.core.geometry``): skew, grid_centre, make_T and look_at in closed form, look_at's
 fallback when the view is along the up vector, and compose_pose_cov's exactly symmetric result."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Audit of ``pugsd.sim.figures.grasp_figure`` on the cases the end-to-end evaluation does not
+"""``pugsd.sim.figures.grasp_figure`` on the cases the end-to-end evaluation does not
 reach: no grasp from either method, points without an Eq. 13 confidence, a directory that does
 not exist yet."""
 

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Audit of ``pugsd.sim.sequence``: the SE(3) exponential against the matrix exponential, the
+"""``pugsd.sim.sequence``: the SE(3) exponential against the matrix exponential, the
 object poses as exact rotations with the bounding box centred, the trajectories' rings, arcs and
 radii, and what ``make_sequence`` records per frame (frame count, stamps, reported covariance,
 rig, underwater switch)."""

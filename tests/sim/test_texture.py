@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Audit of ``pugsd.sim.texture``: value noise interpolates its lattice values, is smooth (C1)
+"""``pugsd.sim.texture``: value noise interpolates its lattice values, is smooth (C1)
 across cell faces, stays in [0, 1); the fractal texture stays in [0, 1] and is seeded."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Audit of ``pugsd.sim.render`` against closed forms: the rig's principal point at the image
+"""``pugsd.sim.render`` against closed forms: the rig's principal point at the image
 centre, the range along each ray, the two-sided Lambertian shading and its tints, the texture
 attached to the object, supersampling as a finer image averaged, and the image degradation
 (rounding, clipping, the underwater model ``J e^{-c r} + B (1 - e^{-c r})``, the noise level)."""

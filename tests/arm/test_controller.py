@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Controller safety checks pinned at their exact bounds (found by a mutation-testing pass).
+"""Controller safety checks (pugsd/arm/controller.py) at their exact bounds.
 
 The end-to-end tests drive the simulator far past every bound (feedback seconds old, a stalled
 joint, every axis stopped at once); these call the checks directly on a controller whose link

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Audit of ``pugsd.sim.cli`` (``pugsd evaluate``) with the evaluation itself replaced by a stub:
+"""``pugsd.sim.cli`` (``pugsd evaluate``) with the evaluation itself replaced by a stub:
 how the arguments map onto ``EvalOptions``, the progress lines and the per-trial JSON lines, and
 the arguments refused before anything runs."""
 
