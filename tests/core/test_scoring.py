@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Eq. 13 ranking (mutation audit): the thinning distance is measured between grasp centres
+"""Eq. 13 ranking: the thinning distance is measured between grasp centres
 (contact + w/2 b), a grasp exactly at the thinning distance is kept, top-k counts kept grasps,
 ties keep their proposal order, the baseline ranking ignores sigma^2_occ, and every output array
 is the selected grasps' own."""

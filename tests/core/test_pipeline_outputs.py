@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """The per-point outputs of a pipeline result (published in the cloud as ``pugs_confidence``):
 Eq. 13 with the configured gamma at each valid grasp's contact point, 0 elsewhere, and the
-occupancy confidence 1 / (1 + gamma sigma^2_occ) at every point."""
+occupancy confidence 1 / (1 + gamma sigma^2_occ / reference) at every point."""
 
 from __future__ import annotations
 
