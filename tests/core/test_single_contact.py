@@ -132,3 +132,15 @@ def test_the_factory_builds_each_kind_and_refuses_unknown_ones() -> None:
         make_proposer(CFG, kind="nonsense")
     with pytest.raises(EmptyCloudError):
         SingleContactProposer(CFG).propose(np.zeros((3, 3)), None, CAMERA)
+
+
+def test_an_isolated_contact_gives_no_candidate_and_no_error() -> None:
+    """A stray point far from the rest (farthest-point sampling picks it first) has no
+    neighbours to close on: it yields an invalid candidate, the others are proposed as usual."""
+    pts = np.vstack([_bar(), [[0.0, 0.0, 0.6]]])
+    gs = SingleContactProposer(dataclasses.replace(CFG, single_contact_max_contacts=50)).propose(
+        pts, None, np.array([[0.0, 0.0, 0.5]])
+    )
+    stray = np.flatnonzero(gs.src_index == len(pts) - 1)
+    assert len(stray) == 1 and not gs.valid[stray[0]]
+    assert gs.valid.sum() >= 5

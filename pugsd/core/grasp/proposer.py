@@ -549,6 +549,8 @@ class SingleContactProposer:
         neighbourhood ``local`` (points relative to the contact) with normals ``nrm``; ``far``:
         the points beyond the hand's reach that only the palm's approach can meet;
         ``to_camera``: the direction from the contact to its nearest camera."""
+        if len(local) < max(self.cfg.min_support, 2):
+            return None  # too few points around the contact to hold a closing slab
         if to_camera is None:
             to_camera = np.zeros(3)
         g, cfg = self.g, self.cfg
