@@ -612,18 +612,21 @@ class SingleContactProposer:
         ok = (both | only_hi | only_lo) & (support >= cfg.min_support) & (n_in > 0)
         ok &= (width >= g.min_width_m) & (width <= W - 2.0 * c)
         # collisions with observed points: the open fingers, the palm and its straight approach
-        ax = np.abs(x - centre[:, None])
+        # (tested on the orientations still in the running only)
         outer = W / 2 + g.finger_thickness_m + c
-        finger = (ax >= W / 2 - c) & (ax <= outer) & (y <= g.finger_width_m / 2 + c)
-        finger &= np.abs(z) <= half_l + c
-        ok &= ~finger.any(1)
         # the palm meets a surface head on, where the reconstruction's depth error counts in
         # full: it keeps twice the clearance
         cp = 2.0 * c
         palm_y = max(g.palm_width_m, g.finger_width_m) / 2 + cp
         palm_back = -half_l - g.palm_depth_m - cfg.approach_check_m - cp
-        palm = (ax <= outer) & (y <= palm_y) & (z < -half_l + cp) & (z >= palm_back)
-        ok &= ~palm.any(1)
+        live = np.flatnonzero(ok)
+        if len(live):
+            xl, yl, zl = x[live], y[live], z[live]
+            ax = np.abs(xl - centre[live, None])
+            finger = (ax >= W / 2 - c) & (ax <= outer) & (yl <= g.finger_width_m / 2 + c)
+            finger &= np.abs(zl) <= half_l + c
+            palm = (ax <= outer) & (yl <= palm_y) & (zl < -half_l + cp) & (zl >= palm_back)
+            ok[live] = ~(finger.any(1) | palm.any(1))
         # the palm's approach against the far points, most confident orientation first
         for k in np.argsort(-np.where(ok, conf, -1.0), kind="stable"):
             if not ok[k]:
