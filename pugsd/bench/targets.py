@@ -1,6 +1,11 @@
 # SPDX-License-Identifier: Apache-2.0
 """The benchmark's targets (2-core CPU, no GPU; ratios from one run) judged on a result dict,
-and the printed table."""
+and the printed table.
+
+The Spearman rows (streaming's and the daemon's sigma2_occ against the paper fit) are information
+only, with no verdict: their agreement with one 100-epoch batch fit measures that fit's optimiser
+state. Whether streaming picks grasps as well as the paper fit is measured by
+``pugsd evaluate --mode streaming,paper`` (paired McNemar per cell)."""
 
 from __future__ import annotations
 
@@ -15,15 +20,17 @@ def _row(name: str, required: str, measured: Any, ok: bool | None, note: str = "
     return {"target": name, "required": required, "measured": measured, "pass": ok, "note": note}
 
 
-def _judge_rho(rho: Any, note: str) -> tuple[bool | None, str]:
-    """A Spearman figure against its 0.9 target: a NaN (undefined correlation, e.g. a
-    non-finite sigma2_occ) gets no verdict and says so, rather than a bare FAIL."""
-    if rho is None:
-        return None, note
+LATENCY_S = 0.5  # last frame -> grasps, streaming and the daemon
+INFO = "info"  # the required column of a row reported without a verdict
+
+
+def _rho_note(rho: Any, note: str) -> str:
+    """A Spearman row's note: a NaN (undefined correlation, e.g. a non-finite sigma2_occ) says
+    so."""
     if isinstance(rho, float) and math.isnan(rho):
         nan_note = "Spearman undefined (NaN): non-finite or constant sigma2_occ"
-        return None, "; ".join(n for n in (nan_note, note) if n)
-    return rho >= 0.9, note
+        return "; ".join(n for n in (nan_note, note) if n)
+    return note
 
 
 def _later_cloud(later: dict[str, Any]) -> str:
@@ -60,17 +67,18 @@ def _skipped_sections(r: dict[str, Any]) -> list[str]:
 
 
 def evaluate_targets(r: dict[str, Any]) -> list[dict[str, Any]]:
-    """One row per target: pass True/False, or None where it could not be measured here."""
+    """One row per target: pass True/False, or None where it could not be measured here or the
+    row is information only (required "info")."""
     rows: list[dict[str, Any]] = []
     quick_note = "quick run: reduced frames/epochs, not comparable" if r.get("quick") else ""
     for traj, c in (r.get("paper_vs_streaming") or {}).items():
         s = c["streaming_last_frame_to_grasps_s"]
-        rows.append(_row(f"streaming last frame -> grasps ({traj})", "<= 1.0 s", s, s <= 1.0,
-                         quick_note))  # fmt: skip
+        rows.append(_row(f"streaming last frame -> grasps ({traj})", f"<= {LATENCY_S} s", s,
+                         s <= LATENCY_S, quick_note))  # fmt: skip
         dl = (c.get("daemon") or {}).get("last_frame_to_grasps_s", "absent")
         if dl != "absent":
-            rows.append(_row(f"daemon last frame -> its grasps ({traj})", "<= 1.0 s", dl,
-                             None if dl is None else dl <= 1.0,
+            rows.append(_row(f"daemon last frame -> its grasps ({traj})", f"<= {LATENCY_S} s", dl,
+                             None if dl is None else dl <= LATENCY_S,
                              quick_note or ("" if dl is not None else "grasps not received")))  # fmt: skip
         ag = (c.get("daemon") or {}).get("agreement_with_paper")
         if ag is not None:
@@ -78,9 +86,8 @@ def evaluate_targets(r: dict[str, Any]) -> list[dict[str, Any]]:
             dnote = quick_note
             if drho is None:
                 dnote = dnote or _daemon_cloud_note(ag)
-            dok, dnote = _judge_rho(drho, dnote)
-            rows.append(_row(f"Spearman daemon's sigma2_occ vs paper ({traj})", ">= 0.9", drho,
-                             dok, dnote))  # fmt: skip
+            rows.append(_row(f"Spearman daemon's sigma2_occ vs paper ({traj})", INFO, drho,
+                             None, _rho_note(drho, dnote)))  # fmt: skip
         ratio = c["ratio_paper_over_streaming"]
         rows.append(_row(f"paper / streaming time ({traj})", ">= 50x", ratio, ratio >= 50.0,
                          quick_note))  # fmt: skip
@@ -104,13 +111,12 @@ def evaluate_targets(r: dict[str, Any]) -> list[dict[str, Any]]:
                 f"{pm['spearman_sigma2_occ']:.3f} (synchronous, "
                 f"{pm['last_frame_to_grasps_s']:.2f} s)"
             )
-        ok, snote = _judge_rho(rho, quick_note or fnote)
-        rows.append(_row(f"Spearman streaming sigma2_occ vs paper ({traj})", ">= 0.9", rho, ok,
-                         snote))  # fmt: skip
+        rows.append(_row(f"Spearman streaming sigma2_occ vs paper ({traj})", INFO, rho, None,
+                         _rho_note(rho, quick_note or fnote)))  # fmt: skip
     for traj, dm in (r.get("daemon_alone") or {}).items():  # --no-pipeline
         dl = dm.get("last_frame_to_grasps_s")
-        rows.append(_row(f"daemon last frame -> its grasps ({traj})", "<= 1.0 s", dl,
-                         None if dl is None else dl <= 1.0,
+        rows.append(_row(f"daemon last frame -> its grasps ({traj})", f"<= {LATENCY_S} s", dl,
+                         None if dl is None else dl <= LATENCY_S,
                          quick_note or ("" if dl is not None else "grasps not received")))  # fmt: skip
     tp = r.get("throughput")
     if tp is not None:

@@ -184,9 +184,9 @@ def test_targets_on_a_synthetic_result() -> None:
         "stages": {"ingest": {"n": 30, "median_ms": 40.0, "p95_ms": 60.0, "max_ms": 70.0}},
         "paper_vs_streaming": {
             "complete": {
-                "streaming_last_frame_to_grasps_s": 0.8, "paper_last_frame_to_grasps_s": 60.0,
+                "streaming_last_frame_to_grasps_s": 0.4, "paper_last_frame_to_grasps_s": 60.0,
                 "ratio_paper_over_streaming": 75.0, "spearman_sigma2_occ": 0.95,
-                "daemon": {"last_frame_to_grasps_s": 0.6, "train_steps_at_grasps": 44,
+                "daemon": {"last_frame_to_grasps_s": 0.45, "train_steps_at_grasps": 44,
                            "agreement_with_paper": {
                                "cloud_received": True, "spearman_sigma2_occ": 0.85,
                                "last_frame_to_cloud_s": 1.2, "shared_fraction": 1.0}},
@@ -223,16 +223,17 @@ def test_targets_on_a_synthetic_result() -> None:
     targets = evaluate_targets(r)
     rows = {t["target"]: t["pass"] for t in targets}
     assert rows["streaming last frame -> grasps (complete)"] is True
-    assert rows["Spearman streaming sigma2_occ vs paper (partial)"] is False
+    # the Spearman rows are information only, at any figure
+    assert rows["Spearman streaming sigma2_occ vs paper (partial)"] is None
     name = "Spearman streaming sigma2_occ vs paper (partial)"
     note = next(t["note"] for t in targets if t["target"] == name)
     assert "paper vs paper, other seed: 0.840" in note
     assert "streaming with the paper's M = 500: 0.850 (synchronous, 1.25 s)" in note
     assert rows["paper / streaming time (complete)"] is True
-    assert rows["Spearman streaming sigma2_occ vs paper (complete)"] is True
+    assert rows["Spearman streaming sigma2_occ vs paper (complete)"] is None
     assert rows["daemon last frame -> its grasps (complete)"] is True
-    # the daemon's own output is judged on its own: 0.85 < 0.9 although the synchronous run passes
-    assert rows["Spearman daemon's sigma2_occ vs paper (complete)"] is False
+    assert rows["Spearman daemon's sigma2_occ vs paper (complete)"] is None
+    assert all(t["required"] == "info" for t in targets if t["target"].startswith("Spearman"))
     assert "Spearman daemon's sigma2_occ vs paper (partial)" not in rows
     assert rows["sustained input without drops (daemon)"] is False
     assert rows["median ingest (depth + back-projection + FOF)"] is True
@@ -243,7 +244,7 @@ def test_targets_on_a_synthetic_result() -> None:
     table = format_table(r)
     assert any("FAIL" in line for line in table) and any("PASS" in line for line in table)
     assert any("the daemon itself (10 Hz, its own schedule; 44 SVGP steps at the grasps): last "
-               "frame -> grasps 0.60 s, its cloud 1.20 s, spearman of that cloud's sigma2_occ 0.850"
+               "frame -> grasps 0.45 s, its cloud 1.20 s, spearman of that cloud's sigma2_occ 0.850"
                in line for line in table)  # fmt: skip
     assert any("streaming with the paper's M = 500 (synchronous): last frame -> grasps 1.25 s, "
                "training 300 ms per frame" in line for line in table)  # fmt: skip
@@ -536,7 +537,7 @@ def test_a_quick_run_says_so_on_every_row_it_judges() -> None:
 
 
 def test_an_undefined_spearman_gets_no_verdict_and_says_why() -> None:
-    """NaN >= 0.9 is False: without this the row read FAIL with no word on why."""
+    """A NaN Spearman (information only, like every Spearman row) says why it has no figure."""
     pvs = {"streaming_last_frame_to_grasps_s": 0.5, "paper_last_frame_to_grasps_s": 40.0,
            "ratio_paper_over_streaming": 80.0, "spearman_sigma2_occ": float("nan"),
            "spearman_paper_vs_paper_other_seed": 0.9,
@@ -550,7 +551,8 @@ def test_an_undefined_spearman_gets_no_verdict_and_says_why() -> None:
         assert row["note"].startswith("Spearman undefined (NaN)"), row
     assert "paper vs paper, other seed: 0.900" in _row(r, "Spearman streaming")["note"]
     pvs["spearman_sigma2_occ"] = 0.95
-    assert _row(r, "Spearman streaming sigma2_occ vs paper")["pass"] is True
+    row = _row(r, "Spearman streaming sigma2_occ vs paper")
+    assert row["pass"] is None and row["note"] == "paper vs paper, other seed: 0.900"
 
 
 def test_the_drain_waits_for_messages_still_in_the_ingress_queue() -> None:
