@@ -435,6 +435,7 @@ class SingleContactProposer:
         self.cfg = cfg
         self.g: GripperConfig = cfg.gripper
         self.seed = seed
+        self._z0_cache: dict[bytes, np.ndarray] = {}
 
     def orientations(
         self, n: np.ndarray, k1: np.ndarray, k2: np.ndarray
@@ -527,6 +528,15 @@ class SingleContactProposer:
             src_index=contacts.astype(np.int64),
         )
 
+    def _pad_depths(self, theta: np.ndarray) -> np.ndarray:
+        """``_pad_depth`` of each angle (cached: every contact has the same angles)."""
+        key = np.asarray(theta).tobytes()
+        cached = self._z0_cache.get(key)
+        if cached is None:
+            cached = np.array([self._pad_depth(float(t)) for t in np.asarray(theta)])
+            self._z0_cache[key] = cached
+        return cached
+
     def _pad_depth(self, theta: float) -> float:
         """How far past the contact along the approach the pads' centre line sits: half a finger
         less three clearances when coming down the normal (the pads straddle the part, the palm
@@ -558,7 +568,7 @@ class SingleContactProposer:
         W = g.max_width_m
         half_l = g.finger_length_m / 2
         cos_f = np.cos(np.deg2rad(cfg.single_contact_face_deg))
-        z0 = np.array([self._pad_depth(float(t)) for t in th])[:, None]  # (K, 1)
+        z0 = self._pad_depths(th)[:, None]  # (K, 1)
         Y = _cross(A, B)
         x = B @ local.T  # (K, P)
         y = np.abs(Y @ local.T)
@@ -592,7 +602,8 @@ class SingleContactProposer:
         with np.errstate(invalid="ignore", divide="ignore"):
             f_lo = np.clip((nb * lo_face).sum(1) / lo_face.sum(1), 0.0, 1.0)
             f_hi = np.clip((nb * hi_face).sum(1) / hi_face.sum(1), 0.0, 1.0)
-        f_lo, f_hi = np.nan_to_num(f_lo), np.nan_to_num(f_hi)
+        f_lo = np.where(np.isnan(f_lo), 0.0, f_lo)  # no face points: not seen
+        f_hi = np.where(np.isnan(f_hi), 0.0, f_hi)
         lo_seen, hi_seen = f_lo >= cos_f, f_hi >= cos_f
         both = lo_seen & hi_seen & (extent >= g.min_width_m)
         # one face: the one towards the camera; the jaws open into the side away from it
@@ -602,12 +613,14 @@ class SingleContactProposer:
         only_lo = thin & ~cam_hi & lo_seen
         x_lo1, x_hi1 = x_lo[:, 0], x_hi[:, 0]
         width = np.where(both, extent, W - 2.0 * c)
-        centre = np.select(
-            [both, only_hi, only_lo],
-            [0.5 * (x_lo1 + x_hi1), x_hi1 + 2.0 * c - 0.5 * W, x_lo1 - 2.0 * c + 0.5 * W],
-            0.0,
+        centre = np.where(
+            both,
+            0.5 * (x_lo1 + x_hi1),
+            np.where(only_hi, x_hi1 + 2.0 * c - 0.5 * W, np.where(only_lo, x_lo1 - 2.0 * c + 0.5 * W, 0.0)),
         )
-        conf = np.select([both, only_hi, only_lo], [f_lo * f_hi, 0.5 * f_hi, 0.5 * f_lo], 0.0)
+        conf = np.where(
+            both, f_lo * f_hi, np.where(only_hi, 0.5 * f_hi, np.where(only_lo, 0.5 * f_lo, 0.0))
+        )
         conf = conf * (1.0 - np.exp(-support / 20.0))
         ok = (both | only_hi | only_lo) & (support >= cfg.min_support) & (n_in > 0)
         ok &= (width >= g.min_width_m) & (width <= W - 2.0 * c)
