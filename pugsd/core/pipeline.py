@@ -7,17 +7,22 @@ Stages, with the equations they implement:
   (Eq. 9-12 on the cloud) -> Eq. 13 ranking; FreeSpaceMap (seen free / surface / unknown) ->
   the swept-volume uncertainty of each grasp (``grasp.uncertainty = "swept"``).
 
-Thread model: ``depth_from_stereo`` and ``propose`` are stateless. ``integrate``, ``train_steps``,
-``fit``, ``grasp_input``, ``score``, ``complete_cloud`` and ``compute`` share state and must be
-called from one thread at a time (the daemon holds a lock for each call, and runs ``propose``, the
-costliest part of a grasp computation, without it).
+One verb family per stage: ingest (``depth_from_stereo``, ``integrate``; ``add_stereo`` does
+both), train (``train_steps`` streaming, ``fit_paper`` the paper's batch fit), grasps
+(``grasp_input`` -> ``propose`` -> ``score``; ``compute`` does all three) and the rest of the
+query cloud (``cloud_job`` -> ``finish_cloud``; ``complete_cloud`` does both).
+
+Thread model: ``depth_from_stereo`` and ``propose`` are stateless. ``integrate``,
+``train_steps``, ``fit_paper``, ``grasp_input``, ``score``, ``cloud_job``, ``complete_cloud``
+and ``compute`` share state and must be called from one thread at a time (the daemon holds a lock
+for each call, and runs ``propose`` and ``finish_cloud``, the costliest parts, without it).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -201,9 +206,6 @@ class PugsPipeline:
         self.integrate(depth)
         return depth
 
-    def add_depth(self, depth: DepthFrame) -> int:
-        return self.integrate(depth)
-
     # ------------------------------------------------------------------ training
     def _targets(self) -> tuple[np.ndarray, np.ndarray]:
         """Training inputs and targets; the target scale is kept unless it drifts by > 25 %.
@@ -251,11 +253,6 @@ class PugsPipeline:
         x, y = self._targets()
         before = self.svgp.elbo_per_point(x, y)
         return before, self.svgp.set_optimal_q(x, y)
-
-    def fit(self, mode: str = "paper", steps: int | None = None) -> TrainStats:
-        if mode == "paper":
-            return self.fit_paper()
-        return self.train_steps(steps)
 
     @property
     def ready(self) -> bool:
@@ -468,24 +465,3 @@ class PugsPipeline:
             "elbo": float(t.elbo) if t is not None else float("nan"),
             "ready": self.ready,
         }
-
-    @classmethod
-    def run(
-        cls,
-        frames: Iterable[StereoFrame | DepthFrame],
-        cfg: CoreConfig | None = None,
-        mode: str = "paper",
-        seed: int = 0,
-    ) -> PipelineResult:
-        """Offline convenience: ingest all frames, train (paper batch or streaming), compute."""
-        pipe = cls(cfg, seed)
-        for f in frames:
-            if isinstance(f, StereoFrame):
-                pipe.add_stereo(f)
-            else:
-                pipe.integrate(f)
-            if mode == "streaming":
-                pipe.train_steps()
-        if mode == "paper":
-            pipe.fit_paper()
-        return pipe.compute()

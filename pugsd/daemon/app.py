@@ -29,15 +29,7 @@ from pugsd.core.types import DepthFrame, StereoFrame
 from pugsd.daemon import queries
 from pugsd.daemon.arm_bridge import ArmBridge
 from pugsd.daemon.bridge import Bridge, Command, Inbound, endpoints
-from pugsd.daemon.health import (
-    Health,
-    InputWatch,
-    OverloadWatch,
-    Reporter,
-    UnhealthyLog,
-    jsonable,
-    status_of,
-)
+from pugsd.daemon.health import Health, InputWatch, OverloadWatch, Reporter, UnhealthyLog, jsonable, status_of
 from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier, watchdog_interval_s
 from pugsd.daemon.outputs import Outputs, output_stamp_ns

@@ -28,7 +28,7 @@ def test_measure_runs_the_pipeline_on_an_exported_problem(tmp_path: Path) -> Non
     depth = orbit_frames(meshes, np.array([0, 0, 0.06]), 0.45, 0.25, np.linspace(-40, 40, 4), cam)
     pipe = PugsPipeline(CoreConfig(svgp=SvgpConfig(num_inducing=16)))
     for d in depth:
-        pipe.add_depth(d)
+        pipe.integrate(d)
     problem = {
         "complete": {
             "overrides": {},

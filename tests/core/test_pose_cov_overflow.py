@@ -66,11 +66,11 @@ def test_a_wire_covariance_that_overflows_eq3_is_refused_and_the_store_is_kept()
 
     pipe = PugsPipeline(CoreConfig())
     good = np.eye(6) * 1e-6
-    pipe.add_depth(_depth_frame(1, good))
+    pipe.integrate(_depth_frame(1, good))
     n = pipe.store._n
     with pytest.raises(CovarianceError):
-        pipe.add_depth(frame)
+        pipe.integrate(frame)
     assert pipe.store._n == n
     for name in ("_mu", "_cov", "_prec", "_logdet"):
         assert np.all(np.isfinite(getattr(pipe.store, name)[:n])), name
-    assert pipe.add_depth(_depth_frame(3, good, depth_m=1.01)) > 0  # the map goes on
+    assert pipe.integrate(_depth_frame(3, good, depth_m=1.01)) > 0  # the map goes on
