@@ -121,6 +121,23 @@ def _orthonormal(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u, v
 
 
+def local_cloud(
+    points_W: np.ndarray, normals_W: np.ndarray | None, view_origins_W: np.ndarray, normal_radius_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, cKDTree]:
+    """A proposer's working copy of its cloud: (origin_W, points, views, normals, KD-tree), the
+    points and views relative to the cloud's centre rounded to 1 m (a cloud near the world origin
+    keeps world coordinates): open3d's PCA normals take the covariance from raw sums, which in a
+    UTM-like frame (coordinates in the millions of metres) cancel to noise. EmptyCloudError for
+    fewer than 10 points."""
+    if len(points_W) < 10:
+        raise EmptyCloudError(f"grasp proposal needs a cloud, got {len(points_W)} points")
+    origin_W = grid_centre(points_W, 1.0)
+    pts = np.asarray(points_W, dtype=np.float64) - origin_W
+    views = np.atleast_2d(view_origins_W) - origin_W
+    normals = estimate_normals(pts, normal_radius_m, views) if normals_W is None else normals_W
+    return origin_W, pts, views, normals, cKDTree(pts)
+
+
 class AntipodalProposer:
     """Geometric antipodal sampling (parameters after GPD).
 
@@ -147,17 +164,10 @@ class AntipodalProposer:
     def propose(
         self, points_W: np.ndarray, normals_W: np.ndarray | None, view_origins_W: np.ndarray
     ) -> GraspSet:
-        if len(points_W) < 10:
-            raise EmptyCloudError(f"grasp proposal needs a cloud, got {len(points_W)} points")
         cfg, g = self.cfg, self.g
-        # the search runs relative to the cloud's centre (rounded to 1 m: a cloud near the world
-        # origin keeps world coordinates): open3d's PCA normals take the covariance from raw sums,
-        # which in a UTM-like frame (coordinates in the millions of metres) cancel to noise
-        origin_W = grid_centre(points_W, 1.0)
-        pts = np.asarray(points_W, dtype=np.float64) - origin_W
-        views = np.atleast_2d(view_origins_W) - origin_W
-        normals = estimate_normals(pts, cfg.normal_radius_m, views) if normals_W is None else normals_W
-        tree = cKDTree(pts)
+        origin_W, pts, views, normals, tree = local_cloud(
+            points_W, normals_W, view_origins_W, cfg.normal_radius_m
+        )
         # the cloud's bounding sphere: when a search ball holds it whole, the ball query (which
         # then returns every point, at a quarter of the orientation search's time) is skipped
         mid = 0.5 * (pts.min(0) + pts.max(0))
@@ -456,14 +466,10 @@ class SingleContactProposer:
     def propose(
         self, points_W: np.ndarray, normals_W: np.ndarray | None, view_origins_W: np.ndarray
     ) -> GraspSet:
-        if len(points_W) < 10:
-            raise EmptyCloudError(f"grasp proposal needs a cloud, got {len(points_W)} points")
         cfg, g = self.cfg, self.g
-        origin_W = grid_centre(points_W, 1.0)
-        pts = np.asarray(points_W, dtype=np.float64) - origin_W
-        views = np.atleast_2d(view_origins_W) - origin_W
-        normals = estimate_normals(pts, cfg.normal_radius_m, views) if normals_W is None else normals_W
-        tree = cKDTree(pts)
+        origin_W, pts, views, normals, tree = local_cloud(
+            points_W, normals_W, view_origins_W, cfg.normal_radius_m
+        )
         contacts = farthest_point_subset(pts, min(cfg.single_contact_max_contacts, len(pts)), self.seed)
         k1, k2 = principal_frames(tree, pts, contacts, 1.5 * cfg.normal_radius_m, normals)
         thin = voxel_subset(pts, cfg.single_contact_voxel_m)
