@@ -71,8 +71,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
             "the paper's batch pipeline against streaming on the same frames. --quick finishes "
             "in about a minute and is not comparable with the targets."
         ),
+        epilog="example:\n  pugsd bench --quick --json bench-results.json",
     )
-    p.add_argument("--json", metavar="PATH", help="also write the results as JSON")
+    p.add_argument("--json", metavar="PATH", help="also write the results as JSON (default: not written)")
     p.add_argument("--quick", action="store_true", help="a short smoke run (< 1 min)")
     p.add_argument(
         "--device", default="auto", choices=("auto", "cpu", "cuda"),

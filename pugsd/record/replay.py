@@ -311,11 +311,3 @@ def _write_outputs(path: Path, topics: TopicsConfig, result: Any, grasps: Scored
         w.finish()
 
 
-def iter_top(g: ScoredGrasps, k: int = 5) -> Iterator[str]:
-    for i in range(min(k, len(g))):
-        p = g.pose_W[i][:3, 3]
-        yield (
-            f"#{i} id={int(g.grasp_id[i])} pugs={g.pugs_confidence[i]:.3g} "
-            f"base={g.baseline_confidence[i]:.3f} s2={g.sigma2_occ[i]:.2e} "
-            f"at ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) w={g.width_m[i] * 1000:.1f} mm"
-        )

@@ -144,6 +144,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         help="simulated grasp evaluation (the paper's Table I): baselines vs PUGS",
         description="Render stereo sequences of synthetic objects, run the PUGS pipeline, and test "
         "each method's top grasp in MuJoCo (traversal, closed, lifted).",
+        epilog="example:\n  pugsd evaluate --objects mug --recon partial --trials 5 --json results.json",
     )
     p.add_argument("--objects", default="kettlebell,mug",
                    help="comma list of kettlebell, mug, box, bottle, mallet")
@@ -166,18 +167,24 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--frames", type=int, default=None,
                    help="frames per sequence (default 16 complete, 8 partial)")
     p.add_argument("--object-mesh", default=None, metavar="PATH",
-                   help="evaluate a user mesh (PLY, OBJ or STL, metres) instead of --objects")
-    p.add_argument("--mass", type=float, default=None, metavar="KG", help="mass of --object-mesh")
+                   help="evaluate a user mesh (PLY, OBJ or STL, metres) instead of --objects "
+                   "(default: none)")
+    p.add_argument("--mass", type=float, default=None, metavar="KG",
+                   help="mass of --object-mesh (default: none; needed with it)")
     p.add_argument("--underwater", action="store_true", help="apply the underwater image model")
-    p.add_argument("--config", default=None, help="pugsd TOML config for the pipeline")
-    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--config", default=None,
+                   help="pugsd TOML config for the pipeline (default: the built-in defaults)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key (repeatable)")
     p.add_argument("--workers", type=int, default=1, help="parallel worker processes")
     p.add_argument("--json", default=None, metavar="PATH",
-                   help="write results.json here (and each trial as it finishes to *.trials.jsonl)")
-    p.add_argument("--figures", default=None, metavar="DIR", help="write PNG figures here")
+                   help="write results.json here (and each trial as it finishes to *.trials.jsonl; "
+                   "default: not written)")
+    p.add_argument("--figures", default=None, metavar="DIR",
+                   help="write PNG figures here (default: none)")
     p.add_argument("--figures-per-cell", type=int, default=1,
                    help="figures per object x reconstruction (first trials)")
     p.add_argument("--rescore", default=None, metavar="RESULTS_JSON",
-                   help="re-run only the physics on the grasps stored in a results.json")
+                   help="re-run only the physics on the grasps stored in a results.json (default: "
+                   "a full evaluation)")
     p.add_argument("--quiet", action="store_true", help="no per-trial progress on stderr")
     p.set_defaults(func=_evaluate)

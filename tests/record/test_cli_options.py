@@ -144,15 +144,23 @@ def test_info_says_incomplete_for_a_cut_file(synth_recording: Any, tmp_path: Pat
 
 
 class _Pipeline:
+    made: list[_Pipeline] = []
+
     def __init__(self, cfg: Any, seed: int) -> None:
         self.n = 0
+        self.calls: list[str] = []
+        _Pipeline.made.append(self)
 
     def add_stereo(self, f: Any) -> None:
         self.n += 1
         self.stamp = f.stamp_ns
+        self.calls.append("add")
+
+    def train_steps(self) -> None:
+        self.calls.append("train")
 
     def fit_paper(self) -> None:
-        pass
+        self.calls.append("fit_paper")
 
     def stats(self) -> dict[str, Any]:
         return {}
@@ -170,8 +178,16 @@ def test_replay_prints_frames_grasps_and_outputs(synth_recording: Any, tmp_path:
                                                  capsys: pytest.CaptureFixture[str]) -> None:  # fmt: skip
     src, frames = synth_recording
     monkeypatch.setattr("pugsd.pipeline_factory.make_pipeline", _Pipeline)
+    _Pipeline.made.clear()
     assert main(["replay", str(src), "--out", str(tmp_path)]) == 0
-    lines = capsys.readouterr().out.splitlines()
+    out = capsys.readouterr()
+    lines = out.out.splitlines()
     assert lines[0] == f"pugsd replay: {len(frames)} frames, 2 grasps"
-    assert lines[1].startswith("#0 id=7 ") and lines[2].startswith("#1 id=8 ")
+    assert lines[1].startswith("grasp 1: ") and lines[1].endswith(", id 7")
+    assert lines[2].startswith("grasp 2: ") and lines[2].endswith(", id 8")
     assert lines[3:] == [str(tmp_path / "grasps.json"), str(tmp_path / "grasps.mcap")]
+    assert out.err == ""  # no progress bar: stderr is not a terminal
+    # the daemon's streaming mode by default: trained after every frame, no batch fit
+    assert _Pipeline.made[0].calls == ["add", "train"] * len(frames)
+    assert main(["replay", str(src), "--mode", "paper"]) == 0
+    assert _Pipeline.made[1].calls == ["add"] * len(frames) + ["fit_paper"]
