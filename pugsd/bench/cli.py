@@ -38,13 +38,23 @@ def _bench(args: argparse.Namespace) -> int:
     if args.no_pipeline:
         opts = opts.replace(use_pipeline=False)
 
+    from pugsd.progress import progress_bar, ticking
+
+    # no ETA (the sections' lengths are not known ahead): the step it is on and the time taken
+    bar = progress_bar(None, "bench", unit=" step")
+
     def write(line: str) -> None:
+        bar.clear()  # the bar on stderr, the report on stdout: one terminal
         sys.stdout.write(line + "\n")
         sys.stdout.flush()
+        if line:
+            bar.set_description_str(f"bench: {line[:50]}", refresh=False)
+            bar.update(1)
 
     argv = sys.argv[1:] if "bench" in sys.argv[1:] else ["bench", *sys.argv[1:]]
     command = " ".join(shlex.quote(a) for a in ["pugsd", *argv])
-    result = run_bench(opts, args.set or (), args.device, write, command, args.torch_threads)
+    with ticking(bar):
+        result = run_bench(opts, args.set or (), args.device, write, command, args.torch_threads)
     write("")
     table = format_table(result)
     for line in table:

@@ -12,8 +12,10 @@ import time
 from pathlib import Path
 from typing import Any
 
+from pugsd import exit_codes
 from pugsd.config import PugsdConfig, dump_config, load_config
 from pugsd.errors import ConfigError, PugsdError
+from pugsd.progress import progress_bar
 
 
 def _load(args: argparse.Namespace) -> PugsdConfig:
@@ -110,8 +112,8 @@ def _record(args: argparse.Namespace) -> int:
         sys.stdout.write(f"{f}\n")
     if s.error:
         sys.stderr.write(f"pugsd record: error: {s.error}\n")
-        return 1
-    return 0
+        return exit_codes.FAILURE
+    return exit_codes.NO_PEER if s.received == 0 else exit_codes.OK
 
 
 # ------------------------------------------------------------------------------ play
@@ -142,14 +144,12 @@ def _play(args: argparse.Namespace) -> int:
     for f in args.files:
         if not Path(f).is_file():
             raise ConfigError(f"no such file {f}")
-    tty = sys.stderr.isatty()
+    bar = progress_bar(None, "play", unit="s", quiet=args.quiet)  # seconds of the recording
 
     def progress(p: PlayProgress) -> None:
-        if args.quiet:
-            return
-        line = f"[play] {p.position_s:8.1f} / {p.duration_s:.1f} s  {p.published} msgs  loop {p.loop}"
-        sys.stderr.write(("\r" + line) if tty else (line + "\n"))
-        sys.stderr.flush()
+        bar.total = round(p.duration_s, 1)
+        bar.n = round(p.position_s, 1)
+        bar.set_postfix_str(f"{p.published} msgs" + (f", loop {p.loop}" if args.loop else ""))
 
     stop = _stop_on_signals()
     session = _open_tool_session(args, cfg)
@@ -171,9 +171,8 @@ def _play(args: argparse.Namespace) -> int:
             )
         n = player.run()
     finally:
+        bar.close()
         close_session(session)
-    if tty and not args.quiet:
-        sys.stderr.write("\n")
     if n and player.unheard == n:
         asked = ", ".join(tool_config(cfg.zenoh, args.connect, args.listen)["connect"]["endpoints"])
         sys.stderr.write(
@@ -187,7 +186,7 @@ def _play(args: argparse.Namespace) -> int:
         )
     else:
         sys.stderr.write(f"pugsd play: {n} messages published\n")
-    return 0
+    return exit_codes.NO_PEER if n == 0 or player.unheard == n else exit_codes.OK
 
 
 # ------------------------------------------------------------------------------ replay
@@ -195,13 +194,17 @@ def _play(args: argparse.Namespace) -> int:
 
 def _replay(args: argparse.Namespace) -> int:
     from pugsd.grasp_text import grasp_lines
-    from pugsd.record.replay import replay
+    from pugsd.progress import ticking
+    from pugsd.record.replay import count_left_images, replay
 
     cfg = _load(args)
     for f in args.files:
         if not Path(f).is_file():
             raise ConfigError(f"no such file {f}")
-    res = replay(args.files, cfg, out_dir=args.out, mode=args.mode, seed=args.seed)
+    total = count_left_images(args.files, cfg.topics) if sys.stderr.isatty() else None
+    with ticking(progress_bar(total, f"replay ({args.mode})", unit="frame")) as bar:
+        res = replay(args.files, cfg, out_dir=args.out, mode=args.mode, seed=args.seed,
+                     on_frame=lambda: bar.update(1))  # fmt: skip
     sys.stdout.write(f"pugsd replay: {res.frames} frames, {len(res.grasps)} grasps\n")
     for line in grasp_lines(res.grasps, 5):
         sys.stdout.write(line + "\n")

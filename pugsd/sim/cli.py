@@ -110,8 +110,13 @@ def _evaluate(args: argparse.Namespace) -> int:
         partial_path.parent.mkdir(parents=True, exist_ok=True)
         partial_path.write_text("")
 
+    from pugsd.progress import progress_bar, ticking
+
+    bar = progress_bar(total, "evaluate", unit="trial", quiet=args.quiet)
+
     def progress(r: dict[str, Any]) -> None:
         done[0] += 1
+        bar.update(1)
         if partial_path is not None:  # survives an interrupted run
             import json
 
@@ -122,12 +127,14 @@ def _evaluate(args: argparse.Namespace) -> int:
                 f"{m}={''.join('1' if v[k] else '0' for k in ('traversal', 'closed', 'lifted'))}"
                 for m, v in r["methods"].items()
             )
-            sys.stderr.write(
+            bar.write(  # above the bar (a plain line when stderr is not a terminal)
                 f"[{done[0]}/{total}] {r['object']} {r['recon']} seed {r['seed']} "
-                f"{r.get('mode', '')}: {marks}\n"
+                f"{r.get('mode', '')}: {marks}",
+                file=sys.stderr,
             )
 
-    results = run_evaluation(opts, progress)
+    with ticking(bar):
+        results = run_evaluation(opts, progress)
     table = markdown_table(results)
     sys.stdout.write(table)
     sys.stdout.write(f"\nwall time {results['wall_time_s']:.0f} s\n")
@@ -186,5 +193,5 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--rescore", default=None, metavar="RESULTS_JSON",
                    help="re-run only the physics on the grasps stored in a results.json (default: "
                    "a full evaluation)")
-    p.add_argument("--quiet", action="store_true", help="no per-trial progress on stderr")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or per-trial lines on stderr")
     p.set_defaults(func=_evaluate)
