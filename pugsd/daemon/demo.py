@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import importlib
 import logging
 import re
 import signal
@@ -388,6 +389,10 @@ def run_demo(
     """Run the demo for ``duration_s``; returns 0 when scored grasps were received."""
     cfg = demo_config(listen, overrides)
     check_port_free(parse_loopback_port(listen))
+    # the simulation extras it needs (the renderer's trimesh, the figure's matplotlib): a missing
+    # one is said now, not once the daemon serves
+    for module in ("pugsd.sim.sequence", "matplotlib"):
+        importlib.import_module(module)
     apply_malloc_arena_max(cfg.daemon.malloc_arena_max)  # before the daemon's threads start
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
