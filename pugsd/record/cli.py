@@ -144,12 +144,13 @@ def _play(args: argparse.Namespace) -> int:
     for f in args.files:
         if not Path(f).is_file():
             raise ConfigError(f"no such file {f}")
-    bar = progress_bar(None, "play", unit="s", quiet=args.quiet)  # seconds of the recording
+    bars: list[Any] = []  # drawn from the first progress on, below the warnings said before
 
     def progress(p: PlayProgress) -> None:
-        bar.total = round(p.duration_s, 1)
-        bar.n = round(p.position_s, 1)
-        bar.set_postfix_str(f"{p.published} msgs" + (f", loop {p.loop}" if args.loop else ""))
+        if not bars:  # seconds of the recording
+            bars.append(progress_bar(round(p.duration_s, 1), "play", unit="s", quiet=args.quiet))
+        bars[0].n = round(p.position_s, 1)
+        bars[0].set_postfix_str(f"{p.published} msgs" + (f", loop {p.loop}" if args.loop else ""))
 
     stop = _stop_on_signals()
     session = _open_tool_session(args, cfg)
@@ -171,7 +172,8 @@ def _play(args: argparse.Namespace) -> int:
             )
         n = player.run()
     finally:
-        bar.close()
+        for bar in bars:
+            bar.close()
         close_session(session)
     if n and player.unheard == n:
         asked = ", ".join(tool_config(cfg.zenoh, args.connect, args.listen)["connect"]["endpoints"])
