@@ -658,6 +658,8 @@ BOUNDS: list[tuple[str, str, float]] = [
     ("grasp.unknown_decay_m", "le", 10.0),
     ("grasp.swept_step_m", "gt", 0.0),
     ("grasp.swept_step_m", "le", 0.5),
+    ("grasp.threads", "ge", 1),
+    ("grasp.threads", "le", 64),
     ("grasp.single_contact_max_contacts", "ge", 1),
     ("grasp.single_contact_max_contacts", "le", 100_000),
     ("grasp.single_contact_face_deg", "gt", 0.0),
