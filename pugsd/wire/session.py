@@ -16,6 +16,8 @@ import json
 import logging
 import re
 import socket
+import threading
+import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
@@ -135,19 +137,30 @@ def tool_config(
     zenoh_cfg: Mapping[str, Any],
     connect: Sequence[str] | None = None,
     listen: Sequence[str] | None = None,
+    *,
+    client: bool = False,
 ) -> dict[str, Any]:
     """The session config of a tool next to a running daemon: the ``[zenoh]`` table, changed to a
     peer that connects to the daemon's listen endpoints and listens on none (so it does not fight
     the daemon for its port), unless ``connect``/``listen`` are given. A daemon that listens on
     no fixed port (none, or port 0: a client of a router, say) is reached where it connects (the
     router routes the tool's queries to it). Multicast scouting and gossip are forced off. Open it
-    with ``open_session(cfg, require_loopback=True)``."""
+    with ``open_session(cfg, require_loopback=True)``.
+
+    ``client``: a tool that must hear every session linked to the daemon (``pugsd record``) joins
+    as a zenoh client when it listens on nothing. With gossip off a peer hears only the sessions
+    it is linked to itself (a camera driver that is another peer of the daemon: nothing), and a
+    router does not broker between peers without gossip either; the daemon, peer or router,
+    routes to its clients what every session linked to it publishes. A client cannot open while
+    nothing listens at its endpoints: :func:`open_session_waiting` retries."""
     d = json.loads(json.dumps(dict(zenoh_cfg)))
     own = _get(d, "listen/endpoints")
     own_listen = [str(e) for e in own if not _ephemeral(str(e))] if isinstance(own, list) else []
     conn = _get(d, "connect/endpoints")
     own_connect = [str(e) for e in conn] if isinstance(conn, list) else []
     d["mode"] = "peer" if d.get("mode", "peer") == "router" else d.get("mode", "peer")
+    if client and not listen:
+        d["mode"] = "client"
     d["connect"] = {**(d.get("connect") or {}), "endpoints": list(connect or own_listen or own_connect)}
     d["listen"] = {**(d.get("listen") or {}), "endpoints": list(listen or [])}
     sc = d.setdefault("scouting", {})
@@ -191,6 +204,33 @@ def open_session(cfg: Mapping[str, Any], *, require_loopback: bool = True) -> ze
         raise ConfigError(f"cannot open zenoh session: {text}") from None
     log.debug("zenoh session %s opened", session.zid())
     return session
+
+
+def open_session_waiting(
+    cfg: Mapping[str, Any],
+    stop: threading.Event,
+    *,
+    deadline: float | None = None,
+    retry_s: float = 0.5,
+    on_wait: Callable[[str], None] | None = None,
+) -> zenoh.Session | None:
+    """:func:`open_session` (loopback required) of a zenoh client, retried every ``retry_s`` while
+    nothing listens at its connect endpoints (zenoh refuses to open a client then). Returns None
+    when ``stop`` is set or ``time.monotonic()`` passes ``deadline`` first; ``on_wait`` is called
+    once, with the error, when the first try finds nothing listening. Any other error raises."""
+    waited = False
+    while True:
+        try:
+            return open_session(cfg, require_loopback=True)
+        except ConfigError as exc:
+            if "Unable to connect" not in str(exc):
+                raise
+            if not waited and on_wait is not None:
+                on_wait(str(exc))
+            waited = True
+        wait_s = retry_s if deadline is None else min(retry_s, deadline - time.monotonic())
+        if wait_s <= 0 or stop.wait(wait_s):
+            return None
 
 
 def close_session(session: zenoh.Session, entities: Iterable[Any] = ()) -> None:
