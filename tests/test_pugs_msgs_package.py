@@ -1,7 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
-"""ros2/pugs_msgs, the ROS 2 interface package for consumers of /pugs/grasps, cannot drift from
-pugsd/msg and pugsd/srv: its msg and srv files are byte-identical copies (so the RIHS01 hashes in the rmw_zenoh keys
-matches), and package.xml and CMakeLists.txt name every msg and every package the msgs use.
+"""ros2/pugs_msgs, the ROS 2 interface package for consumers of /pugs/grasps and pugsd's
+services, cannot drift from pugsd/msg and pugsd/srv: its msg and srv files are byte-identical
+copies (so the RIHS01 hashes in the rmw_zenoh keys match), and package.xml and CMakeLists.txt name
+every msg, every srv and every package they use.
 (No ROS 2 is installed here: the package itself is not built by the tests.)"""
 
 from __future__ import annotations
