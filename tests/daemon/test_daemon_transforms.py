@@ -61,7 +61,8 @@ def _root(frame: str, parents: dict[str, str]) -> str:
 def test_a_recording_connects_every_image_frame_to_world(
     port: int, client: zenoh.Session, tmp_path: Path
 ) -> None:
-    cfg = load_config_dict({**daemon_config_dict(port), "record": {"enabled": True, "directory": str(tmp_path)}})
+    record = {"enabled": True, "directory": str(tmp_path)}
+    cfg = load_config_dict({**daemon_config_dict(port), "record": record})
     notifier = RecordingNotifier()
     dt = DaemonThread(Daemon(cfg, FakePipeline(), notifier=notifier)).start()
     try:
@@ -182,6 +183,6 @@ def test_diagnostics_levels_follow_the_status() -> None:
     stale = diagnostics_of(_status(inputs={"age_s": {"pose": 9.0}, "stale": ["pose"]},
                                    upstream={"concurrent_publishers": {"pose": 2}}))  # fmt: skip
     assert (stale[2].level, stale[2].message) == (DIAG_WARN, "stale: pose; 2 publishers at once on pose")
-    assert dict((kv for kv in stale[2].values.items())) == {"age_s.pose": "9.0"}
+    assert dict(kv for kv in stale[2].values.items()) == {"age_s.pose": "9.0"}
     rec = diagnostics_of(_status(recorder={"error": "disk full", "files_finished": 2}))
     assert (rec[3].name, rec[3].level, rec[3].message) == ("pugsd: recorder", DIAG_ERROR, "disk full")
