@@ -13,7 +13,8 @@ queryables (:mod:`pugsd.daemon.queries`), which stay for non-ROS clients:
 then waits for its timeout); a request that is not one (no rmw_zenoh attachment, not the request's
 CDR) gets an error reply. As for the zenoh queryables, the services that change state act only on
 a query for exactly their key. Requests are answered on the loop, bounded as the queryables are
-(``Bridge.query``).
+(``Bridge.query``): beyond that bound a request gets the bridge's plain-text answer ("busy", or
+for a stop "a stop is already being sent"), which an rmw_zenoh client cannot decode.
 """
 
 from __future__ import annotations
