@@ -6,6 +6,7 @@ every image frame to the pose frame, and its diagnostics decode; the tree for a 
 
 from __future__ import annotations
 
+import asyncio
 import time
 from pathlib import Path
 from typing import Any
@@ -186,3 +187,42 @@ def test_diagnostics_levels_follow_the_status() -> None:
     assert dict(kv for kv in stale[2].values.items()) == {"age_s.pose": "9.0"}
     rec = diagnostics_of(_status(recorder={"error": "disk full", "files_finished": 2}))
     assert (rec[3].name, rec[3].level, rec[3].message) == ("pugsd: recorder", DIAG_ERROR, "disk full")
+
+
+def test_a_demo_recording_connects_the_image_frames_to_world(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``pugsd demo`` in-process (fake pipeline, a short looping run): its MCAP, decoded with
+    rosbags, holds a TF tree from the images' frames to the outputs' frame."""
+    from pugsd.core.types import StereoFrame
+    from pugsd.daemon import demo
+    from pugsd.record.mcapio import iter_recording
+    from pugsd.wire.session import free_tcp_port
+
+    monkeypatch.setattr("pugsd.pipeline_factory.make_pipeline", lambda core, seed=0: FakePipeline())
+    cfg = demo.demo_config(f"tcp/127.0.0.1:{free_tcp_port()}", [])
+    img = np.random.default_rng(1).integers(0, 255, (RIG.left.height, RIG.left.width), dtype=np.uint8)
+    cov = np.eye(6) * 1e-6
+
+    def render() -> list[StereoFrame]:
+        return [StereoFrame(i, img, np.roll(img, -3, axis=1), RIG, pose_at(0.01 * i), cov) for i in range(2)]
+
+    async def main_() -> Any:
+        main = demo._demo_main(cfg, render, 1.5, tmp_path, 20.0, lambda s: None, time.monotonic(), 0)
+        return await asyncio.wait_for(main, 30.0)
+
+    _daemon, _printer, files, _extra = asyncio.run(main_())
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    frames: set[str] = set()
+    parents: dict[str, str] = {}
+    outputs: set[str] = set()
+    for m in iter_recording(files):
+        if m.topic in (cfg.topics.left_image, cfg.topics.right_image):
+            frames.add(ts.deserialize_cdr(m.data, m.typename).header.frame_id)
+        elif m.topic in (cfg.topics.tf, cfg.topics.tf_static):
+            for t in ts.deserialize_cdr(m.data, m.typename).transforms:
+                parents[t.child_frame_id] = t.header.frame_id
+        elif m.topic == cfg.topics.markers:
+            outputs |= {mk.header.frame_id for mk in ts.deserialize_cdr(m.data, m.typename).markers}
+    assert frames and outputs == {"world"}
+    assert {_root(f, parents) for f in frames} == {"world"}, (frames, parents)
