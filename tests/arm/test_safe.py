@@ -167,21 +167,33 @@ def _assert_still(st: SimThread) -> None:
     assert st.joint_positions() == q0 and not st.moving()
 
 
-@pytest.mark.parametrize("kind", ["udp", "pty"])
-def test_sigkill_of_arm_execute_mid_motion_makes_the_arm_safe_within_1s(kind: str) -> None:
+@pytest.mark.parametrize(
+    "kind,sig",
+    [
+        ("udp", signal.SIGKILL),
+        ("pty", signal.SIGKILL),  # the guard opens the port once the dead process's lock is gone
+        ("udp", signal.SIGTERM),  # Python's default: the process ends at once, no cleanup
+        ("udp", signal.SIGINT),  # Ctrl-C: the commander stops the arm itself, releases the guard
+    ],
+)
+def test_a_signal_to_arm_execute_mid_motion_makes_the_arm_safe_within_1s(kind: str, sig: int) -> None:
     with SimThread(kind) as st, _execute(st.link_args) as proc:
         _wait_mid_motion(st, proc)
         guards = _children(proc.pid)
         try:
             t_kill = time.monotonic()
-            os.kill(proc.pid, signal.SIGKILL)  # the process that commands the arm, not its guard
+            os.kill(proc.pid, sig)  # the process that commands the arm, not its guard
             dt = _time_to_safe(st, t_kill)
-            print(f"{kind}: SIGKILL -> simulated arm out of POSITION mode in {dt * 1000:.0f} ms")
+            name = signal.Signals(sig).name
+            print(f"{kind}: {name} -> simulated arm out of POSITION mode in {dt * 1000:.0f} ms")
             assert dt < SAFE_WITHIN_S, st.modes()
             assert set(st.modes().values()) == {int(Mode.DISABLE)}  # safety.safe_mode default
             _assert_still(st)
-            assert proc.wait(5) == -signal.SIGKILL
+            assert proc.wait(5) == (130 if sig == signal.SIGINT else -sig)
             assert _ended(guards, within_s=5.0)  # the guard ends once the stop is confirmed
+            assert proc.stderr is not None
+            guard_sent = b"pugsd arm guard: zero velocity and disable sent" in proc.stderr.read()
+            assert guard_sent == (sig != signal.SIGINT)
         finally:
             for pid in guards:
                 with contextlib.suppress(ProcessLookupError):
