@@ -305,3 +305,14 @@ def test_pugsd_arm_safe_cli_stops_the_arm_and_says_so(capsys: pytest.CaptureFixt
         assert set(st.modes().values()) == {int(Mode.POSITION_HOLD)}
     out = capsys.readouterr().out
     assert "zero velocity and position_hold sent to all devices over serial; every axis reports it" in out
+
+
+def test_pugsd_arm_safe_without_a_link_is_a_one_line_error(capsys: pytest.CaptureFixture[str]) -> None:
+    """No port (the arm unplugged): retried for a bounded time, then exit 1 naming the port."""
+    from pugsd.cli import main
+
+    t0 = time.monotonic()
+    assert main(["arm", "safe", "--set", "arm.serial.port=/dev/pugsd-test-no-such-port"]) == 1
+    assert time.monotonic() - t0 < 5.0
+    err = capsys.readouterr().err
+    assert err.startswith("pugsd arm: error: serial /dev/pugsd-test-no-such-port") and err.count("\n") == 1
