@@ -69,6 +69,10 @@ def check_loopback_safe(cfg: Mapping[str, Any]) -> None:
     Requires ``scouting.multicast.enabled = false``, ``scouting.gossip.enabled = false`` (both
     explicit, since zenoh defaults them to true), an explicit ``listen.endpoints`` (zenoh's default
     listens on all interfaces) and every listen/connect endpoint of the form ``tcp/127.0.0.1:PORT``.
+    It also refuses what could open the session beyond them: write permission on the admin space
+    (``adminspace.permissions.write``: a peer could change the config, endpoints included, at run
+    time) and plugins (``plugins_loading.enabled``, or any ``plugins`` table: the REST plugin
+    listens on its own port, on every interface unless given an address).
     """
     if not isinstance(cfg, Mapping):
         raise ConfigError("zenoh config must be a table")
@@ -90,6 +94,23 @@ def check_loopback_safe(cfg: Mapping[str, Any]) -> None:
             )
     if not listen and not connect:
         raise ConfigError("zenoh config is not loopback-safe: no listen or connect endpoint")
+    if _get(cfg, "adminspace/permissions/write") not in (None, False):
+        raise ConfigError(
+            "zenoh config is not loopback-safe: adminspace.permissions.write must be false (it lets "
+            "a peer change the session's config, its endpoints included, at run time)"
+        )
+    if _get(cfg, "plugins_loading/enabled") not in (None, False):
+        raise ConfigError(
+            "zenoh config is not loopback-safe: plugins_loading.enabled must be false (plugins open "
+            "listeners of their own, such as the REST plugin's http_port)"
+        )
+    plugins = _get(cfg, "plugins")
+    if plugins:
+        names = ", ".join(map(str, plugins)) if isinstance(plugins, Mapping) else repr(plugins)
+        raise ConfigError(
+            f"zenoh config is not loopback-safe: plugins ({names}) must not be configured (plugins "
+            "open listeners of their own, such as the REST plugin's http_port)"
+        )
 
 
 def zenoh_config(cfg: Mapping[str, Any]) -> zenoh.Config:
@@ -113,6 +134,9 @@ def _check_readback(zcfg: zenoh.Config) -> None:
         },
         "listen": {"endpoints": js("listen/endpoints")},
         "connect": {"endpoints": js("connect/endpoints")},
+        "adminspace": {"permissions": {"write": js("adminspace/permissions/write")}},
+        "plugins_loading": {"enabled": js("plugins_loading/enabled")},
+        "plugins": js("plugins"),
     }
     check_loopback_safe(readback)
 

@@ -213,6 +213,9 @@ UNSAFE = {
     "hostname": lambda d: d["listen"].update(endpoints=["tcp/localhost:7447"]),
     "iface": lambda d: d["listen"].update(endpoints=["tcp/127.0.0.1:7447#iface=eth0"]),
     "lan_connect": lambda d: d["connect"].update(endpoints=["tcp/192.168.1.2:7447"]),
+    "adminspace_write": lambda d: d.update(adminspace={"enabled": True, "permissions": {"write": True}}),
+    "plugins_loading": lambda d: d.update(plugins_loading={"enabled": True}),
+    "rest_plugin": lambda d: d.update(plugins={"rest": {"http_port": "0.0.0.0:8000"}}),
     "per_mode": lambda d: d["listen"].update(
         endpoints={"router": ["tcp/10.0.0.1:1"], "peer": ["tcp/127.0.0.1:17447"]}
     ),
@@ -260,7 +263,7 @@ def test_the_readback_alone_refuses_every_unsafe_config(name: str) -> None:
         check_loopback_safe(d)
     with pytest.raises(ConfigError) as from_zenoh:
         _check_readback(zenoh_config(d))
-    for setting in ("multicast", "gossip"):
+    for setting in ("multicast", "gossip", "adminspace", "plugins_loading", "plugins ("):
         assert (setting in str(from_dict.value)) == (setting in str(from_zenoh.value)), (
             str(from_dict.value),
             str(from_zenoh.value),
@@ -310,6 +313,9 @@ def test_open_session_checks_the_dict_and_zenohs_parse_before_opening(
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         "listen": {"endpoints": ["tcp/127.0.0.1:17447"]},
         "connect": {"endpoints": []},
+        "adminspace": {"permissions": {"write": False}},
+        "plugins_loading": {"enabled": False},
+        "plugins": {},
     }
     # an unsafe dict is refused by the first layer, before zenoh parses it (a typo next to it
     # would otherwise be the error the user sees)
