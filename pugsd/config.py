@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import os
 import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -168,8 +169,27 @@ def load_config_dict(data: Mapping[str, Any], overrides: Sequence[str] = ()) -> 
     return build(PugsdConfig, merged)
 
 
-def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -> PugsdConfig:
-    """Load and validate a TOML file (None: the defaults)."""
+def ros_domain_id(env: Mapping[str, str]) -> int | None:
+    """``ROS_DOMAIN_ID`` from ``env`` (None when unset or empty, as rcl reads it); ConfigError
+    when it is not a whole number."""
+    raw = env.get("ROS_DOMAIN_ID", "").strip()
+    if not raw:
+        return None
+    try:
+        value = int(raw, 10)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= 232:
+        raise ConfigError(f"ROS_DOMAIN_ID={raw[:50]!r} is not a domain id (a whole number, 0-232)")
+    return value
+
+
+def load_config(
+    path: str | Path | None = None, overrides: Sequence[str] = (), env: Mapping[str, str] | None = None
+) -> PugsdConfig:
+    """Load and validate a TOML file (None: the defaults). The ROS domain is, by precedence: a
+    ``topics.domain_id=`` override, then ``ROS_DOMAIN_ID`` in ``env`` (default: the process
+    environment) when set, then ``[topics] domain_id`` of the file, then 0."""
     data: dict[str, Any] = {}
     if path is not None:
         p = Path(path)
@@ -183,6 +203,9 @@ def load_config(path: str | Path | None = None, overrides: Sequence[str] = ()) -
             raise ConfigError(f"{p}: not valid TOML: not UTF-8 (byte {exc.start})") from None
         except ValueError as exc:  # TOMLDecodeError, or an integer of more than 4300 digits
             raise ConfigError(f"{p}: not valid TOML: {exc}") from None
+    domain = ros_domain_id(os.environ if env is None else env)
+    if domain is not None and isinstance(data.setdefault("topics", {}), dict):
+        data["topics"]["domain_id"] = domain  # a [topics] that is no table is refused by build()
     return load_config_dict(data, overrides)
 
 

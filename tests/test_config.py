@@ -243,6 +243,35 @@ def test_check_config_validates_the_zenoh_table(
 
 
 @pytest.mark.parametrize(
+    "text,message",
+    [
+        ("[zenoh.adminspace]\nenabled = true\n[zenoh.adminspace.permissions]\nwrite = true\n",
+         "adminspace.permissions.write must be false"),
+        ("[zenoh.plugins_loading]\nenabled = true\n", "plugins_loading.enabled must be false"),
+        ('[zenoh.plugins_loading]\nenabled = true\n[zenoh.plugins.rest]\nhttp_port = "0.0.0.0:8000"\n',
+         "plugins_loading.enabled must be false"),
+        ('[zenoh.plugins.rest]\nhttp_port = "0.0.0.0:8000"\n', "plugins (rest) must not be configured"),
+    ],
+)  # fmt: skip
+def test_check_config_refuses_zenoh_adminspace_write_and_plugins_on_loopback(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str, message: str
+) -> None:
+    """What could open the daemon's session beyond 127.0.0.1 (write access to its config through
+    the admin space, a REST plugin on every interface) is refused like a LAN endpoint, and
+    allowed with allow_non_loopback like one."""
+    f = tmp_path / "z.toml"
+    f.write_text(text)
+    assert main(["check-config", str(f)]) == 1
+    err = capsys.readouterr().err
+    assert message in err and "unless [daemon] allow_non_loopback = true" in err, err
+    f.write_text("[daemon]\nallow_non_loopback = true\n" + text)
+    assert main(["check-config", str(f)]) == 0
+    # read-only access to the admin space over loopback stays allowed
+    f.write_text("[zenoh.adminspace]\nenabled = true\n")
+    assert main(["check-config", str(f)]) == 0
+
+
+@pytest.mark.parametrize(
     "override",
     [
         "daemon.prefix=''",  # zenoh refused "/grasps/latest" only when the daemon declared it
@@ -658,6 +687,8 @@ BOUNDS: list[tuple[str, str, float]] = [
     ("grasp.unknown_decay_m", "le", 10.0),
     ("grasp.swept_step_m", "gt", 0.0),
     ("grasp.swept_step_m", "le", 0.5),
+    ("grasp.threads", "ge", 1),
+    ("grasp.threads", "le", 64),
     ("grasp.single_contact_max_contacts", "ge", 1),
     ("grasp.single_contact_max_contacts", "le", 100_000),
     ("grasp.single_contact_face_deg", "gt", 0.0),

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: Apache-2.0
-"""``pugsd arm sim|status|execute|stop`` and ``pugsd bpl encode|decode``."""
+"""``pugsd arm sim|status|execute|stop|safe`` and ``pugsd bpl encode|decode``."""
 
 from __future__ import annotations
 
@@ -296,6 +296,12 @@ def _arm_stop(args: argparse.Namespace) -> int:
     return 0
 
 
+def _arm_safe(args: argparse.Namespace) -> int:
+    from pugsd.arm.safe import run_safe
+
+    return run_safe(_load(args).arm)  # always allowed, even with arm.enabled = false
+
+
 def fetch_latest_grasps(full_cfg: Any, timeout: float = 2.0) -> Any:
     """The daemon's latest grasps from its zenoh queryable ``<prefix>/grasps/latest``."""
     from pugsd.wire.codec import decode_grasp_array as decode
@@ -319,18 +325,31 @@ def _pose_matrix(vals: list[float]) -> np.ndarray:
 
 async def _execute_main(cfg: Any, T: np.ndarray, frame: str, width: float, grasp_id: int) -> dict[str, Any]:
     from pugsd.arm.controller import ArmController
+    from pugsd.arm.safe import ArmGuard
 
-    ctl = ArmController(cfg)
-    await ctl.start()
+    # before the link opens: if this process ends without its own stop (SIGKILL, the OOM
+    # killer), the guard sends it
+    guard = ArmGuard.start(cfg)
+    safe = True  # nothing has been sent that could move the arm
     try:
-        await ctl.wait_for_feedback(3.0)
-        if frame == "world":
-            rep = await ctl.execute_grasp(T_W_G=T, width_m=width, grasp_id=grasp_id)
-        else:
-            rep = await ctl.execute_grasp(T_B_G=T, width_m=width, grasp_id=grasp_id)
-        return rep.to_dict()
+        ctl = ArmController(cfg)
+        await ctl.start()
+        safe = False
+        try:
+            await ctl.wait_for_feedback(3.0)
+            if frame == "world":
+                rep = await ctl.execute_grasp(T_W_G=T, width_m=width, grasp_id=grasp_id)
+            else:
+                rep = await ctl.execute_grasp(T_B_G=T, width_m=width, grasp_id=grasp_id)
+            return rep.to_dict()
+        finally:
+            await ctl.close()  # zero velocity and the safe mode
+            safe = True
     finally:
-        await ctl.close()
+        if safe:
+            guard.release()
+        else:
+            guard.trigger()
 
 
 def _arm_execute(args: argparse.Namespace) -> int:
@@ -389,7 +408,7 @@ _GRIP_TEXT = {
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    arm = sub.add_parser("arm", help="Reach Bravo 7 arm: sim, status, execute, stop")
+    arm = sub.add_parser("arm", help="Reach Bravo 7 arm: sim, status, execute, stop, safe")
     arm_sub = arm.add_subparsers(dest="arm_command", required=True, metavar="ARM_COMMAND")
 
     p = arm_sub.add_parser(
@@ -480,6 +499,20 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     )
     p.add_argument("--timeout", type=float, default=2.0, help="daemon query timeout (s)")
     p.set_defaults(func=_arm_stop)
+
+    p = arm_sub.add_parser(
+        "safe",
+        help="zero velocity and the safe mode to all devices over the link; wait for them to report it",
+        description="Send zero velocity and the safe mode (arm.safety.safe_mode) to every device "
+        "over the configured link only, retrying for up to 2 s while the serial port is still "
+        "locked by a process that just ended, then ask every axis for its mode for up to 0.5 s. "
+        "Exit 0 when every axis reports the safe mode, 2 when the stop was sent but not every "
+        "axis confirmed it, 1 when the link could not be opened. The systemd arm drop-in runs it "
+        "(as python -m pugsd.arm.safe, which starts faster) after every end of pugsd run.",
+        epilog="example:\n  pugsd arm safe --config /etc/pugsd/pugsd.toml",
+    )
+    _add_config_args(p)
+    p.set_defaults(func=_arm_safe)
 
     bpl = sub.add_parser("bpl", help="Reach BPL packet tools: encode, decode")
     bpl_sub = bpl.add_subparsers(dest="bpl_command", required=True, metavar="BPL_COMMAND")

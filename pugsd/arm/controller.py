@@ -48,6 +48,7 @@ from pugsd.arm.protocol import (
     heartbeat_frequency_hz,
     make_packet,
 )
+from pugsd.arm.safe import safe_mode, stop_packets
 from pugsd.arm.transport import Transport, make_transport
 from pugsd.errors import ArmError, DecodeError, PugsdError, SafetyError
 
@@ -602,13 +603,7 @@ class ArmController:
     # ---------------------------------------------------------------- stop and watchdog
 
     def _stop_packets(self) -> list[Packet]:
-        """VELOCITY 0, then the safe mode: to the broadcast id and, in case a device misses the
-        broadcast, to every axis individually (commands only; no replies are requested)."""
-        safe = self._safe_mode()
-        devs = (0xFF, *ALL_AXES)
-        return [make_packet(d, PacketID.VELOCITY, [0.0]) for d in devs] + [
-            make_packet(d, PacketID.MODE, [int(safe)]) for d in devs
-        ]
+        return stop_packets(self.cfg)
 
     async def stop(self, reason: str = "requested", *, latch: bool = True) -> None:
         """Abort any motion; send zero velocity to all devices, then the configured safe mode.
@@ -663,7 +658,7 @@ class ArmController:
         return all(ax.mode is not None and ax.mode in safe and ax.t_mode > t for ax in axes)
 
     def _safe_mode(self) -> Mode:
-        return Mode.DISABLE if self.cfg.safety.safe_mode == "disable" else Mode.POSITION_HOLD
+        return safe_mode(self.cfg)
 
     async def _send_stop(self) -> None:
         await self.link.send(self._stop_packets(), urgent=True)

@@ -375,6 +375,13 @@ class GraspConfig:
         gt=0.0,
         le=0.5,
     )
+    threads: int = opt(
+        2,
+        "threads for the single-contact proposal's contacts and the swept-volume distances "
+        "(the same grasps for any number; 1: the calling thread only)",
+        ge=1,
+        le=64,
+    )
     single_contact_max_contacts: int = opt(
         150, "single_contact: contacts sampled (farthest point) per proposal", ge=1, le=100_000
     )

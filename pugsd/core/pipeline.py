@@ -339,7 +339,7 @@ class PugsPipeline:
             if v.any():
                 tree = cKDTree(cloud)
                 unk[v] = unknown_share(
-                    self.free, cands.pose[v], *self._swept_G, tree, g.unknown_decay_m
+                    self.free, cands.pose[v], *self._swept_G, tree, g.unknown_decay_m, g.threads
                 )
                 s2g[v] = grasp_sigma2(contact_s2, ref, unk[v], g.unknown_weight)
         t4 = time.perf_counter()

@@ -28,7 +28,16 @@ from pugsd.core.types import DepthFrame, StereoFrame
 from pugsd.daemon import queries
 from pugsd.daemon.arm_bridge import ArmBridge
 from pugsd.daemon.bridge import Bridge, Command, Inbound, endpoints
-from pugsd.daemon.health import Health, InputWatch, OverloadWatch, Reporter, UnhealthyLog, jsonable, status_of
+from pugsd.daemon.health import (
+    Health,
+    InputWatch,
+    OverloadWatch,
+    Reporter,
+    UnhealthyLog,
+    diagnostics_of,
+    jsonable,
+    status_of,
+)
 from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier, watchdog_interval_s
 from pugsd.daemon.outputs import Outputs, output_stamp_ns
@@ -36,6 +45,8 @@ from pugsd.daemon.pipeline_api import Pipeline
 from pugsd.daemon.process import apply_thread_limits
 from pugsd.daemon.queries import QUERY_KEYS
 from pugsd.daemon.recording import start_recording, stop_recording
+from pugsd.daemon.ros_services import ARM_SERVICES, SERVICES, RosServices
+from pugsd.daemon.transforms import Transforms
 from pugsd.errors import DecodeError, EmptyCloudError, PugsdError
 from pugsd.stream.assembler import FrameAssembler, InputRejected, expected_type, log_nth
 from pugsd.stream.schedule import StreamingSchedule
@@ -46,6 +57,7 @@ from pugsd.wire.session import close_session, open_session
 from pugsd.wire.topics import (
     INPUT_ROLES,
     OUTPUT_ROLES,
+    TRANSIENT_LOCAL_DEPTH,
     graph_tokens_enabled,
     key_for,
     ros_graph_tokens,
@@ -97,6 +109,8 @@ class Daemon:
         self._subscribers: list[Any] = []
         self._entities: list[Any] = []  # queryables, token (undeclared after the subscribers)
         self.outputs = Outputs(self, time.monotonic)
+        self.ros_services = RosServices(self)
+        self.transforms = Transforms(self)  # /tf and /tf_static
         # rmw_zenoh ROS graph tokens: the node's and its publishers', the subscriptions'
         self._graph_tokens: list[Any] = []
         self._sub_graph_tokens: list[Any] = []
@@ -256,6 +270,7 @@ class Daemon:
         for kind in ("arm_execute", "arm_stop", "arm_release"):
             on_query = self.bridge.query(kind, self._on_query)
             self._entities.append(s.declare_queryable(self.key(QUERY_KEYS[kind]), on_query))
+        self.ros_services.declare(list(ARM_SERVICES))
         on_put = self.bridge.control_put(self.arm.on_stop_put, self.bridge.stop_ingress)
         self._entities.append(s.declare_subscriber(self.key("arm/stop"), on_put))
         log.info(
@@ -290,7 +305,8 @@ class Daemon:
     def _declare_outputs(self) -> None:
         t = self.cfg.topics
         for role in OUTPUT_ROLES:
-            self.outputs.publishers[role] = Publisher(self.session, key_for(t, role))
+            depth = TRANSIENT_LOCAL_DEPTH.get(role, 0)
+            self.outputs.publishers[role] = Publisher(self.session, key_for(t, role), cache_depth=depth)
         s = self.session
         node_name = self.cfg.daemon.node_name
         if graph_tokens_enabled(t, node_name):
@@ -311,6 +327,7 @@ class Daemon:
             self._entities.append(s.declare_queryable(self.key(QUERY_KEYS[kind]), on_query))
         on_reset = self.bridge.control_put(self._on_reset_put, self.bridge.query_ingress)
         self._entities.append(s.declare_subscriber(self.key("reset"), on_reset))
+        self.ros_services.declare(list(SERVICES))
 
     def _declare_inputs(self) -> None:
         t = self.cfg.topics
@@ -390,6 +407,8 @@ class Daemon:
     def _dispatch(self, item: Inbound) -> None:
         typename = self._msg_type(item, expected_type(item.role, self.cfg.topics.pose_type))
         self.frames.feed(item.role, item.payload, item.recv_s, typename, item.publisher, item.key)
+        if item.role == "pose":  # accepted: on /tf
+            self.transforms.on_pose(item.payload, typename)
 
     def _expire_before(self, now_s: float) -> float:
         """A frame's deadline counts as passed only before the oldest pose still queued for the
@@ -623,6 +642,9 @@ class Daemon:
         st = self.status()
         self.latest_status = st
         self.outputs.put("status", codec.encode_status(jsonable(st)))
+        diagnostics = diagnostics_of(jsonable(st))
+        self.outputs.put("diagnostics", codec.encode_diagnostics(time.time_ns(), diagnostics))
+        self.transforms.tick(time.monotonic())
         c = st["counts"]
         stale = st["inputs"]["stale"]
         self.inputs.report_stale(stale, time.monotonic())

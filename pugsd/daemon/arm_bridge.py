@@ -8,6 +8,7 @@ import asyncio
 import contextlib
 import json
 import logging
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from pugsd.daemon.health import jsonable
@@ -59,8 +60,7 @@ class ArmBridge:
         """Validate an ``<prefix>/arm/execute`` request and queue it; returns the reply text."""
         from pugsd.arm.controller import parse_execute_request
 
-        d, arm = self.d, self.controller
-        if arm is None:
+        if self.controller is None:
             raise InputRejected("disabled", "arm disabled: set [arm] enabled = true to allow motion")
         payload = query.payload.to_bytes() if query.payload is not None else b""
         try:
@@ -70,6 +70,15 @@ class ArmBridge:
         except (RecursionError, OverflowError, ValueError) as exc:  # deep nesting, huge numbers
             msg = f"arm/execute: unreadable request ({type(exc).__name__})"
             raise InputRejected("bad_request", msg) from None
+        return self.request_execute(grasp_id, width_m)
+
+    def request_execute(self, grasp_id: int, width_m: float | None) -> str:
+        """Queue grasp ``grasp_id`` of the latest grasps (at ``width_m``; None: its own width)
+        for execution (the zenoh query and the ROS service); returns the reply text, raises
+        InputRejected with the reason it is refused."""
+        d, arm = self.d, self.controller
+        if arm is None:
+            raise InputRejected("disabled", "arm disabled: set [arm] enabled = true to allow motion")
         if d._stopping:  # the arm box is closed: "busy" would mislead
             raise InputRejected("shutting_down", "the daemon is shutting down")
         if arm.stop_latched is not None:
@@ -87,37 +96,54 @@ class ArmBridge:
             raise InputRejected("busy", "busy: an arm motion is in progress")
         return f"accepted: grasp {grasp_id}"
 
-    def stop(self, source: str, query: Any = None) -> None:
-        """``<prefix>/arm/stop`` (query or put): stop the arm at once, here on the event loop, not
-        through the arm mailbox, so it never waits behind a running motion; the stop latches
-        (execute is refused until ``<prefix>/arm/release``). The reply follows once it is sent."""
+    def stop(
+        self, source: str, query: Any = None, answer: Callable[[bool, str], None] | None = None
+    ) -> None:
+        """``<prefix>/arm/stop`` (query or put) and the ROS service: stop the arm at once, here on
+        the event loop, not through the arm mailbox, so it never waits behind a running motion;
+        the stop latches (execute is refused until ``<prefix>/arm/release``). The reply follows
+        once it is sent: to ``query`` as text, or through ``answer(ok, text)`` when given (the
+        query is then closed after it)."""
         self.d.health.count("arm.stops")
         log.warning("arm: stop requested (%s)", source)
         if len(self.stop_tasks) >= _MAX_STOPS_IN_FLIGHT:
             if query is not None:
                 with query, contextlib.suppress(Exception):
-                    query.reply(self.d.key("arm/stop"), "stopping: a stop is already being sent")
+                    text = "stopping: a stop is already being sent"
+                    if answer is not None:
+                        answer(True, text)
+                    else:
+                        query.reply(self.d.key("arm/stop"), text)
             return
-        task = asyncio.get_running_loop().create_task(self._send_stop(source, query), name="arm-stop")
+        task = asyncio.get_running_loop().create_task(self._send_stop(source, query, answer), name="arm-stop")
         self.stop_tasks.add(task)
         task.add_done_callback(self.stop_tasks.discard)
 
-    async def _send_stop(self, source: str, query: Any) -> None:
+    async def _send_stop(
+        self, source: str, query: Any, answer: Callable[[bool, str], None] | None = None
+    ) -> None:
         d = self.d
         key = d.key("arm/stop")
+
+        def respond(ok: bool, text: str) -> None:
+            if answer is not None:
+                answer(ok, text)
+            elif query is not None and ok:
+                query.reply(key, text)
+            elif query is not None:
+                query.reply_err(text)
+
         with query if query is not None else contextlib.nullcontext():
             try:
                 if self.controller is None:
-                    if query is not None:
-                        query.reply_err("rejected: arm disabled or shut down")
+                    respond(False, "rejected: arm disabled or shut down")
                     return
                 await self.controller.stop(reason=f"{key} ({source})")
-                if query is not None:
-                    query.reply(
-                        key,
-                        f"stopped: zero velocity and {d.cfg.arm.safety.safe_mode} sent; motion "
-                        f"is refused until {d.key('arm/release')}",
-                    )
+                respond(
+                    True,
+                    f"stopped: zero velocity and {d.cfg.arm.safety.safe_mode} sent; motion "
+                    f"is refused until {d.key('arm/release')}",
+                )
             except Exception as exc:  # a bug: count and log, answer, keep serving
                 d.report.internal_error("errors.query.arm_stop", "stopping the arm", exc)
                 if query is not None:

@@ -260,6 +260,12 @@ class TopicsConfig:
     markers: str = opt("/pugs/grasp_markers", "output visualization_msgs/MarkerArray")
     cloud: str = opt("/pugs/cloud", "output sensor_msgs/PointCloud2 with sigma2_occ and confidence")
     status: str = opt("/pugs/status", "output status (JSON in std_msgs/String)")
+    tf: str = opt("/tf", "output tf2_msgs/TFMessage: the camera (or the body carrying it) in the pose frame")
+    tf_static: str = opt(
+        "/tf_static",
+        "output tf2_msgs/TFMessage, transient local: left -> right camera and the camera mount",
+    )
+    diagnostics: str = opt("/diagnostics", "output diagnostic_msgs/DiagnosticArray from the status")
 
     def __post_init__(self) -> None:
         for f in fields(self):

@@ -16,6 +16,7 @@ import numpy as np
 
 from pugsd.errors import PugsdError
 from pugsd.stream.assembler import InputRejected, log_nth, reason_class
+from pugsd.wire.codec import DIAG_ERROR, DIAG_OK, DIAG_WARN, DiagnosticStatus
 
 if TYPE_CHECKING:
     from pugsd.daemon.app import Daemon
@@ -377,6 +378,62 @@ def status_of(d: Daemon) -> dict[str, Any]:
         "pipeline": pstats,
         "recorder": None if d.recorder is None else d.recorder.stats.as_dict(),
     }
+
+
+def diagnostics_of(st: dict[str, Any]) -> list[DiagnosticStatus]:
+    """The status message (:func:`status_of`) as ROS diagnostics, one DiagnosticStatus per part,
+    named ``<node>: <part>`` (hardware_id the node):
+
+    - ``health``: ERROR with the problems while unhealthy (the watchdog withholds its pings),
+      else OK;
+    - ``model``: OK once ready; WARN before (no frame integrated yet, or training);
+    - ``inputs``: WARN naming the stale inputs and the topics two publishers feed at once, else OK;
+    - ``recorder`` (when recording): ERROR with the recorder's error, else OK.
+    """
+    node = str(st.get("node", ""))
+    c = st.get("counts", {})
+
+    def part(level: int, name: str, message: str, values: dict[str, Any]) -> DiagnosticStatus:
+        shown = {k: "" if v is None else str(v) for k, v in values.items()}
+        return DiagnosticStatus(level, f"{node}: {name}", message, node, shown)
+
+    problems = list(st.get("problems", []))
+    out = [
+        part(
+            DIAG_ERROR if problems else DIAG_OK,
+            "health",
+            "; ".join(problems) if problems else "healthy",
+            {
+                "uptime_s": st.get("uptime_s"),
+                "dropped_total": st.get("dropped_total"),
+                "rejected": c.get("rejected", 0),
+                "grasps_published": st.get("grasps_published"),
+            },
+        )
+    ]
+    integrated = c.get("integrated", 0)
+    if st.get("ready"):
+        level, msg = DIAG_OK, f"ready (model version {st.get('model_version')})"
+    else:
+        level, msg = DIAG_WARN, "not ready: training" if integrated else "not ready: no frame integrated yet"
+    values = {"model_version": st.get("model_version"), "elbo": st.get("elbo"), "integrated": integrated,
+              "train_steps": c.get("train_steps", 0)}  # fmt: skip
+    out.append(part(level, "model", msg, values))
+    inputs = st.get("inputs", {})
+    stale = list(inputs.get("stale", []))
+    doubled = dict(st.get("upstream", {}).get("concurrent_publishers", {}))
+    why = ([f"stale: {' '.join(stale)}"] if stale else []) + [
+        f"{n} publishers at once on {role}" for role, n in sorted(doubled.items())
+    ]
+    ages = {f"age_s.{k}": round(float(v), 3) for k, v in sorted(inputs.get("age_s", {}).items())}
+    msg = "; ".join(why) if why else "receiving" if ages else "no input received yet"
+    out.append(part(DIAG_WARN if why else DIAG_OK, "inputs", msg, ages))
+    rec = st.get("recorder")
+    if rec is not None:
+        err = str(rec.get("error", ""))
+        values = {k: rec.get(k) for k in ("current_file", "files_finished", "bytes_written", "disk_full")}
+        out.append(part(DIAG_ERROR if err else DIAG_OK, "recorder", err or "recording", values))
+    return out
 
 
 UNHEALTHY_RELOG_S = 300.0  # an unchanged unhealthy state is logged again this often

@@ -29,6 +29,25 @@ def _open_tool_session(args: argparse.Namespace, cfg: PugsdConfig) -> Any:
     return open_session(zc, require_loopback=True)
 
 
+def _open_record_session(
+    args: argparse.Namespace, cfg: PugsdConfig, stop: threading.Event, deadline: float | None
+) -> Any:
+    """The recorder's session: a zenoh client of the daemon (it hears what every session linked to
+    the daemon publishes), waiting until something listens there; None if stopped first."""
+    from pugsd.wire.session import open_session, open_session_waiting, tool_config
+
+    zc = tool_config(cfg.zenoh, args.connect, args.listen, client=True)
+    if zc["mode"] != "client":  # it listens: a peer, which cannot wait for anyone
+        return open_session(zc, require_loopback=True)
+
+    def waiting(error: str) -> None:
+        asked = ", ".join(zc["connect"]["endpoints"])
+        sys.stderr.write(f"pugsd record: nothing listens at {asked} yet; waiting\n")
+        sys.stderr.flush()
+
+    return open_session_waiting(zc, stop, deadline=deadline, on_wait=waiting)
+
+
 def _stop_on_signals() -> threading.Event:
     ev = threading.Event()
 
@@ -46,7 +65,7 @@ def _stop_on_signals() -> threading.Event:
 def _record(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from pugsd.record.recorder import Recorder, default_record_keys
+    from pugsd.record.recorder import Recorder, default_record_keys, watched_topics
     from pugsd.wire.session import close_session
     from pugsd.wire.topics import topic_types
 
@@ -57,22 +76,26 @@ def _record(args: argparse.Namespace) -> int:
     keys = list(args.key) if args.key else default_record_keys(cfg)
     t = cfg.topics
     stop = _stop_on_signals()
-    session = _open_tool_session(args, cfg)
+    t_end = None if args.duration is None else time.monotonic() + args.duration
+    session = _open_record_session(args, cfg, stop, t_end)  # None: stopped before a daemon came
+    inputs, outputs = watched_topics(cfg, keys)
     rec = Recorder(
         rc,
         directory=args.out or rc.directory,
         queue_size=cfg.queues.record,
         topic_types=topic_types(t),
         metadata={"pugsd.config": {"toml": dump_config(cfg), "keys": json.dumps(keys)}},
+        input_topics=inputs,
+        output_topics=outputs,
     )
     rec.start()
     try:  # the session is closed and the recorder stopped whatever happens from here
         if rec.stats.error:
             raise ConfigError(str(rec.stats.error))
-        rec.subscribe(session, keys)  # ConfigError naming a key zenoh refuses
-        sys.stderr.write(f"pugsd record: {len(keys)} key expressions -> {rec.directory}\n")
-        sys.stderr.flush()
-        t_end = None if args.duration is None else time.monotonic() + args.duration
+        if session is not None:
+            rec.subscribe(session, keys)  # ConfigError naming a key zenoh refuses
+            sys.stderr.write(f"pugsd record: {len(keys)} key expressions -> {rec.directory}\n")
+            sys.stderr.flush()
         tick = min(1.0, args.status_interval) if args.status_interval > 0 else 1.0
         next_status = time.monotonic() + args.status_interval
         while not stop.is_set():
@@ -86,13 +109,15 @@ def _record(args: argparse.Namespace) -> int:
                 sys.stderr.write(
                     f"pugsd record: status received={s.received} written={s.written} "
                     f"buffered={s.buffered} dropped={s.dropped_queue + s.dropped_error} "
-                    f"files={s.files_finished} error={s.error or '-'}\n"
+                    f"files={s.files_finished} inputs={s.inputs_received} outputs={s.outputs_received} "
+                    f"error={s.error or '-'}\n"
                 )
                 sys.stderr.flush()
     finally:
         rec.unsubscribe()
         files = rec.stop()
-        close_session(session)
+        if session is not None:
+            close_session(session)
     s = rec.stats
     sys.stderr.write(
         f"pugsd record: {s.written} written, {s.dropped_queue} dropped (slow disk), "
@@ -108,10 +133,19 @@ def _record(args: argparse.Namespace) -> int:
             f"pugsd record: no message received (is anything publishing on these keys, reachable at "
             f"{asked or 'the listen endpoints'}?)\n"
         )
+    if s.missing_inputs:
+        sys.stderr.write(
+            f"pugsd record: warning: {s.outputs_received} messages on the daemon's outputs and none on "
+            "its inputs: this recording cannot be replayed (no camera or pose reached this recorder, "
+            "or none was sent while it ran)\n"
+        )
     for f in files:
         sys.stdout.write(f"{f}\n")
     if s.error:
         sys.stderr.write(f"pugsd record: error: {s.error}\n")
+        return exit_codes.FAILURE
+    if s.missing_inputs and args.require_inputs:
+        sys.stderr.write("pugsd record: error: --require-inputs: no input recorded\n")
         return exit_codes.FAILURE
     return exit_codes.NO_PEER if s.received == 0 else exit_codes.OK
 
@@ -302,6 +336,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--prefix", default=None, help="file name prefix (default: [record] name_prefix)")
     p.add_argument("--status-interval", type=float, default=10.0,
                    help="print counters to stderr this often [s]; 0: never")  # fmt: skip
+    p.add_argument("--require-inputs", action="store_true",
+                   help="exit 1 when the daemon's outputs were recorded but none of its inputs")  # fmt: skip
     p.set_defaults(func=_record)
 
     p = sub.add_parser(

@@ -46,6 +46,12 @@ log = logging.getLogger(__name__)
 
 Opener = Callable[[Path], IO[bytes]]
 
+#: outputs seen on this many messages and not one input: the recorder warns (a grasp round is a
+#: few messages, and a recording started mid-run may see one before the next camera frame)
+OUTPUTS_BEFORE_WARNING = 10
+#: the [topics] outputs a daemon computes from its inputs (its status goes out while idle too)
+DERIVED_OUTPUT_ROLES = ("grasps", "markers", "cloud")
+
 U64_MAX = 2**64 - 1  # MCAP log_time / publish_time are uint64
 U32_MAX = 2**32 - 1  # MCAP sequence is uint32
 _MAX_NAME_TRIES = 10_000
@@ -180,6 +186,8 @@ class RecorderStats:
     # is then the receive time
     bad_attachment: int = 0
     deletes: int = 0  # zenoh DELETE samples (no message to record): skipped
+    inputs_received: int = 0  # messages on the daemon's input topics (Recorder input_topics)
+    outputs_received: int = 0  # messages on the outputs it computes from them (output_topics)
     callback_errors: int = 0  # samples lost to an exception in the zenoh callback
     files_finished: int = 0
     files_deleted: int = 0  # finished recordings deleted to keep within max_total_bytes
@@ -190,11 +198,18 @@ class RecorderStats:
     current_file: str = ""
     files: list[str] = field(default_factory=list)  # every finished file not deleted (not in as_dict)
 
+    @property
+    def missing_inputs(self) -> bool:
+        """The daemon's outputs were recorded and not one of its inputs: the recording cannot be
+        replayed (the inputs did not reach this recorder, or ended before it started)."""
+        return self.outputs_received > 0 and self.inputs_received == 0
+
     def as_dict(self) -> dict[str, Any]:
         """The counters for a status message: bounded in size, so ``files`` is replaced by
         ``last_file`` (``files_finished`` is the count)."""
         d = {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "files"}
         d["last_file"] = self.files[-1] if self.files else ""
+        d["missing_inputs"] = self.missing_inputs
         return d
 
 
@@ -214,12 +229,42 @@ def default_record_keys(cfg: Any) -> list[str]:
     )
 
 
+def watched_topics(cfg: Any, keys: Iterable[str]) -> tuple[frozenset[str], frozenset[str]]:
+    """The ``[topics]`` inputs, and the outputs computed from them (:data:`DERIVED_OUTPUT_ROLES`),
+    that the key expressions ``keys`` subscribe to, as ROS topic names (``/a/b``): the
+    ``input_topics`` and ``output_topics`` of a :class:`Recorder` of ``keys``."""
+    import zenoh
+
+    from pugsd.wire.keys import subscription_key
+    from pugsd.wire.topics import INPUT_ROLES
+
+    t = cfg.topics
+    subscribed = []
+    for k in keys:
+        with contextlib.suppress(Exception):  # one zenoh refuses: Recorder.subscribe names it
+            subscribed.append(zenoh.KeyExpr.autocanonize(k))
+
+    def topics(roles: Iterable[str]) -> frozenset[str]:
+        out = set()
+        for r in roles:
+            topic = getattr(t, r)
+            k = zenoh.KeyExpr(subscription_key(topic, domain_id=t.domain_id, key_style=t.key_style))
+            if any(s.intersects(k) for s in subscribed):
+                out.add("/" + strip_topic(topic))
+        return frozenset(out)
+
+    return topics(INPUT_ROLES), topics(DERIVED_OUTPUT_ROLES)
+
+
 class Recorder:
     """Records ROS 2 CDR messages to MCAP on a writer thread.
 
     ``topic_types`` maps ROS topic names to types for keys that do not carry the type
     (``ros2dds`` style); rmw_zenoh keys carry it. ``metadata`` (name -> str map) is written into
-    every file next to the versions and the record config.
+    every file next to the versions and the record config. Messages on ``input_topics`` (a
+    daemon's inputs) and ``output_topics`` (the outputs it computes from them) are counted in
+    ``stats.inputs_received``/``outputs_received``; :data:`OUTPUTS_BEFORE_WARNING` outputs and
+    no input log a warning (``stats.missing_inputs`` says it from the first output on).
     """
 
     def __init__(
@@ -232,6 +277,8 @@ class Recorder:
         metadata: Mapping[str, Mapping[str, str]] | None = None,
         opener: Opener | None = None,
         clock: Callable[[], int] = time.time_ns,
+        input_topics: Iterable[str] = (),
+        output_topics: Iterable[str] = (),
     ) -> None:
         self.cfg = cfg
         self.directory = Path(directory if directory is not None else cfg.directory)
@@ -239,6 +286,8 @@ class Recorder:
         # ROS topic ("/a/b", normalised as the wire layer does) -> type
         self.topic_types = {"/" + strip_topic(k): v for k, v in (topic_types or {}).items()}
         self.metadata = {k: dict(v) for k, v in (metadata or {}).items()}
+        self.input_topics = frozenset("/" + strip_topic(t) for t in input_topics)
+        self.output_topics = frozenset("/" + strip_topic(t) for t in output_topics)
         self._open = opener or _default_opener
         self._clock = clock
         self.stats = RecorderStats()
@@ -264,16 +313,20 @@ class Recorder:
     @classmethod
     def from_config(cls, cfg: Any, *, directory: str | Path | None = None) -> Recorder:
         """A recorder for the daemon: ``[record]`` settings, ``[queues] record`` bound, the
-        ``[topics]`` types, and the full effective config (TOML) in every file's metadata."""
+        ``[topics]`` types, inputs and outputs of :func:`default_record_keys`, and the full
+        effective config (TOML) in every file's metadata."""
         from pugsd.config import dump_config
         from pugsd.wire.topics import topic_types
 
+        inputs, outputs = watched_topics(cfg, default_record_keys(cfg))
         return cls(
             cfg.record,
             directory=directory,
             queue_size=cfg.queues.record,
             topic_types=topic_types(cfg.topics),
             metadata={"pugsd.config": {"toml": dump_config(cfg)}},
+            input_topics=inputs,
+            output_topics=outputs,
         )
 
     # ------------------------------------------------------------------ lifecycle
@@ -335,6 +388,7 @@ class Recorder:
         ok = True
         with self._cv:
             self.stats.received += 1
+            self._count_role(topic)
             if bad:
                 self.stats.dropped_invalid += 1
                 log.debug("recorder: dropped a %s message: %s out of range", topic, bad)
@@ -360,6 +414,22 @@ class Recorder:
                 ok = False
             self._cv.notify()
         return ok
+
+    def _count_role(self, topic: str) -> None:
+        """Count an input or output message (under the lock); warn once of outputs without input."""
+        s = self.stats
+        topic = "/" + topic.strip("/")
+        if topic in self.input_topics:
+            s.inputs_received += 1
+        elif topic in self.output_topics:
+            s.outputs_received += 1
+            if s.outputs_received == OUTPUTS_BEFORE_WARNING and s.inputs_received == 0:
+                log.warning(
+                    "recorder: %d messages on the daemon's outputs and none on its inputs (%s): the "
+                    "inputs do not reach this recorder (a zenoh peer hears only the sessions linked "
+                    "to it; `pugsd record` joins the daemon as a client), or none are sent",
+                    s.outputs_received, ", ".join(sorted(self.input_topics)),
+                )  # fmt: skip
 
     def put_sample(
         self,

@@ -43,9 +43,10 @@ def encode_attachment(sequence_number: int, source_timestamp_ns: int, gid: bytes
     return _FMT.pack(int(sequence_number), int(source_timestamp_ns), 16, bytes(gid))
 
 
-def decode_attachment(data: bytes | bytearray | memoryview | None) -> Attachment:
+def decode_attachment(data: bytes | bytearray | memoryview | None, min_sequence: int = 1) -> Attachment:
     """Parse the 33-byte attachment; DecodeError on any other size, a wrong GID length byte or a
-    sequence number below 1 (rmw_zenoh numbers from 1)."""
+    sequence number below ``min_sequence`` (rmw_zenoh's publishers number from 1; its service
+    refuses a request numbered below 0)."""
     if data is None:
         raise DecodeError("no attachment")
     b = bytes(data)
@@ -54,8 +55,8 @@ def decode_attachment(data: bytes | bytearray | memoryview | None) -> Attachment
     seq, ts, n, gid = _FMT.unpack(b)
     if n != 16:
         raise DecodeError(f"attachment GID length byte is {n}, expected 16")
-    if seq < 1:
-        raise DecodeError(f"attachment sequence number {seq} is below 1")
+    if seq < min_sequence:
+        raise DecodeError(f"attachment sequence number {seq} is below {min_sequence}")
     return Attachment(seq, ts, gid)
 
 

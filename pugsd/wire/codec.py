@@ -21,6 +21,7 @@ from pugsd.core.types import ScoredGrasps
 from pugsd.errors import DecodeError, PugsdError
 from pugsd.wire.types import (
     CAMERA_INFO,
+    DIAGNOSTIC_ARRAY,
     GRASP,
     GRASP_ARRAY,
     IMAGE,
@@ -31,6 +32,7 @@ from pugsd.wire.types import (
     POSE_COV_STAMPED,
     POSE_STAMPED,
     STRING,
+    TF_MESSAGE,
     msg_class,
     typestore,
 )
@@ -819,3 +821,86 @@ def decode_status(data: bytes) -> dict[str, Any]:
     if not isinstance(obj, dict):
         raise DecodeError("status: JSON is not an object")
     return obj
+
+
+# ---------------------------------------------------------------------------------------------
+# tf2_msgs/TFMessage
+
+
+@dataclass(frozen=True, slots=True)
+class Transform:
+    """One edge of the TF tree: ``T_parent_child`` (4x4) maps ``child`` coordinates into
+    ``parent``'s, stamped ``stamp_ns``."""
+
+    stamp_ns: int
+    parent: str
+    child: str
+    T_parent_child: np.ndarray
+
+
+def encode_tf(transforms: Sequence[Transform]) -> bytes:
+    """tf2_msgs/TFMessage with one geometry_msgs/TransformStamped per transform."""
+    V3, Q = msg_class("geometry_msgs/msg/Vector3"), msg_class("geometry_msgs/msg/Quaternion")
+    TS, Tr = msg_class("geometry_msgs/msg/TransformStamped"), msg_class("geometry_msgs/msg/Transform")
+    out = []
+    for t in transforms:
+        T = np.asarray(t.T_parent_child, dtype=np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise ValueError(f"transform {t.parent} -> {t.child}: not a finite 4x4 matrix")
+        qx, qy, qz, qw = matrix_to_quat(T[:3, :3])
+        out.append(
+            TS(
+                header=_header(t.stamp_ns, t.parent),
+                child_frame_id=str(t.child),
+                transform=Tr(
+                    translation=V3(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
+                    rotation=Q(x=qx, y=qy, z=qz, w=qw),
+                ),
+            )
+        )
+    return serialize(msg_class(TF_MESSAGE)(transforms=out), TF_MESSAGE)
+
+
+def decode_tf(data: bytes) -> list[Transform]:
+    m = deserialize(data, TF_MESSAGE)
+    out = []
+    for ts in m.transforms:
+        tr, ro = ts.transform.translation, ts.transform.rotation
+        T = np.eye(4)
+        T[:3, :3] = quat_to_matrix(ro.x, ro.y, ro.z, ro.w)
+        T[:3, 3] = [tr.x, tr.y, tr.z]
+        stamp_ns = _stamp_ns(ts.header, TF_MESSAGE)
+        out.append(Transform(stamp_ns, str(ts.header.frame_id), str(ts.child_frame_id), T))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# diagnostic_msgs/DiagnosticArray
+
+#: diagnostic_msgs/DiagnosticStatus levels
+DIAG_OK, DIAG_WARN, DIAG_ERROR, DIAG_STALE = 0, 1, 2, 3
+
+
+@dataclass(frozen=True, slots=True)
+class DiagnosticStatus:
+    level: int  # DIAG_OK, DIAG_WARN, DIAG_ERROR or DIAG_STALE
+    name: str
+    message: str
+    hardware_id: str
+    values: Mapping[str, str]
+
+
+def encode_diagnostics(stamp_ns: int, statuses: Sequence[DiagnosticStatus]) -> bytes:
+    """diagnostic_msgs/DiagnosticArray (header frame_id empty, as diagnostic_updater sends it)."""
+    St, KV = msg_class("diagnostic_msgs/msg/DiagnosticStatus"), msg_class("diagnostic_msgs/msg/KeyValue")
+    out = [
+        St(
+            level=int(st.level),
+            name=str(st.name),
+            message=str(st.message),
+            hardware_id=str(st.hardware_id),
+            values=[KV(key=str(k), value=str(v)) for k, v in st.values.items()],
+        )
+        for st in statuses
+    ]
+    return serialize(msg_class(DIAGNOSTIC_ARRAY)(header=_header(stamp_ns, ""), status=out), DIAGNOSTIC_ARRAY)

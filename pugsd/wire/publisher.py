@@ -12,7 +12,11 @@ from pugsd.wire.attachment import encode_attachment, new_gid, now_ns
 
 
 class Publisher:
-    """Publishes CDR bytes on one key; thread-safe; ``seq`` starts at 1 and never repeats."""
+    """Publishes CDR bytes on one key; thread-safe; ``seq`` starts at 1 and never repeats.
+
+    ``cache_depth`` > 0: a TRANSIENT_LOCAL publisher as rmw_zenoh declares one, a zenoh
+    AdvancedPublisher that keeps its last ``cache_depth`` messages for late joiners and announces
+    itself for publisher detection (rmw_zenoh's TRANSIENT_LOCAL subscriptions query that cache)."""
 
     def __init__(
         self,
@@ -23,6 +27,7 @@ class Publisher:
         congestion_control: Any = None,
         express: bool = False,
         priority: Any = None,
+        cache_depth: int = 0,
     ) -> None:
         kwargs: dict[str, Any] = {"express": express}
         kwargs["congestion_control"] = (
@@ -34,7 +39,22 @@ class Publisher:
         self.gid = new_gid() if gid is None else bytes(gid)
         if len(self.gid) != 16:
             raise ValueError("GID must be 16 bytes")
-        self._pub = session.declare_publisher(key, **kwargs)
+        self.cache_depth = int(cache_depth)
+        if self.cache_depth > 0 and isinstance(session, zenoh.Session):  # else a stand-in session
+            from zenoh import ext
+
+            # sample miss detection (a sporadic heartbeat) as rmw_zenoh sets it for RELIABLE +
+            # TRANSIENT_LOCAL; with it the cache needs no zenoh timestamping in the session
+            self._pub: Any = ext.declare_advanced_publisher(
+                session,
+                key,
+                cache=ext.CacheConfig(max_samples=self.cache_depth),
+                publisher_detection=True,
+                sample_miss_detection=ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=1.0),
+                **kwargs,
+            )
+        else:
+            self._pub = session.declare_publisher(key, **kwargs)
         self._seq = 0
         self._lock = threading.Lock()
 
@@ -57,8 +77,8 @@ class Publisher:
 
     @property
     def matching(self) -> bool:
-        """Whether any subscriber currently matches."""
-        ms: Any = self._pub.matching_status
+        """Whether any subscriber currently matches (an AdvancedPublisher cannot tell: False)."""
+        ms: Any = getattr(self._pub, "matching_status", False)
         return bool(getattr(ms, "matching", ms))
 
     def undeclare(self) -> None:

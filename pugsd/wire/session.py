@@ -16,6 +16,8 @@ import json
 import logging
 import re
 import socket
+import threading
+import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
@@ -67,6 +69,10 @@ def check_loopback_safe(cfg: Mapping[str, Any]) -> None:
     Requires ``scouting.multicast.enabled = false``, ``scouting.gossip.enabled = false`` (both
     explicit, since zenoh defaults them to true), an explicit ``listen.endpoints`` (zenoh's default
     listens on all interfaces) and every listen/connect endpoint of the form ``tcp/127.0.0.1:PORT``.
+    It also refuses what could open the session beyond them: write permission on the admin space
+    (``adminspace.permissions.write``: a peer could change the config, endpoints included, at run
+    time) and plugins (``plugins_loading.enabled``, or any ``plugins`` table: the REST plugin
+    listens on its own port, on every interface unless given an address).
     """
     if not isinstance(cfg, Mapping):
         raise ConfigError("zenoh config must be a table")
@@ -88,6 +94,23 @@ def check_loopback_safe(cfg: Mapping[str, Any]) -> None:
             )
     if not listen and not connect:
         raise ConfigError("zenoh config is not loopback-safe: no listen or connect endpoint")
+    if _get(cfg, "adminspace/permissions/write") not in (None, False):
+        raise ConfigError(
+            "zenoh config is not loopback-safe: adminspace.permissions.write must be false (it lets "
+            "a peer change the session's config, its endpoints included, at run time)"
+        )
+    if _get(cfg, "plugins_loading/enabled") not in (None, False):
+        raise ConfigError(
+            "zenoh config is not loopback-safe: plugins_loading.enabled must be false (plugins open "
+            "listeners of their own, such as the REST plugin's http_port)"
+        )
+    plugins = _get(cfg, "plugins")
+    if plugins:
+        names = ", ".join(map(str, plugins)) if isinstance(plugins, Mapping) else repr(plugins)
+        raise ConfigError(
+            f"zenoh config is not loopback-safe: plugins ({names}) must not be configured (plugins "
+            "open listeners of their own, such as the REST plugin's http_port)"
+        )
 
 
 def zenoh_config(cfg: Mapping[str, Any]) -> zenoh.Config:
@@ -111,6 +134,9 @@ def _check_readback(zcfg: zenoh.Config) -> None:
         },
         "listen": {"endpoints": js("listen/endpoints")},
         "connect": {"endpoints": js("connect/endpoints")},
+        "adminspace": {"permissions": {"write": js("adminspace/permissions/write")}},
+        "plugins_loading": {"enabled": js("plugins_loading/enabled")},
+        "plugins": js("plugins"),
     }
     check_loopback_safe(readback)
 
@@ -135,19 +161,30 @@ def tool_config(
     zenoh_cfg: Mapping[str, Any],
     connect: Sequence[str] | None = None,
     listen: Sequence[str] | None = None,
+    *,
+    client: bool = False,
 ) -> dict[str, Any]:
     """The session config of a tool next to a running daemon: the ``[zenoh]`` table, changed to a
     peer that connects to the daemon's listen endpoints and listens on none (so it does not fight
     the daemon for its port), unless ``connect``/``listen`` are given. A daemon that listens on
     no fixed port (none, or port 0: a client of a router, say) is reached where it connects (the
     router routes the tool's queries to it). Multicast scouting and gossip are forced off. Open it
-    with ``open_session(cfg, require_loopback=True)``."""
+    with ``open_session(cfg, require_loopback=True)``.
+
+    ``client``: a tool that must hear every session linked to the daemon (``pugsd record``) joins
+    as a zenoh client when it listens on nothing. With gossip off a peer hears only the sessions
+    it is linked to itself (a camera driver that is another peer of the daemon: nothing), and a
+    router does not broker between peers without gossip either; the daemon, peer or router,
+    routes to its clients what every session linked to it publishes. A client cannot open while
+    nothing listens at its endpoints: :func:`open_session_waiting` retries."""
     d = json.loads(json.dumps(dict(zenoh_cfg)))
     own = _get(d, "listen/endpoints")
     own_listen = [str(e) for e in own if not _ephemeral(str(e))] if isinstance(own, list) else []
     conn = _get(d, "connect/endpoints")
     own_connect = [str(e) for e in conn] if isinstance(conn, list) else []
     d["mode"] = "peer" if d.get("mode", "peer") == "router" else d.get("mode", "peer")
+    if client and not listen:
+        d["mode"] = "client"
     d["connect"] = {**(d.get("connect") or {}), "endpoints": list(connect or own_listen or own_connect)}
     d["listen"] = {**(d.get("listen") or {}), "endpoints": list(listen or [])}
     sc = d.setdefault("scouting", {})
@@ -191,6 +228,33 @@ def open_session(cfg: Mapping[str, Any], *, require_loopback: bool = True) -> ze
         raise ConfigError(f"cannot open zenoh session: {text}") from None
     log.debug("zenoh session %s opened", session.zid())
     return session
+
+
+def open_session_waiting(
+    cfg: Mapping[str, Any],
+    stop: threading.Event,
+    *,
+    deadline: float | None = None,
+    retry_s: float = 0.5,
+    on_wait: Callable[[str], None] | None = None,
+) -> zenoh.Session | None:
+    """:func:`open_session` (loopback required) of a zenoh client, retried every ``retry_s`` while
+    nothing listens at its connect endpoints (zenoh refuses to open a client then). Returns None
+    when ``stop`` is set or ``time.monotonic()`` passes ``deadline`` first; ``on_wait`` is called
+    once, with the error, when the first try finds nothing listening. Any other error raises."""
+    waited = False
+    while True:
+        try:
+            return open_session(cfg, require_loopback=True)
+        except ConfigError as exc:
+            if "Unable to connect" not in str(exc):
+                raise
+            if not waited and on_wait is not None:
+                on_wait(str(exc))
+            waited = True
+        wait_s = retry_s if deadline is None else min(retry_s, deadline - time.monotonic())
+        if wait_s <= 0 or stop.wait(wait_s):
+            return None
 
 
 def close_session(session: zenoh.Session, entities: Iterable[Any] = ()) -> None:

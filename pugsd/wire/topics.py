@@ -4,14 +4,17 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
 from pugsd.errors import ConfigError
 from pugsd.wire.graph import (
+    DURABILITY_TRANSIENT_LOCAL,
     PUBLISHER,
     QOS_PROFILE_DEFAULT,
     RELIABILITY_BEST_EFFORT,
+    SERVICE,
     SUBSCRIPTION,
     QosProfile,
     endpoint_token,
@@ -22,6 +25,7 @@ from pugsd.wire.graph import (
 from pugsd.wire.keys import dds_type_name, strip_topic, subscription_key, topic_key
 from pugsd.wire.types import (
     CAMERA_INFO,
+    DIAGNOSTIC_ARRAY,
     GRASP_ARRAY,
     IMAGE,
     MARKER_ARRAY,
@@ -30,6 +34,7 @@ from pugsd.wire.types import (
     POSE_COV_STAMPED,
     POSE_STAMPED,
     STRING,
+    TF_MESSAGE,
     type_hash,
 )
 
@@ -48,12 +53,18 @@ ROLE_TYPES: dict[str, str] = {
     "markers": MARKER_ARRAY,
     "cloud": POINT_CLOUD2,
     "status": STRING,
+    "tf": TF_MESSAGE,
+    "tf_static": TF_MESSAGE,
+    "diagnostics": DIAGNOSTIC_ARRAY,
 }
 INPUT_ROLES = (
     "left_image", "right_image", "left_info", "right_info", "pose", "mask",
     "depth", "depth_info", "depth_std",
 )  # fmt: skip
-OUTPUT_ROLES = ("grasps", "markers", "cloud", "status")
+OUTPUT_ROLES = ("grasps", "markers", "cloud", "status", "tf", "tf_static", "diagnostics")
+#: output roles published TRANSIENT_LOCAL (role -> history depth): a zenoh AdvancedPublisher
+#: caches the last message(s) for late joiners, as rmw_zenoh does for that durability
+TRANSIENT_LOCAL_DEPTH = {"tf_static": 1}
 
 
 def key_for(topics: Any, role: str, typename: str | None = None) -> str:
@@ -106,6 +117,16 @@ PUBLISHER_QOS = QOS_PROFILE_DEFAULT.adapted()
 #: QoS in pugsd's subscription tokens: the same but BEST_EFFORT: pugsd's plain zenoh subscribers
 #: take whatever arrives, and a BEST_EFFORT reader is compatible with any writer
 SUBSCRIPTION_QOS = dataclasses.replace(QOS_PROFILE_DEFAULT, reliability=RELIABILITY_BEST_EFFORT).adapted()
+#: QoS in the tokens of the TRANSIENT_LOCAL outputs (tf2's static broadcaster: depth 1)
+TRANSIENT_LOCAL_QOS = {
+    role: dataclasses.replace(
+        QOS_PROFILE_DEFAULT, durability=DURABILITY_TRANSIENT_LOCAL, depth=depth
+    ).adapted()
+    for role, depth in TRANSIENT_LOCAL_DEPTH.items()
+}
+#: QoS in pugsd's service tokens: rmw_qos_profile_services_default (RELIABLE, VOLATILE,
+#: KEEP_LAST 10, the same fields as rmw_qos_profile_default) as rmw_zenoh adapts it
+SERVICE_QOS = QOS_PROFILE_DEFAULT.adapted()
 
 
 def full_topic_name(topic: str) -> str:
@@ -148,14 +169,16 @@ def graph_tokens_enabled(topics: Any, node_name: str) -> bool:
 @dataclass(frozen=True, slots=True)
 class RosGraphTokens:
     """The daemon's graph tokens: its node, a publisher per output role, a subscription per input
-    role (numbered 0, 1, 2, ... in that order, as rmw_zenoh numbers a context's entities)."""
+    role, a service server per service (numbered 0, 1, 2, ... in that order, as rmw_zenoh numbers
+    a context's entities)."""
 
     node: str
     publishers: dict[str, str]
     subscriptions: dict[str, str]
+    services: dict[str, str] = dataclasses.field(default_factory=dict)  # service name -> token
 
     def all(self) -> list[str]:
-        return [self.node, *self.publishers.values(), *self.subscriptions.values()]
+        return [self.node, *self.publishers.values(), *self.subscriptions.values(), *self.services.values()]
 
 
 def ros_graph_tokens(
@@ -165,11 +188,13 @@ def ros_graph_tokens(
     *,
     outputs: tuple[str, ...] = OUTPUT_ROLES,
     inputs: tuple[str, ...] = INPUT_ROLES,
+    services: Mapping[str, str] | None = None,
 ) -> RosGraphTokens:
     """The graph tokens of a node ``/<node_name>`` in session ``zid`` (``str(session.zid())``)
-    publishing ``outputs`` and subscribing ``inputs``. Namespace and enclave are ROS's default
-    ``/``; the pose input is announced with ``[topics] pose_type`` (pugsd takes any of them). The
-    QoS fields are all written (:data:`PUBLISHER_QOS`: ``1:2:1,10:9223372036,854775807:...``)."""
+    publishing ``outputs``, subscribing ``inputs`` and serving ``services`` (fully qualified
+    service name -> service type). Namespace and enclave are ROS's default ``/``; the pose input
+    is announced with ``[topics] pose_type`` (pugsd takes any of them). The QoS fields are all
+    written (:data:`PUBLISHER_QOS`: ``1:2:1,10:9223372036,854775807:...``)."""
     problems = graph_token_problems(topics, node_name)
     if problems:
         raise ConfigError("no ROS graph tokens: " + "; ".join(problems))
@@ -183,7 +208,27 @@ def ros_graph_tokens(
             qos_defaults=None,  # every QoS field written: see pugsd.wire.graph
         )  # fmt: skip
 
-    pubs = {r: endpoint(PUBLISHER, r, 1 + i, PUBLISHER_QOS) for i, r in enumerate(outputs)}
+    pubs = {
+        r: endpoint(PUBLISHER, r, 1 + i, TRANSIENT_LOCAL_QOS.get(r, PUBLISHER_QOS))
+        for i, r in enumerate(outputs)
+    }
     first = 1 + len(outputs)
     subs = {r: endpoint(SUBSCRIPTION, r, first + i, SUBSCRIPTION_QOS) for i, r in enumerate(inputs)}
-    return RosGraphTokens(node_token(d, zid, 0, node_name), pubs, subs)
+    first += len(inputs)
+    srvs = {
+        name: endpoint_token(
+            SERVICE,
+            d,
+            zid,
+            0,
+            first + i,
+            node_name,
+            name,
+            dds_type_name(typename),
+            type_hash(typename),
+            SERVICE_QOS,
+            qos_defaults=None,
+        )
+        for i, (name, typename) in enumerate((services or {}).items())
+    }
+    return RosGraphTokens(node_token(d, zid, 0, node_name), pubs, subs, srvs)

@@ -119,6 +119,32 @@ def test_orientations_span_from_down_the_normal_to_tangential() -> None:
     assert np.isclose(np.abs(A @ n).min(), 0.0, atol=1e-12)  # the tangential ones
 
 
+def test_orientations_of_many_contacts_at_once_are_those_of_each_contact() -> None:
+    prop = SingleContactProposer(CFG)
+    rng = np.random.default_rng(3)
+    n = rng.normal(size=(5, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    k1 = np.cross(n, rng.normal(size=(5, 3)))
+    k1 /= np.linalg.norm(k1, axis=1, keepdims=True)
+    k2 = np.cross(n, k1)
+    A, B, th = prop.orientations(n, k1, k2)
+    for i in range(5):
+        Ai, Bi, thi = prop.orientations(n[i], k1[i], k2[i])
+        np.testing.assert_array_equal(A[i], Ai)
+        np.testing.assert_array_equal(B[i], Bi)
+        np.testing.assert_array_equal(th, thi)
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+def test_the_proposal_is_the_same_on_any_number_of_threads(threads: int) -> None:
+    pts = np.vstack([_half_cylinder(n=2000), _bar(n=1000)])
+    one = SingleContactProposer(dataclasses.replace(CFG, threads=1)).propose(pts, None, CAMERA)
+    many = SingleContactProposer(dataclasses.replace(CFG, threads=threads)).propose(pts, None, CAMERA)
+    assert one.valid.sum() >= 10
+    for field in ("contact", "baseline", "approach", "width", "confidence", "pose", "valid", "src_index"):
+        np.testing.assert_array_equal(getattr(many, field), getattr(one, field))
+
+
 def test_voxel_subset_keeps_one_point_per_voxel() -> None:
     pts = np.array([[0.0, 0, 0], [0.001, 0, 0], [0.01, 0, 0], [0.0101, 0.0, 0.0]])
     np.testing.assert_array_equal(voxel_subset(pts, 0.004), [0, 2])

@@ -111,3 +111,12 @@ def test_swept_eq13_is_unit_free_and_a_readable_confidence() -> None:
     ref = float(np.median(s2))
     want = 0.6 / (1 + cfg.gamma * (1e5 / ref + cfg.unknown_weight * 0.0))
     np.testing.assert_allclose(r.pugs_confidence[0], want)
+
+
+def test_the_unknown_share_is_the_same_on_any_number_of_threads() -> None:
+    fmap, cloud = _scene()
+    fingers, approach = swept_samples(G, 0.2, 0.02)
+    tree = cKDTree(cloud)
+    poses = np.concatenate([_side_grasp(np.array([-1.0, 0.0, s])) for s in np.linspace(-1, 1, 7)])
+    one = unknown_share(fmap, poses, fingers, approach, tree, 0.02, threads=1)
+    np.testing.assert_array_equal(unknown_share(fmap, poses, fingers, approach, tree, 0.02, threads=3), one)

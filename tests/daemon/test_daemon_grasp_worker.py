@@ -23,6 +23,7 @@ import pugsd.daemon.app as app_mod
 from pugsd.config import load_config_dict
 from pugsd.daemon.app import Daemon
 from pugsd.daemon.notify import Notifier
+from pugsd.daemon.ros_services import service_names
 from pugsd.record.recorder import default_record_keys
 from pugsd.wire.topics import INPUT_ROLES, OUTPUT_ROLES, ros_graph_tokens
 from tests.daemon.conftest import FakePipeline, RecordingPublisher
@@ -421,9 +422,13 @@ def test_run_declares_the_graph_tokens_node_first_and_subscriptions_after_their_
     d = Daemon(cfg, FakePipeline(), notifier=notifier, session=s)  # type: ignore[arg-type]
     caplog.set_level(logging.INFO, logger="pugsd")
     asyncio.run(asyncio.wait_for(d.run(stop), 10.0))
-    graph = ros_graph_tokens(cfg.topics, cfg.daemon.node_name, "0123")
+    services = service_names(cfg.daemon.node_name, arm=False)
+    graph = ros_graph_tokens(cfg.topics, cfg.daemon.node_name, "0123", services=services)
     tokens = [e.split(" ", 1)[1] for e in order if e.startswith("token @ros2_lv/")]
-    assert tokens == graph.all() and tokens[0].startswith("@ros2_lv/7/0123/0/0/NN/")
+    # the services' with their queryables, before the inputs subscribe
+    declared = [graph.node, *graph.publishers.values(), *graph.services.values()]
+    declared += graph.subscriptions.values()
+    assert tokens == declared and tokens[0].startswith("@ros2_lv/7/0123/0/0/NN/")
     # the output publishers, then the node's token and its publishers', then the queryables
     n_out = len(OUTPUT_ROLES)
     assert [e.split(" ")[0] for e in order[:n_out]] == ["publisher"] * n_out

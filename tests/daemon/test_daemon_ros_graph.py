@@ -11,6 +11,7 @@ import zenoh
 
 from pugsd.config import load_config_dict
 from pugsd.daemon.app import Daemon
+from pugsd.daemon.ros_services import service_names
 from pugsd.wire.graph import parse_token
 from pugsd.wire.topics import ros_graph_tokens
 from tests.daemon.conftest import FakePipeline, daemon_config_dict, wait_for
@@ -34,8 +35,9 @@ def test_daemon_declares_and_undeclares_graph_tokens(port: int, client: zenoh.Se
     try:
         wait_for(lambda: "READY=1" in notifier.sent, 10.0, "READY")
         zid = str(dt.daemon.session.zid())
-        expected = set(ros_graph_tokens(cfg.topics, "pugsd", zid).all())
-        assert len(expected) == 14  # the node, 4 publishers, 9 subscriptions
+        services = service_names("pugsd", arm=False)
+        expected = set(ros_graph_tokens(cfg.topics, "pugsd", zid, services=services).all())
+        assert len(expected) == 19  # the node, 7 publishers, 9 subscriptions, 2 services
         wait_for(lambda: puts >= expected, 5.0, "the daemon's graph tokens")
         assert puts == expected and not deletes
         # a late joiner's liveliness query (rmw_zenoh's context start-up) gets them too

@@ -976,7 +976,7 @@ class DeclSession:
         self.log.append(what)
         return types.SimpleNamespace(undeclare=lambda: self.undeclared.append(what))
 
-    def declare_queryable(self, key: str, cb: Any) -> Any:
+    def declare_queryable(self, key: str, cb: Any, **kw: Any) -> Any:
         return self._ent(f"queryable {key}")
 
     def declare_subscriber(self, key: str, cb: Any) -> Any:
@@ -1035,13 +1035,19 @@ def test_the_arm_starts_only_when_enabled_and_declares_its_keys(monkeypatch: pyt
     asyncio.run(start())
     (arm,) = FakeController.instances
     assert d.arm.controller is arm and arm.started == 1 and arm.cfg is d.cfg.arm
+    ros = [f"queryable {d.ros_services.key(k)}" for k in ("arm_execute", "arm_stop", "arm_release")]
+    assert ros[0].startswith("queryable 0/pugsd/arm/execute/pugs_msgs::srv::dds_::ExecuteGrasp_/RIHS01_")
+    tokens = [e for e in s.log if e.startswith("token @ros2_lv/0/0123/0/")]
+    assert [e.split("/")[5] for e in tokens] == ["SS"] * 3  # the services' graph tokens
     assert s.log == [
         "queryable pugs/arm/execute",
         "queryable pugs/arm/stop",
         "queryable pugs/arm/release",
+        *ros,
+        *tokens,
         "subscriber pugs/arm/stop",
     ]
-    assert len(d._entities) == 4
+    assert len(d._entities) == 7 and len(d._graph_tokens) == 3
     _shutdown(d)
 
 

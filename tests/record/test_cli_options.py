@@ -133,7 +133,7 @@ def test_record_without_key_records_the_topics_under_the_prefix(
     th.join(25)
     out, err = capsys.readouterr()
     assert rc == 0 and sent.is_set(), (out, err)
-    assert "status received=1 written=0 buffered=1 dropped=0 files=0 error=-" in err, err
+    assert "status received=1 written=0 buffered=1 dropped=0 files=0 inputs=1 outputs=0 error=-" in err, err
     (f,) = list(tmp_path.glob("*.mcap"))
     assert f.name.startswith("myrun_") and str(f) in out
     assert [(m.topic, m.data) for m in iter_recording([f])] == [("/stereo/left/image_raw", data)]

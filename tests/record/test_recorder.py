@@ -612,3 +612,42 @@ def test_ros2dds_pose_is_recorded_with_the_configured_pose_type(tmp_path: Path) 
         (POSE_STAMPED, "/camera_pose", pose)
     ]
     assert int(decoded[0].decoded_message.header.stamp.nanosec) == 7
+
+
+def test_outputs_without_inputs_are_counted_and_warned_of_once(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A recorder that hears the daemon's grasps but none of its camera says so: in its stats
+    (and the status dict) from the first output, in the log once at OUTPUTS_BEFORE_WARNING; an
+    input clears it. The status output alone (an idle daemon) is neither."""
+    from pugsd.config import default_config
+    from pugsd.record.recorder import OUTPUTS_BEFORE_WARNING, default_record_keys, watched_topics
+
+    cfg = default_config()
+    inputs, outputs = watched_topics(cfg, default_record_keys(cfg))
+    assert "/stereo/left/image_raw" in inputs and "/pugs/grasps" in outputs
+    assert "/pugs/status" not in outputs | inputs
+    rec = Recorder(_cfg(tmp_path), input_topics=inputs, output_topics=outputs)
+    rec.put("/pugs/status", "std_msgs/msg/String", b"x")
+    assert not rec.stats.missing_inputs
+    with caplog.at_level("WARNING", logger="pugsd.record.recorder"):
+        for _ in range(2 * OUTPUTS_BEFORE_WARNING):
+            rec.put("pugs/grasps", "pugs_msgs/msg/GraspArray", b"g")  # normalised: /pugs/grasps
+            assert rec.stats.missing_inputs and rec.stats.as_dict()["missing_inputs"]
+    warned = [r for r in caplog.records if "none on its inputs" in r.getMessage()]
+    assert len(warned) == 1
+    assert (rec.stats.outputs_received, rec.stats.inputs_received) == (2 * OUTPUTS_BEFORE_WARNING, 0)
+    rec.put("/stereo/left/image_raw", IMAGE, codec.encode_image(np.zeros((2, 2), np.uint8), 1))
+    assert rec.stats.inputs_received == 1 and not rec.stats.missing_inputs
+    rec.stop()
+
+
+def test_watched_topics_are_those_the_keys_subscribe_to() -> None:
+    from pugsd.config import default_config
+    from pugsd.record.recorder import watched_topics
+
+    cfg = default_config()
+    assert watched_topics(cfg, ["0/pugs/**"]) == (frozenset(), frozenset(
+        {"/pugs/grasps", "/pugs/grasp_markers", "/pugs/cloud"}))  # fmt: skip
+    inputs, outputs = watched_topics(cfg, ["0/camera_pose/**", "1/**", "a//b"])  # 'a//b': refused
+    assert (inputs, outputs) == (frozenset({"/camera_pose"}), frozenset())

@@ -131,7 +131,7 @@ def test_qos_keyexpr_field_by_field() -> None:
 def test_pugsd_tokens_for_the_default_topics() -> None:
     zid = "cea815bec57ee905781668cc65688b35"
     t = TopicsConfig()
-    g = ros_graph_tokens(t, "pugsd", zid)
+    g = ros_graph_tokens(t, "pugsd", zid, services={"/pugsd/reset": "std_srvs/srv/Trigger"})
     assert g.node == f"@ros2_lv/0/{zid}/0/0/NN/%/%/pugsd"
     inf = "9223372036,854775807"
     assert g.publishers["grasps"] == (
@@ -144,11 +144,23 @@ def test_pugsd_tokens_for_the_default_topics() -> None:
     status = status.replace("talker/%chatter", "pugsd/%pugs%status").replace("::,7:,:,:,,", "")
     assert g.publishers["status"] == f"@ros2_lv/0/{zid}/0/4/{status}1:2:1,10:{inf}:{inf}:1,{inf}"
     assert g.subscriptions["pose"].endswith(
-        "/0/9/MS/%/%/pugsd/%camera_pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/"
+        f"/0/{1 + len(OUTPUT_ROLES) + 4}/MS/%/%/pugsd/%camera_pose/"
+        "geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/"
         + type_hash("geometry_msgs/msg/PoseWithCovarianceStamped")
         + f"/2:2:1,10:{inf}:{inf}:1,{inf}"
     )
     assert list(g.publishers) == list(OUTPUT_ROLES) and list(g.subscriptions) == list(INPUT_ROLES)
+    # a service server after them: the service type and its hash, rmw_qos_profile_services_default
+    assert g.services["/pugsd/reset"] == (
+        f"@ros2_lv/0/{zid}/0/{1 + len(OUTPUT_ROLES) + len(INPUT_ROLES)}/SS/%/%/pugsd/%pugsd%reset/"
+        "std_srvs::srv::dds_::Trigger_/"
+        "RIHS01_eeff2cd6fa5ad9d27cdf4dec64818317839b62f212a91e6b5304b634b2062c5f/"
+        f"1:2:1,10:{inf}:{inf}:1,{inf}"
+    )
+    # /tf_static is announced TRANSIENT_LOCAL with a history of one, as tf2's static broadcaster
+    tf_static_qos = f"/1:1:1,1:{inf}:{inf}:1,{inf}"
+    tf_type = "/%tf_static/tf2_msgs::msg::dds_::TFMessage_/"
+    assert g.publishers["tf_static"].endswith(tf_type + type_hash("tf2_msgs/msg/TFMessage") + tf_static_qos)
     ids = [parse_token(k).id for k in g.all()]
     assert ids == [str(i) for i in range(len(ids))]  # one counter, as rmw_zenoh numbers a context
     # each endpoint token names the data key's topic, type and hash (rmw_zenoh's TopicInfo)
@@ -156,7 +168,8 @@ def test_pugsd_tokens_for_the_default_topics() -> None:
         p, k = parse_token(tok), parse_key(key_for(t, role))
         assert (p.domain_id, p.topic, p.nid, p.node_name) == (k.domain_id, k.topic, "0", "pugsd")
         assert (p.dds_type, p.type_hash) == (dds_type_name(k.typename), k.type_hash)
-        assert p.qos == (PUBLISHER_QOS if p.kind == "MP" else SUBSCRIPTION_QOS)
+        if role != "tf_static":
+            assert p.qos == (PUBLISHER_QOS if p.kind == "MP" else SUBSCRIPTION_QOS)
     ps = ros_graph_tokens(TopicsConfig(pose_type="PoseStamped", domain_id=5, grasps="/a/b/"), "n_1", "ab")
     assert "/pose" not in ps.subscriptions["pose"] and "::PoseStamped_/" in ps.subscriptions["pose"]
     assert ps.node == "@ros2_lv/5/ab/0/0/NN/%/%/n_1" and "/%a%b/" in ps.publishers["grasps"]

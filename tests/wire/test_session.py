@@ -168,6 +168,37 @@ def test_tool_config_reaches_a_daemon_without_a_fixed_listen_port_where_it_conne
     assert tool_config(as_client, connect=["tcp/127.0.0.1:9"])["connect"]["endpoints"] == ["tcp/127.0.0.1:9"]
 
 
+def test_tool_config_as_a_client_joins_the_daemon_unless_it_listens() -> None:
+    """``pugsd record`` joins as a zenoh client (the daemon routes every linked session's samples
+    to its clients); a tool that listens stays a peer (a client would need someone to join)."""
+    from pugsd.wire.session import tool_config
+
+    for daemon_mode in ("peer", "router"):
+        c = tool_config({**default_zenoh_config(), "mode": daemon_mode}, client=True)
+        assert c["mode"] == "client" and c["connect"]["endpoints"] == ["tcp/127.0.0.1:7447"]
+        check_loopback_safe(c)
+    c = tool_config(default_zenoh_config(), listen=["tcp/127.0.0.1:7450"], client=True)
+    assert c["mode"] == "peer" and c["listen"]["endpoints"] == ["tcp/127.0.0.1:7450"]
+    assert tool_config(default_zenoh_config())["mode"] == "peer"
+
+
+def test_open_session_waiting_gives_up_at_its_deadline_or_stop() -> None:
+    from pugsd.wire.session import free_tcp_port, open_session_waiting, tool_config
+
+    cfg = tool_config(default_zenoh_config(), connect=[f"tcp/127.0.0.1:{free_tcp_port()}"], client=True)
+    waits: list[str] = []
+    t0 = time.monotonic()
+    got = open_session_waiting(cfg, threading.Event(), deadline=t0 + 0.6, retry_s=0.1, on_wait=waits.append)
+    assert got is None and 0.5 < time.monotonic() - t0 < 5.0
+    assert len(waits) == 1 and "Unable to connect" in waits[0]
+    stop = threading.Event()
+    stop.set()
+    assert open_session_waiting(cfg, stop, retry_s=10.0) is None
+    bad = {**cfg, "connect": {"endpoints": ["tcp/0.0.0.0:7447"]}}
+    with pytest.raises(ConfigError, match="not loopback-safe"):
+        open_session_waiting(bad, threading.Event(), retry_s=0.1)
+
+
 UNSAFE = {
     "multicast_on": lambda d: d["scouting"]["multicast"].update(enabled=True),
     "multicast_default": lambda d: d["scouting"]["multicast"].pop("enabled"),
@@ -182,6 +213,9 @@ UNSAFE = {
     "hostname": lambda d: d["listen"].update(endpoints=["tcp/localhost:7447"]),
     "iface": lambda d: d["listen"].update(endpoints=["tcp/127.0.0.1:7447#iface=eth0"]),
     "lan_connect": lambda d: d["connect"].update(endpoints=["tcp/192.168.1.2:7447"]),
+    "adminspace_write": lambda d: d.update(adminspace={"enabled": True, "permissions": {"write": True}}),
+    "plugins_loading": lambda d: d.update(plugins_loading={"enabled": True}),
+    "rest_plugin": lambda d: d.update(plugins={"rest": {"http_port": "0.0.0.0:8000"}}),
     "per_mode": lambda d: d["listen"].update(
         endpoints={"router": ["tcp/10.0.0.1:1"], "peer": ["tcp/127.0.0.1:17447"]}
     ),
@@ -229,7 +263,7 @@ def test_the_readback_alone_refuses_every_unsafe_config(name: str) -> None:
         check_loopback_safe(d)
     with pytest.raises(ConfigError) as from_zenoh:
         _check_readback(zenoh_config(d))
-    for setting in ("multicast", "gossip"):
+    for setting in ("multicast", "gossip", "adminspace", "plugins_loading", "plugins ("):
         assert (setting in str(from_dict.value)) == (setting in str(from_zenoh.value)), (
             str(from_dict.value),
             str(from_zenoh.value),
@@ -279,6 +313,9 @@ def test_open_session_checks_the_dict_and_zenohs_parse_before_opening(
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         "listen": {"endpoints": ["tcp/127.0.0.1:17447"]},
         "connect": {"endpoints": []},
+        "adminspace": {"permissions": {"write": False}},
+        "plugins_loading": {"enabled": False},
+        "plugins": {},
     }
     # an unsafe dict is refused by the first layer, before zenoh parses it (a typo next to it
     # would otherwise be the error the user sees)

@@ -15,6 +15,8 @@ block 30 mm deep and 60 mm wide, and a depth of 90 mm from the wrist origin to t
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -99,6 +101,24 @@ def farthest_point_subset(points: np.ndarray, m: int, seed: int = 0) -> np.ndarr
     pcd.colors = o3d.utility.Vector3dVector(tag)
     picked = pcd.farthest_point_down_sample(m, start)
     return np.sort(np.rint(np.asarray(picked.colors)[:, 0]).astype(np.int64))
+
+
+def run_parallel(fn: Callable[[int], None], n: int, threads: int) -> None:
+    """``fn(i)`` for i in range(n), on up to ``threads`` threads in interleaved shares (each
+    ``fn(i)`` must touch only what belongs to i); in the caller's thread when ``threads`` <= 1."""
+    threads = max(1, min(threads, n))
+    if threads == 1:
+        for i in range(n):
+            fn(i)
+        return
+
+    def share(t: int) -> None:
+        for i in range(t, n, threads):
+            fn(i)
+
+    with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="pugsd-grasp") as pool:
+        for f in [pool.submit(share, t) for t in range(threads)]:
+            f.result()
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -450,18 +470,22 @@ class SingleContactProposer:
     def orientations(
         self, n: np.ndarray, k1: np.ndarray, k2: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(A, B, theta) of every enumerated orientation at one contact: (K, 3), (K, 3), (K,)."""
+        """(A, B, theta) of every enumerated orientation at a contact with frame (n, k1, k2):
+        (K, 3), (K, 3), (K,); for (C, 3) frames, A and B are (C, K, 3)."""
         cfg = self.cfg
         na = cfg.single_contact_approaches
         th = np.linspace(-0.5 * np.pi, 0.5 * np.pi, na) if na > 1 else np.zeros(1)
-        a0 = -np.cos(th)[:, None] * n + np.sin(th)[:, None] * k2
-        b0 = np.sin(th)[:, None] * n + np.cos(th)[:, None] * k2
+        cos_t, sin_t = np.cos(th)[:, None], np.sin(th)[:, None]
+        n_, k2_ = np.asarray(n)[..., None, :], np.asarray(k2)[..., None, :]
+        a0 = -cos_t * n_ + sin_t * k2_
+        b0 = sin_t * n_ + cos_t * k2_
         c0 = _cross(a0, b0)
-        phi = np.pi * np.arange(cfg.single_contact_rolls) / cfg.single_contact_rolls
-        A = np.repeat(a0, len(phi), axis=0)
-        cos_p, sin_p = np.cos(phi)[None, :, None], np.sin(phi)[None, :, None]
-        B = (cos_p * b0[:, None] + sin_p * c0[:, None]).reshape(-1, 3)
-        return A, B, np.repeat(th, len(phi))
+        rolls = cfg.single_contact_rolls
+        phi = np.pi * np.arange(rolls) / rolls
+        A = np.repeat(a0, rolls, axis=-2)
+        cos_p, sin_p = np.cos(phi)[:, None], np.sin(phi)[:, None]
+        B = (cos_p * b0[..., :, None, :] + sin_p * c0[..., :, None, :]).reshape(A.shape)
+        return A, B, np.repeat(th, rolls)
 
     def propose(
         self, points_W: np.ndarray, normals_W: np.ndarray | None, view_origins_W: np.ndarray
@@ -499,17 +523,20 @@ class SingleContactProposer:
                 + (max(g.finger_width_m, g.palm_width_m) / 2 + cfg.clearance_m) ** 2
             )
         )
-        for i, ci in enumerate(contacts):
-            p = pts[ci]
-            near = np.asarray(tree_t.query_ball_point(p, reach), dtype=np.int64)
+        A_all, B_all, th_all = self.orientations(normals[contacts], k1, k2)
+        A_all, B_all, th = A_all.astype(np.float32), B_all.astype(np.float32), th_all.astype(np.float32)
+        nears = tree_t.query_ball_point(pts[contacts], reach, return_sorted=False)
+        def contact(i: int) -> None:
+            p = pts[contacts[i]]
+            near = np.asarray(nears[i], dtype=np.int64)
             local = pts_t[near] - p.astype(np.float32)
             close = (local**2).sum(1) <= hand_r**2
-            A, B, th = (v.astype(np.float32) for v in self.orientations(normals[ci], k1[i], k2[i]))
+            A, B = A_all[i], B_all[i]
             cam = views[np.argmin(((views - p) ** 2).sum(1))] - p
             cam = (cam / max(float(np.linalg.norm(cam)), 1e-12)).astype(np.float32)
             res = self._best(local[close], nrm_t[near[close]], A, B, th, local[~close], cam)
             if res is None:
-                continue
+                return
             k, centre_x, width, conf = res
             # the frame in float64, orthonormal to rounding (the search ran in float32)
             b = B[k].astype(np.float64)
@@ -522,6 +549,10 @@ class SingleContactProposer:
             out_c[i] = centre - 0.5 * width * b
             out_b[i], out_a[i], out_w[i], out_conf[i] = b, a, width, conf
             out_valid[i] = True
+
+        # each contact is independent and writes only its own rows: split over threads (numpy
+        # releases the GIL in the array work), the same result for any number of threads
+        run_parallel(contact, m, cfg.threads)
         out_c += origin_W
         return GraspSet(
             contact=out_c,
@@ -583,9 +614,11 @@ class SingleContactProposer:
         K = len(A)
         rows = np.arange(K)
         # the contact's own connected run along b: from the contact (x = 0) outwards up to the
-        # first gap wider than a finger's thickness (another part of the object)
-        xs = np.sort(np.where(slab, x, np.inf), axis=1)
+        # first gap wider than a finger's thickness (another part of the object). Each row's
+        # slab points sorted along b, then +inf; only the first max(n_in) columns are kept
+        # (past them every row is +inf)
         n_in = slab.sum(1)
+        xs = np.sort(np.where(slab, x, np.inf), axis=1)[:, : max(int(n_in.max()), 1)]
         with np.errstate(invalid="ignore"):  # inf - inf past the slab's points: masked below
             gap = np.diff(xs, axis=1) > g.finger_thickness_m
         idx = np.arange(xs.shape[1] - 1)[None, :]

@@ -71,13 +71,15 @@ def unknown_share(
     approach_G: np.ndarray,
     cloud_tree: cKDTree,
     decay_m: float,
+    threads: int = 1,
 ) -> np.ndarray:
     """U per grasp (M,): the never-observed share of the swept samples, each weighted by
     ``exp(-d / decay_m)`` with d its distance to the observed cloud (``cloud_tree``).
 
     Unknown space next to what was observed is where the unseen rest of the object may be;
     unknown space far from it (outside every view, above the object) is most likely empty, and
-    counting it alike penalised approaches that merely left the cameras' view."""
+    counting it alike penalised approaches that merely left the cameras' view. ``threads``: for
+    the distance queries (the same result for any number)."""
     P = np.asarray(pose_W, dtype=np.float64)
     if len(P) == 0:
         return np.zeros(0)
@@ -85,7 +87,8 @@ def unknown_share(
     pts = np.einsum("mij,sj->msi", P[:, :3, :3], samples) + P[:, None, :3, 3]
     flat = pts.reshape(-1, 3)
     unk = (fmap.state(flat) == UNKNOWN).reshape(len(P), -1)
-    d = cloud_tree.query(flat, k=1, distance_upper_bound=10.0 * decay_m)[0].reshape(len(P), -1)
+    d = cloud_tree.query(flat, k=1, distance_upper_bound=10.0 * decay_m, workers=threads)[0]
+    d = d.reshape(len(P), -1)
     w = np.exp(-np.minimum(d, 10.0 * decay_m) / decay_m)
     return (w * unk).sum(1) / w.sum(1)
 
