@@ -86,11 +86,21 @@ def _dump_config(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("check-config", help="validate a TOML config (exit 1 on any error)")
-    p.add_argument("file")
-    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a key")
+    p = sub.add_parser(
+        "check-config",
+        help="validate a TOML config (exit 1 on any error)",
+        epilog="example:\n  pugsd check-config /etc/pugsd/pugsd.toml",
+    )
+    p.add_argument("file", help="the TOML config to check")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a key (repeatable)")
     p.set_defaults(func=_check_config)
-    p = sub.add_parser("dump-config", help="print the effective config as documented TOML")
-    p.add_argument("--config", default=None)
-    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a key")
+    p = sub.add_parser(
+        "dump-config",
+        help="print the effective config as documented TOML",
+        epilog="example:\n  pugsd dump-config > pugsd.toml",
+    )
+    p.add_argument(
+        "--config", default=None, help="TOML config to start from (default: the built-in defaults)"
+    )
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a key (repeatable)")
     p.set_defaults(func=_dump_config)

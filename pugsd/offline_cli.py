@@ -9,22 +9,12 @@ import time
 
 from pugsd.config import core_of, load_config
 from pugsd.core.types import ScoredGrasps
+from pugsd.grasp_text import grasp_lines
 
 
 def format_grasps(grasps: ScoredGrasps, n: int = 10) -> str:
-    """A plain-text table of the top grasps."""
-    rows = [
-        f"{'rank':>4} {'id':>6} {'x_m':>8} {'y_m':>8} {'z_m':>8} {'width_m':>8} "
-        f"{'baseline':>9} {'sigma2_occ':>11} {'pugs':>10}"
-    ]
-    for i in range(min(n, len(grasps))):
-        t = grasps.pose_W[i, :3, 3]
-        rows.append(
-            f"{i + 1:>4} {int(grasps.grasp_id[i]):>6} {t[0]:>8.3f} {t[1]:>8.3f} {t[2]:>8.3f} "
-            f"{grasps.width_m[i]:>8.3f} {grasps.baseline_confidence[i]:>9.3f} "
-            f"{grasps.sigma2_occ[i]:>11.4g} {grasps.pugs_confidence[i]:>10.4g}"
-        )
-    return "\n".join(rows) + "\n"
+    """The top ``n`` grasps, one line each."""
+    return "".join(line + "\n" for line in grasp_lines(grasps, n))
 
 
 def _offline(args: argparse.Namespace) -> int:
@@ -70,26 +60,37 @@ def _offline(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("offline", help="run the PUGS pipeline on a synthetic scene, print grasps")
-    p.add_argument("--object", default="mug", help="synthetic object (mug, kettlebell, box, ...)")
-    p.add_argument(
-        "--trajectory", default="partial", choices=("complete", "partial", "noisy_partial")
+    p = sub.add_parser(
+        "offline",
+        help="run the PUGS pipeline on a synthetic scene, print grasps",
+        epilog="example:\n  pugsd offline --object kettlebell --trajectory noisy_partial",
     )
-    p.add_argument("--frames", type=int, default=None, help="number of stereo frames")
-    p.add_argument("--width", type=int, default=640)
-    p.add_argument("--height", type=int, default=480)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--object", default="mug", help="synthetic object (mug, kettlebell, box, bottle, mallet)")
+    p.add_argument(
+        "--trajectory",
+        default="partial",
+        choices=("complete", "partial", "noisy_partial"),
+        help="camera path around the object",
+    )
+    p.add_argument(
+        "--frames", type=int, default=None, help="number of stereo frames (default: the trajectory's own)"
+    )
+    p.add_argument("--width", type=int, default=640, help="rendered image width [px]")
+    p.add_argument("--height", type=int, default=480, help="rendered image height [px]")
+    p.add_argument("--seed", type=int, default=0, help="seed of the scene and the model")
     p.add_argument(
         "--mode",
         default="streaming",
         choices=("streaming", "paper"),
-        help="streaming SVGP updates, or the paper's batch fit (100 epochs)",
+        help="streaming SVGP updates (the daemon's), or the paper's batch fit (100 epochs)",
     )
-    p.add_argument("--epochs", type=int, default=None, help="paper mode: override the epochs")
+    p.add_argument(
+        "--epochs", type=int, default=None, help="paper mode: the epochs (default: the config's)"
+    )
     p.add_argument(
         "--final-steps", type=int, default=60, help="streaming: steps after the last frame"
     )
-    p.add_argument("--top", type=int, default=5)
-    p.add_argument("--config", default=None)
-    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--top", type=int, default=5, help="grasps to print")
+    p.add_argument("--config", default=None, help="pugsd TOML config (default: the built-in defaults)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key (repeatable)")
     p.set_defaults(func=_offline)

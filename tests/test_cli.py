@@ -165,15 +165,16 @@ def test_dump_config_shows_the_given_file(tmp_path: Path, capsys: pytest.Capture
     assert "\ngrasp.gamma = 3.5\n" not in capsys.readouterr().out
 
 
-def test_format_grasps_table() -> None:
+def test_format_grasps_lines() -> None:
     text = format_grasps(_grasps(2), n=5)  # fewer grasps than asked for
     assert text.splitlines() == [
-        "rank     id      x_m      y_m      z_m  width_m  baseline  sigma2_occ       pugs",
-        "   1     10    0.100    0.000    0.500    0.040     0.900     2.5e-05         12",
-        "   2     11    0.200    0.020    0.500    0.040     0.500     2.5e-05          3",
+        "grasp 1: PUGS confidence 12 (baseline 0.900, sigma^2_occ 2.5e-05), contact (+0.100, +0.000, "
+        "+0.500) m in world, approach (+0.00, +0.00, +1.00), width 4.0 cm, id 10",
+        "grasp 2: PUGS confidence 3 (baseline 0.500, sigma^2_occ 2.5e-05), contact (+0.200, +0.020, "
+        "+0.500) m in world, approach (+0.00, +0.00, +1.00), width 4.0 cm, id 11",
     ]
-    assert len(format_grasps(_grasps(8)).splitlines()) == 1 + 8
-    assert len(format_grasps(_grasps(12)).splitlines()) == 1 + 10  # the default top 10
+    assert len(format_grasps(_grasps(8)).splitlines()) == 8
+    assert len(format_grasps(_grasps(12)).splitlines()) == 10  # the default top 10
 
 
 def test_offline_defaults() -> None:
@@ -247,3 +248,118 @@ def test_offline_paper_mode_fits_in_one_batch(
     assert main(["offline", "--mode", "paper", "--epochs", "4"]) == 0
     assert offline_pipe.calls == [("add", "f0"), ("add", "f1"), ("add", "f2"), ("fit_paper", 4)]
     assert "mode paper: 77 Gaussians" in capsys.readouterr().out
+
+
+def test_dash_dash_version_prints_the_version(capsys: pytest.CaptureFixture[str]) -> None:
+    from pugsd import __version__
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0 and capsys.readouterr().out == f"pugsd {__version__}\n"
+
+
+@pytest.mark.parametrize(
+    ("argv", "said"),
+    [
+        (["stauts"], "invalid choice: 'stauts' (choose from"),
+        (["mcap", "inf", "x.mcap"], "invalid choice: 'inf' (choose from"),
+        (["demo", "--durration", "3"], "pugsd demo: error: unrecognized arguments: --durration 3"),
+        (["grasps", "--top=3", "--jsn"], "pugsd grasps: error: unrecognized arguments: --jsn"),
+    ],
+)
+def test_a_misspelled_command_or_option_gets_a_suggestion(
+    capsys: pytest.CaptureFixture[str], argv: list[str], said: str
+) -> None:
+    want = {"stauts": "'status'", "inf": "'info'", "--durration": "'--duration'", "--jsn": "'--json'"}
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and said in err, err
+    typo = next(a for a in argv if a.lstrip("-").split("=")[0] in {k.lstrip("-") for k in want})
+    assert err.rstrip().endswith(f"; did you mean {want[typo]}?"), err
+
+
+def test_a_word_close_to_nothing_gets_no_suggestion(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["demo", "--zzzzzz"])
+    err = capsys.readouterr().err
+    assert "unrecognized arguments: --zzzzzz" in err and "did you mean" not in err
+
+
+def _leaf_parsers() -> Iterator[tuple[str, argparse.ArgumentParser]]:
+    def walk(p: argparse.ArgumentParser, path: str) -> Iterator[tuple[str, argparse.ArgumentParser]]:
+        subs = [a for a in p._actions if isinstance(a, argparse._SubParsersAction)]
+        if not subs:
+            yield path, p
+        for a in subs:
+            for name, q in a.choices.items():
+                yield from walk(q, f"{path} {name}")
+
+    yield from walk(build_parser(), "pugsd")
+
+
+def test_every_command_has_an_example_and_every_option_its_help_and_default() -> None:
+    for path, p in _leaf_parsers():
+        required = [g for g in p._mutually_exclusive_groups if g.required]
+        required_groups = {id(a) for g in required for a in g._group_actions}
+        assert p.epilog and f"\n  {path}" in "\n" + p.epilog.split("example", 1)[1], path
+        help_text = p.format_help()
+        for a in p._actions:
+            if isinstance(a, argparse._HelpAction):
+                continue
+            assert a.help, f"{path} {a.dest}: no help"
+            flag = isinstance(a, (argparse._StoreTrueAction, argparse._AppendAction))
+            if a.option_strings and not flag and id(a) not in required_groups:
+                # the default is shown by the formatter, or the help says what no value means
+                assert a.default is not None or "default" in a.help, f"{path} {a.dest}: no default"
+                if a.default is not None and "default" not in a.help:
+                    assert f"(default: {a.default})" in " ".join(help_text.split()), (path, a.dest)
+
+
+def test_the_top_level_help_opens_with_what_pugsd_does(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = capsys.readouterr().out
+    first = out.split("\n\n")[1]
+    assert first.startswith("pugsd finds grasps on an object") and "``" not in first
+    assert "exit codes: 0 ok; 1 failure; 2 usage error;" in out
+
+
+def test_a_closed_stdout_ends_a_command_quietly(tmp_path: Path) -> None:
+    """`pugsd mcap info x.mcap | head`: the reader goes away; the command printed a
+    BrokenPipeError traceback (twice: once more at the interpreter's exit)."""
+    import os
+    import subprocess
+    import sys
+
+    r, w = os.pipe()
+    os.close(r)  # nobody will read
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    proc = subprocess.run(
+        [sys.executable, "-m", "pugsd", "dump-config"], stdout=w, stderr=subprocess.PIPE, env=env,
+        timeout=120, check=False,
+    )  # fmt: skip
+    os.close(w)
+    assert proc.returncode == 141 and proc.stderr == b"", proc.stderr.decode()
+
+
+def test_a_simulation_command_without_the_sim_extras_says_what_to_install(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def needs_mujoco(args: argparse.Namespace) -> int:
+        import mujoco_is_not_installed  # noqa: F401  (stands for a missing extra below)
+
+        return 0
+
+    def needs_sim(args: argparse.Namespace) -> int:
+        raise ModuleNotFoundError("No module named 'trimesh'", name="trimesh")
+
+    _stub(monkeypatch, "_version", needs_sim)
+    assert main(["version"]) == 1
+    assert capsys.readouterr().err == (
+        "pugsd version: error: this command needs the simulation (no module named 'trimesh'): "
+        "pip install 'pugsd[sim]'\n"
+    )
+    _stub(monkeypatch, "_version", needs_mujoco)  # any other missing module is a bug: raised
+    with pytest.raises(ModuleNotFoundError):
+        main(["version"])

@@ -60,7 +60,7 @@ def test_setup_env_pins_the_cpu_torch(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr
     torch_calls = [c for c in calls if "torch" in c]
     assert torch_calls == ["install -q torch==2.13.0+cpu"], calls
-    assert calls[-1] == "install -q -e .[dev]"
+    assert calls[-1] == "install -q -e .[dev,sim]"
     # no local wheel: PyTorch's CPU index, never PyPI's plain torch==2.13.0 (the CUDA build)
     proc, calls = _run(tmp_path, PIP_NO_LOCAL_TORCH="1")
     assert proc.returncode == 0, proc.stderr
@@ -71,10 +71,22 @@ def test_setup_env_pins_the_cpu_torch(tmp_path: Path) -> None:
     assert proc.returncode == 0 and "file:///srv/wheels" in [c for c in calls if "torch" in c][1]
 
 
+def test_setup_env_replaces_an_earlier_open3d_with_open3d_cpu(tmp_path: Path) -> None:
+    """On Linux x86_64 pyproject asks for open3d-cpu (the same module, without CUDA): an open3d
+    installed before would share its folder, so it is removed first (the stub pip finds it)."""
+    import platform
+
+    proc, calls = _run(tmp_path, TORCH_OK="1")
+    assert proc.returncode == 0, proc.stderr
+    if (platform.system(), platform.machine()) == ("Linux", "x86_64"):
+        want = ["show -q open3d", "uninstall -y -q open3d open3d-cpu", "install -q -e .[dev,sim]"]
+        assert calls[-3:] == want, calls
+
+
 def test_setup_env_keeps_an_installed_torch(tmp_path: Path) -> None:
     proc, calls = _run(tmp_path, TORCH_OK="1")
     assert proc.returncode == 0, proc.stderr
-    assert not [c for c in calls if "torch" in c] and calls[-1] == "install -q -e .[dev]"
+    assert not [c for c in calls if "torch" in c] and calls[-1] == "install -q -e .[dev,sim]"
 
 
 def test_setup_env_stops_when_the_cpu_torch_cannot_be_had(tmp_path: Path) -> None:

@@ -411,7 +411,11 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     arm = sub.add_parser("arm", help="Reach Bravo 7 arm: sim, status, execute, stop, safe")
     arm_sub = arm.add_subparsers(dest="arm_command", required=True, metavar="ARM_COMMAND")
 
-    p = arm_sub.add_parser("sim", help="run the simulated Bravo 7 (pty, UDP or CAN)")
+    p = arm_sub.add_parser(
+        "sim",
+        help="run the simulated Bravo 7 (pty, UDP or CAN)",
+        epilog="example:\n  pugsd arm sim --transport udp --duration 60",
+    )
     _add_config_args(p)
     p.add_argument(
         "--transport",
@@ -420,7 +424,12 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         help="default: arm.transport (serial creates a pseudo-terminal)",
     )
     p.add_argument("--port", type=int, default=None, help="UDP port (default arm.sim.udp_port)")
-    p.add_argument("--duration", type=float, default=None, help="exit after this many seconds")
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        help="exit after this many seconds (default: run until stopped)",
+    )
     p.add_argument(
         "--object-mm",
         type=float,
@@ -430,13 +439,21 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     )
     p.set_defaults(func=_arm_sim)
 
-    p = arm_sub.add_parser("status", help="joint positions, modes, flags and link health")
+    p = arm_sub.add_parser(
+        "status",
+        help="joint positions, modes, flags and link health",
+        epilog="example:\n  pugsd arm status --config /etc/pugsd/pugsd.toml",
+    )
     _add_config_args(p)
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--json", action="store_true", help="print the status as JSON")
     p.add_argument("--wait", type=float, default=1.0, help="seconds to wait for feedback")
     p.set_defaults(func=_arm_status)
 
-    p = arm_sub.add_parser("execute", help="execute one grasp (needs arm.enabled = true)")
+    p = arm_sub.add_parser(
+        "execute",
+        help="execute one grasp (needs arm.enabled = true)",
+        epilog="example:\n  pugsd arm execute --grasp-id 3",
+    )
     _add_config_args(p)
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--grasp-id", type=int, help="a grasp id from the daemon's latest grasps")
@@ -460,7 +477,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         help="frame of --pose (world is mapped with arm.kinematics.T_B_W)",
     )
     p.add_argument("--timeout", type=float, default=2.0, help="daemon query timeout (s)")
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--json", action="store_true", help="print the outcome as JSON")
     p.set_defaults(func=_arm_execute)
 
     p = arm_sub.add_parser(
@@ -470,6 +487,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         "configured link. When the serial port is held by a running daemon, the stop goes "
         "through the daemon's <prefix>/arm/stop instead (it aborts its motion and latches the "
         "stop until <prefix>/arm/release).",
+        epilog="example:\n  pugsd arm stop",
     )
     _add_config_args(p)
     p.add_argument(
@@ -491,13 +509,18 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         "Exit 0 when every axis reports the safe mode, 2 when the stop was sent but not every "
         "axis confirmed it, 1 when the link could not be opened. The systemd arm drop-in runs it "
         "(as python -m pugsd.arm.safe, which starts faster) after every end of pugsd run.",
+        epilog="example:\n  pugsd arm safe --config /etc/pugsd/pugsd.toml",
     )
     _add_config_args(p)
     p.set_defaults(func=_arm_safe)
 
     bpl = sub.add_parser("bpl", help="Reach BPL packet tools: encode, decode")
     bpl_sub = bpl.add_subparsers(dest="bpl_command", required=True, metavar="BPL_COMMAND")
-    p = bpl_sub.add_parser("encode", help="print the wire bytes of one packet in hex")
+    p = bpl_sub.add_parser(
+        "encode",
+        help="print the wire bytes of one packet in hex",
+        epilog="example:\n  pugsd bpl encode jaw position 5.0",
+    )
     p.add_argument("device", help="device id or name (0x01, jaw, G, broadcast, compute)")
     p.add_argument("packet", help="packet id or name (0x03, position, request)")
     p.add_argument(
@@ -506,7 +529,11 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         help="floats for float packets; bytes (or mode/packet names) for byte packets",
     )
     p.set_defaults(func=_bpl_encode)
-    p = bpl_sub.add_parser("decode", help="decode wire bytes (hex) to JSON")
+    p = bpl_sub.add_parser(
+        "decode",
+        help="decode wire bytes (hex) to JSON",
+        epilog="example:\n  pugsd bpl decode 01 01 07 A0 40 03 01 08 3F 00",
+    )
     p.add_argument("hex", nargs="+", help="hex bytes, spaces allowed")
     p.set_defaults(func=_bpl_decode)
 

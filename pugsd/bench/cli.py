@@ -38,13 +38,23 @@ def _bench(args: argparse.Namespace) -> int:
     if args.no_pipeline:
         opts = opts.replace(use_pipeline=False)
 
+    from pugsd.progress import progress_bar, ticking
+
+    # no ETA (the sections' lengths are not known ahead): the step it is on and the time taken
+    bar = progress_bar(None, "bench", unit=" step")
+
     def write(line: str) -> None:
+        bar.clear()  # the bar on stderr, the report on stdout: one terminal
         sys.stdout.write(line + "\n")
         sys.stdout.flush()
+        if line:
+            bar.set_description_str(f"bench: {line[:50]}", refresh=False)
+            bar.update(1)
 
     argv = sys.argv[1:] if "bench" in sys.argv[1:] else ["bench", *sys.argv[1:]]
     command = " ".join(shlex.quote(a) for a in ["pugsd", *argv])
-    result = run_bench(opts, args.set or (), args.device, write, command, args.torch_threads)
+    with ticking(bar):
+        result = run_bench(opts, args.set or (), args.device, write, command, args.torch_threads)
     write("")
     table = format_table(result)
     for line in table:
@@ -71,8 +81,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
             "the paper's batch pipeline against streaming on the same frames. --quick finishes "
             "in about a minute and is not comparable with the targets."
         ),
+        epilog="example:\n  pugsd bench --quick --json bench-results.json",
     )
-    p.add_argument("--json", metavar="PATH", help="also write the results as JSON")
+    p.add_argument("--json", metavar="PATH", help="also write the results as JSON (default: not written)")
     p.add_argument("--quick", action="store_true", help="a short smoke run (< 1 min)")
     p.add_argument(
         "--device", default="auto", choices=("auto", "cpu", "cuda"),

@@ -79,15 +79,21 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("run", help="run the streaming daemon (systemd: Type=notify)")
+    p = sub.add_parser(
+        "run",
+        help="run the streaming daemon (systemd: Type=notify)",
+        epilog="example:\n  pugsd run --config /etc/pugsd/pugsd.toml --set daemon.grasp_rate_hz=2",
+    )
     p.add_argument("--config", default=None, help="TOML config (default: built-in defaults)")
-    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key (repeatable)")
     p.set_defaults(func=_run)
     p = sub.add_parser(
-        "demo", help="daemon + synthetic stereo camera + grasp printer on a loopback zenoh peer"
+        "demo",
+        help="daemon + synthetic stereo camera + grasp printer on a loopback zenoh peer",
+        epilog="example:\n  pugsd demo --duration 90 --listen tcp/127.0.0.1:7448",
     )
-    p.add_argument("--duration", type=float, default=60.0, help="seconds to run (default 60)")
+    p.add_argument("--duration", type=float, default=60.0, help="seconds to run")
     p.add_argument("--out", default="pugsd-demo", help="directory for the MCAP and PNG")
     p.add_argument("--listen", default="tcp/127.0.0.1:7447", help="loopback endpoint other nodes can join")
-    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key (repeatable)")
     p.set_defaults(func=_demo)

@@ -15,7 +15,17 @@ import sys
 import time
 from typing import Any
 
+from pugsd import exit_codes
 from pugsd.config import load_config
+
+
+def exit_codes_epilog(example: str, *codes: str) -> str:
+    """A client command's epilog: its example, then its exit codes one a line."""
+    return f"example:\n  {example}\n\nexit codes:\n" + "".join(f"  {c}\n" for c in codes)
+
+
+FAILED = "1  failure (the daemon answered with an error)"
+NO_REPLY = "4  no reply (no daemon on these endpoints)"
 
 
 def query_daemon(full_cfg: Any, suffix: str, timeout: float = 2.0) -> tuple[bytes | None, list[str]]:
@@ -49,14 +59,21 @@ def query_daemon(full_cfg: Any, suffix: str, timeout: float = 2.0) -> tuple[byte
         close_session(session)
 
 
-def _ask(args: argparse.Namespace, suffix: str) -> bytes | None:
-    """The reply's payload; a missing reply is printed (with the daemon's error replies) and
-    gives None."""
+def _ask(args: argparse.Namespace, suffix: str) -> tuple[bytes | None, int]:
+    """The reply's payload and exit_codes.OK; with no ok reply, None and why, printed: NO_PEER
+    (nothing answered), NOT_READY (the daemon has no grasps yet) or FAILURE (another error reply)."""
+    from pugsd.daemon.queries import NO_GRASPS
+
     cfg = load_config(args.config, args.set or ())
     data, errors = query_daemon(cfg, suffix, args.timeout)
+    code = exit_codes.OK
     if data is None:
         key = f"{cfg.daemon.prefix}/{suffix}"
-        if not errors:
+        if errors:
+            not_ready = all(e.startswith(NO_GRASPS) for e in errors)
+            code = exit_codes.NOT_READY if not_ready else exit_codes.FAILURE
+        else:
+            code = exit_codes.NO_PEER
             from pugsd.wire.session import tool_config
 
             asked = ", ".join(tool_config(cfg.zenoh)["connect"]["endpoints"]) or "none"
@@ -67,7 +84,7 @@ def _ask(args: argparse.Namespace, suffix: str) -> bytes | None:
             ]
         detail = "; ".join(errors)
         sys.stderr.write(f"pugsd: {key}: {detail}\n")
-    return data
+    return data, code
 
 
 def status_lines(st: dict[str, Any]) -> list[str]:
@@ -128,24 +145,25 @@ def status_lines(st: dict[str, Any]) -> list[str]:
 
 
 def _status(args: argparse.Namespace) -> int:
-    data = _ask(args, "status")
+    data, code = _ask(args, "status")
     if data is None:
-        return 1
+        return code
     st = json.loads(data)
     if args.json:
         sys.stdout.write(json.dumps(st, indent=2) + "\n")
     else:
         sys.stdout.write("\n".join(status_lines(st)) + "\n")
-    return 0 if st.get("healthy", True) else 3
+    return exit_codes.OK if st.get("healthy", True) else exit_codes.UNHEALTHY
 
 
 def _grasps(args: argparse.Namespace) -> int:
+    from pugsd.grasp_text import grasp_lines
     from pugsd.record.replay import grasps_to_json
-    from pugsd.wire.codec import decode_grasp_array
+    from pugsd.wire.codec import decode_grasp_array, grasp_array_frame_id
 
-    data = _ask(args, "grasps/latest")
+    data, code = _ask(args, "grasps/latest")
     if data is None:
-        return 1
+        return code
     g = decode_grasp_array(data)
     n = min(len(g), args.top) if args.top > 0 else len(g)
     if args.json:  # the form `pugsd replay` writes
@@ -153,21 +171,15 @@ def _grasps(args: argparse.Namespace) -> int:
         sys.stdout.write(json.dumps({"stamp_ns": int(g.stamp_ns), "grasps": rows}, indent=2) + "\n")
         return 0
     sys.stdout.write(f"{len(g)} grasps, stamp {int(g.stamp_ns)} ns, best first (PUGS confidence)\n")
-    sys.stdout.write(f"{'rank':>4} {'id':>6}  {'wrist x, y, z [m]':>26}  {'width':>6}  "
-                     f"{'baseline':>8}  {'sigma2_occ':>10}  {'PUGS':>10}\n")  # fmt: skip
-    for i in range(n):
-        x, y, z = g.pose_W[i][:3, 3]
-        sys.stdout.write(
-            f"{i:>4} {int(g.grasp_id[i]):>6}  {x:>8.3f} {y:>8.3f} {z:>8.3f}  {g.width_m[i]:>6.3f}  "
-            f"{g.baseline_confidence[i]:>8.3f}  {g.sigma2_occ[i]:>10.3g}  {g.pugs_confidence[i]:>10.3g}\n"
-        )
+    for line in grasp_lines(g, n, grasp_array_frame_id(data)):
+        sys.stdout.write(line + "\n")
     return 0
 
 
 def _reset(args: argparse.Namespace) -> int:
-    data = _ask(args, "reset")
+    data, code = _ask(args, "reset")
     if data is None:
-        return 1
+        return code
     sys.stdout.write(f"reset: {data.decode('utf-8', 'replace')}\n")
     return 0
 
@@ -181,21 +193,40 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
             "[zenoh] listen endpoints, default tcp/127.0.0.1:7447, or with none to its connect "
             "endpoints, e.g. a router)",
         )
-        p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key")
-        p.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the reply (default 3)")
+        p.add_argument(
+            "--set", action="append", metavar="KEY=VALUE", help="override a config key (repeatable)"
+        )
+        p.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the reply")
 
     p = sub.add_parser(
         "status",
-        help="ask a running daemon for its status (exit 0 healthy, 1 no reply, 3 unhealthy)",
+        help="ask a running daemon for its status (exit 0 healthy, 3 unhealthy, 4 no reply)",
+        epilog=exit_codes_epilog(
+            "pugsd status --config /etc/pugsd/pugsd.toml", "0  healthy", FAILED, "3  unhealthy", NO_REPLY
+        ),
     )
     common(p)
     p.add_argument("--json", action="store_true", help="print the status JSON as the daemon sent it")
     p.set_defaults(func=_status)
-    p = sub.add_parser("grasps", help="ask a running daemon for its latest grasps (best first)")
+    p = sub.add_parser(
+        "grasps",
+        help="ask a running daemon for its latest grasps (best first)",
+        epilog=exit_codes_epilog(
+            "pugsd grasps --top 3",
+            "0  ok",
+            FAILED,
+            NO_REPLY,
+            "5  not ready (no grasps yet: the model is not ready, or a reset is clearing the map)",
+        ),
+    )
     common(p)
-    p.add_argument("--top", type=int, default=10, help="grasps to print (0: all; default 10)")
+    p.add_argument("--top", type=int, default=10, help="grasps to print (0: all)")
     p.add_argument("--json", action="store_true", help="print them as JSON")
     p.set_defaults(func=_grasps)
-    p = sub.add_parser("reset", help="ask a running daemon to clear its map and model")
+    p = sub.add_parser(
+        "reset",
+        help="ask a running daemon to clear its map and model",
+        epilog=exit_codes_epilog("pugsd reset", "0  accepted", FAILED, NO_REPLY),
+    )
     common(p)
     p.set_defaults(func=_reset)

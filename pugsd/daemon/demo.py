@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import importlib
 import logging
 import re
 import signal
+import socket
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -29,6 +31,7 @@ from pugsd.core.types import StereoFrame
 from pugsd.daemon.app import Daemon
 from pugsd.daemon.process import apply_malloc_arena_max, apply_thread_limits
 from pugsd.errors import ConfigError, PugsdError
+from pugsd.grasp_text import grasp_lines
 from pugsd.wire import codec
 from pugsd.wire.publisher import Publisher
 from pugsd.wire.session import close_session, loopback_config, open_session
@@ -106,6 +109,27 @@ def parse_loopback_port(endpoint: str) -> int:
     return int(m.group(1))
 
 
+def check_port_free(port: int) -> None:
+    """ConfigError when something listens on 127.0.0.1:``port`` already (another demo, a zenoh
+    router): said at once, before the scene is rendered, not after."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # a closed port's TIME_WAIT is free
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError as exc:
+            raise ConfigError(
+                f"tcp/127.0.0.1:{port} is in use ({exc.strerror}: another pugsd demo or a zenoh "
+                "router?); choose another port with --listen tcp/127.0.0.1:PORT"
+            ) from None
+
+
+def figure_result(outputs: Any) -> Any:
+    """The result the demo draws: the last one whose cloud went out (sigma^2_occ on the whole
+    cloud), else the last one (a round stopped at shutdown computes sigma^2_occ at its grasps only)."""
+    complete = outputs.latest_cloud_result
+    return complete if complete is not None else outputs.latest_result
+
+
 def no_figure_reason(grasps_published: int, resets: int) -> str:
     """Why the demo wrote no ``grasps.png``: the model never got ready, or a reset (``pugsd
     reset`` from another shell) cleared the map after its grasps and no frame came since."""
@@ -148,22 +172,15 @@ class GraspPrinter:
             self.write(f"[{t:6.1f} s] first scored grasps")
         top = float(g.pugs_confidence[0])
         self.history.append((t, len(g), top))
-        parts = []
-        for i in range(min(3, len(g))):
-            c = g.contact_W[i]
-            parts.append(
-                f"#{i + 1} PUGS {g.pugs_confidence[i]:.3g} (base {g.baseline_confidence[i]:.3f}, "
-                f"s2 {g.sigma2_occ[i]:.2g}) at ({c[0]:+.3f},{c[1]:+.3f},{c[2]:+.3f}) m "
-                f"w {100 * g.width_m[i]:.1f} cm"
-            )
-        line = " | ".join(parts)
         ident = tuple(np.round(g.contact_W[: min(3, len(g))] / 0.005).astype(int).ravel())
         changed = abs(top - self.best) > 0.05 * max(abs(self.best), 1e-300)
         if ident != self.last_ident or changed or t - self.last_print_s > 15:
             self.best = top
             self.last_ident = ident
             self.last_print_s = t
-            self.write(f"[{t:6.1f} s] {len(g)} grasps: {line}")
+            self.write(f"[{t:6.1f} s] {len(g)} grasps, best first:")
+            for line in grasp_lines(g, 3, codec.grasp_array_frame_id(data)):
+                self.write("  " + line)
 
 
 def render_scene(object_name: str, n_frames: int, width: int, height: int, seed: int) -> list[StereoFrame]:
@@ -371,6 +388,11 @@ def run_demo(
 ) -> int:
     """Run the demo for ``duration_s``; returns 0 when scored grasps were received."""
     cfg = demo_config(listen, overrides)
+    check_port_free(parse_loopback_port(listen))
+    # the simulation extras it needs (the renderer's trimesh, the figure's matplotlib): a missing
+    # one is said now, not once the daemon serves
+    for module in ("pugsd.sim.sequence", "matplotlib"):
+        importlib.import_module(module)
     apply_malloc_arena_max(cfg.daemon.malloc_arena_max)  # before the daemon's threads start
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -414,9 +436,10 @@ def run_demo(
         write(f"time to first scored grasps: {printer.first_s:.1f} s after the command started")
     for f in files:
         write(f"MCAP: {f}")
-    if daemon.outputs.latest_result is not None and len(daemon.outputs.latest_result.cloud_W):
+    drawn = figure_result(daemon.outputs)
+    if drawn is not None and len(drawn.cloud_W):
         png = out / "grasps.png"
-        save_figure(daemon.outputs.latest_result, png, gripper_depth_m=cfg.grasp.gripper.depth_m)
+        save_figure(drawn, png, gripper_depth_m=cfg.grasp.gripper.depth_m)
         write(f"PNG:  {png}")
     else:
         write(no_figure_reason(daemon.outputs.grasps_published, c.get("resets", 0)))

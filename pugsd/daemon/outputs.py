@@ -34,7 +34,10 @@ class Outputs:
         self.clock = clock
         self.publishers: dict[str, Publisher] = {}
         self.latest_grasps: bytes | None = None
-        self.latest_result: Any = None  # the last PipelineResult (for the demo's figure)
+        self.latest_result: Any = None  # the last PipelineResult
+        # the last PipelineResult whose cloud went out: sigma^2_occ over the whole query cloud
+        # (the demo draws it; latest_result may be a newer round's, its cloud not computed)
+        self.latest_cloud_result: Any = None
         self.model_version: int | None = None
         self.grasps_published = 0
         self.grasps_logged_s = -math.inf  # when grasps were last logged
@@ -43,7 +46,7 @@ class Outputs:
     def clear(self) -> None:
         """A reset: no grasps of the cleared map are served any more; the new map's first grasps
         are logged."""
-        self.latest_grasps = self.latest_result = self.model_version = None
+        self.latest_grasps = self.latest_result = self.latest_cloud_result = self.model_version = None
         self.grasps_logged_s = -math.inf
 
     def compute_and_encode(
@@ -111,6 +114,8 @@ class Outputs:
             self.put(role, data)
         if "cloud" in payloads:
             d.schedule.last_cloud_published_s = self.clock()
+            if result is not None:
+                self.latest_cloud_result = result
         if "grasps" not in payloads:
             # the cloud of the latest grasps' round: the same grasps, with sigma^2_occ over the
             # whole query cloud (the demo draws it); a cloud of another round changes nothing

@@ -30,6 +30,9 @@ QUERY_KEYS = {
 # a wildcard query (``pugs/**``, to read the status or discover the API) must not stop the arm
 # mid-grasp or change anything else: these act on a query for exactly their key
 STATE_CHANGING = frozenset({"reset", "arm_execute", "arm_stop", "arm_release"})
+# how the error replies to grasps/latest begin when there are no grasps to give yet (no model yet,
+# or a reset clearing the map): clients tell "not ready" apart from a failure by it
+NO_GRASPS = "no grasps"
 
 
 def answer(d: Daemon, kind: str, query: Any) -> None:
@@ -45,9 +48,9 @@ def answer(d: Daemon, kind: str, query: Any) -> None:
                 query.reply_err(f"rejected: {key} acts only on a query for exactly that key")
             elif kind == "latest":
                 if d._resetting:  # latest_grasps is the map being cleared
-                    query.reply_err("no grasps: the map is being reset")
+                    query.reply_err(f"{NO_GRASPS}: the map is being reset")
                 elif d.outputs.latest_grasps is None:
-                    query.reply_err("no grasps yet: model not ready")
+                    query.reply_err(f"{NO_GRASPS} yet: model not ready")
                 else:
                     query.reply(key, d.outputs.latest_grasps)
             elif kind == "status":

@@ -12,8 +12,10 @@ import time
 from pathlib import Path
 from typing import Any
 
+from pugsd import exit_codes
 from pugsd.config import PugsdConfig, dump_config, load_config
 from pugsd.errors import ConfigError, PugsdError
+from pugsd.progress import progress_bar
 
 
 def _load(args: argparse.Namespace) -> PugsdConfig:
@@ -141,11 +143,11 @@ def _record(args: argparse.Namespace) -> int:
         sys.stdout.write(f"{f}\n")
     if s.error:
         sys.stderr.write(f"pugsd record: error: {s.error}\n")
-        return 1
+        return exit_codes.FAILURE
     if s.missing_inputs and args.require_inputs:
         sys.stderr.write("pugsd record: error: --require-inputs: no input recorded\n")
-        return 1
-    return 0
+        return exit_codes.FAILURE
+    return exit_codes.NO_PEER if s.received == 0 else exit_codes.OK
 
 
 # ------------------------------------------------------------------------------ play
@@ -176,14 +178,13 @@ def _play(args: argparse.Namespace) -> int:
     for f in args.files:
         if not Path(f).is_file():
             raise ConfigError(f"no such file {f}")
-    tty = sys.stderr.isatty()
+    bars: list[Any] = []  # drawn from the first progress on, below the warnings said before
 
     def progress(p: PlayProgress) -> None:
-        if args.quiet:
-            return
-        line = f"[play] {p.position_s:8.1f} / {p.duration_s:.1f} s  {p.published} msgs  loop {p.loop}"
-        sys.stderr.write(("\r" + line) if tty else (line + "\n"))
-        sys.stderr.flush()
+        if not bars:  # seconds of the recording
+            bars.append(progress_bar(round(p.duration_s, 1), "play", unit="s", quiet=args.quiet))
+        bars[0].n = round(p.position_s, 1)
+        bars[0].set_postfix_str(f"{p.published} msgs" + (f", loop {p.loop}" if args.loop else ""))
 
     stop = _stop_on_signals()
     session = _open_tool_session(args, cfg)
@@ -205,9 +206,9 @@ def _play(args: argparse.Namespace) -> int:
             )
         n = player.run()
     finally:
+        for bar in bars:
+            bar.close()
         close_session(session)
-    if tty and not args.quiet:
-        sys.stderr.write("\n")
     if n and player.unheard == n:
         asked = ", ".join(tool_config(cfg.zenoh, args.connect, args.listen)["connect"]["endpoints"])
         sys.stderr.write(
@@ -221,22 +222,27 @@ def _play(args: argparse.Namespace) -> int:
         )
     else:
         sys.stderr.write(f"pugsd play: {n} messages published\n")
-    return 0
+    return exit_codes.NO_PEER if n == 0 or player.unheard == n else exit_codes.OK
 
 
 # ------------------------------------------------------------------------------ replay
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from pugsd.record.replay import iter_top, replay
+    from pugsd.grasp_text import grasp_lines
+    from pugsd.progress import ticking
+    from pugsd.record.replay import count_left_images, replay
 
     cfg = _load(args)
     for f in args.files:
         if not Path(f).is_file():
             raise ConfigError(f"no such file {f}")
-    res = replay(args.files, cfg, out_dir=args.out, mode=args.mode, seed=args.seed)
+    total = count_left_images(args.files, cfg.topics) if sys.stderr.isatty() else None
+    with ticking(progress_bar(total, f"replay ({args.mode})", unit="frame")) as bar:
+        res = replay(args.files, cfg, out_dir=args.out, mode=args.mode, seed=args.seed,
+                     on_frame=lambda: bar.update(1))  # fmt: skip
     sys.stdout.write(f"pugsd replay: {res.frames} frames, {len(res.grasps)} grasps\n")
-    for line in iter_top(res.grasps):
+    for line in grasp_lines(res.grasps, 5):
         sys.stdout.write(line + "\n")
     if res.json_path:
         sys.stdout.write(f"{res.json_path}\n{res.mcap_path}\n")
@@ -298,8 +304,8 @@ def _synth(args: argparse.Namespace) -> int:
 
 
 def _add_cfg(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", default=None, help="pugsd TOML config")
-    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--config", default=None, help="pugsd TOML config (default: the built-in defaults)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key (repeatable)")
 
 
 def _add_net(p: argparse.ArgumentParser) -> None:
@@ -314,65 +320,99 @@ def _add_net(p: argparse.ArgumentParser) -> None:
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("record", help="record zenoh traffic (ROS 2 CDR) to MCAP")
+    p = sub.add_parser(
+        "record",
+        help="record zenoh traffic (ROS 2 CDR) to MCAP",
+        epilog="example:\n  pugsd record --out recordings --duration 60\n\n"
+        "exit codes: 0 ok; 1 failure; 4 nothing received",
+    )
     _add_cfg(p)
     _add_net(p)
     p.add_argument("--out", default=None, help="output directory (default: [record] directory)")
     p.add_argument("--key", action="append", help="key expression (default: [record] keys or "
                    "every [topics] input and output)")  # fmt: skip
-    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
-    p.add_argument("--prefix", default=None, help="file name prefix")
+    p.add_argument("--duration", type=float, default=None,
+                   help="stop after this many seconds (default: at Ctrl-C or SIGTERM)")
+    p.add_argument("--prefix", default=None, help="file name prefix (default: [record] name_prefix)")
     p.add_argument("--status-interval", type=float, default=10.0,
                    help="print counters to stderr this often [s]; 0: never")  # fmt: skip
     p.add_argument("--require-inputs", action="store_true",
                    help="exit 1 when the daemon's outputs were recorded but none of its inputs")  # fmt: skip
     p.set_defaults(func=_record)
 
-    p = sub.add_parser("play", help="publish MCAP recordings on zenoh")
+    p = sub.add_parser(
+        "play",
+        help="publish MCAP recordings on zenoh",
+        epilog="example:\n  pugsd play --inputs-only --rate 0.5 recordings/pugsd-0001.mcap\n\n"
+        "exit codes: 0 ok; 1 failure; 4 nothing delivered (no message published, or none to a "
+        "subscriber)",
+    )
     _add_cfg(p)
     _add_net(p)
-    p.add_argument("files", nargs="+")
+    p.add_argument("files", nargs="+", help="MCAP files, played one after the other")
     p.add_argument("--rate", type=float, default=1.0, help="speed factor; 0 = as fast as possible")
     p.add_argument("--start", type=float, default=0.0, help="start offset [s]")
-    p.add_argument("--end", type=float, default=None, help="end offset [s]")
+    p.add_argument("--end", type=float, default=None, help="end offset [s] (default: the end)")
     p.add_argument("--topic", action="append", help="only this ROS topic (repeatable)")
     p.add_argument("--inputs-only", action="store_true",
                    help="only the config's [topics] inputs (not a recorded daemon's outputs)")  # fmt: skip
     p.add_argument("--remap", action="append", metavar="OLD:=NEW", help="topic remap")
-    p.add_argument("--loop", action="store_true")
+    p.add_argument("--loop", action="store_true", help="play the files again and again until stopped")
     p.add_argument("--key-style", choices=("rmw_zenoh", "ros2dds"), default=None,
                    help="rebuild keys in this style (default: the recorded keys)")  # fmt: skip
-    p.add_argument("--domain", type=int, default=None, help="ROS domain for rebuilt keys")
+    p.add_argument("--domain", type=int, default=None,
+                   help="ROS domain for rebuilt keys (default: the recorded keys' own)")
     p.add_argument("--wait-subscribers", type=float, default=0.0,
                    help="wait up to this long for a subscriber on each new key")  # fmt: skip
-    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_play)
 
-    p = sub.add_parser("replay", help="run the pipeline on a recording (no zenoh)")
+    p = sub.add_parser(
+        "replay",
+        help="run the pipeline on a recording (no zenoh)",
+        epilog="example:\n  pugsd replay --out replayed recordings/pugsd-0001.mcap",
+    )
     _add_cfg(p)
-    p.add_argument("files", nargs="+")
-    p.add_argument("--out", default=None, help="write grasps.json and grasps.mcap here")
-    p.add_argument("--mode", choices=("paper", "streaming"), default="paper")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("files", nargs="+", help="MCAP files, read as one recording")
+    p.add_argument("--out", default=None,
+                   help="write grasps.json and grasps.mcap here (default: print only)")
+    p.add_argument("--mode", choices=("streaming", "paper"), default="streaming",
+                   help="streaming: the daemon's SVGP updates after every frame; paper: the batch fit "
+                   "on all frames")
+    p.add_argument("--seed", type=int, default=0, help="seed of the model")
     p.set_defaults(func=_replay)
 
     p = sub.add_parser("mcap", help="MCAP tools: recover, info, synth")
     msub = p.add_subparsers(dest="mcap_command", required=True, metavar="TOOL")
-    q = msub.add_parser("recover", help="rebuild a file whose writer died")
-    q.add_argument("input")
-    q.add_argument("output")
+    q = msub.add_parser(
+        "recover",
+        help="rebuild a file whose writer died",
+        epilog="example:\n  pugsd mcap recover pugsd-0001.mcap.part pugsd-0001.mcap",
+    )
+    q.add_argument("input", help="the damaged MCAP (a .part left by a crash)")
+    q.add_argument("output", help="the rebuilt MCAP to write")
     q.set_defaults(func=_recover)
-    q = msub.add_parser("info", help="topics, counts, duration, schemas")
-    q.add_argument("files", nargs="+")
-    q.add_argument("--json", action="store_true")
+    q = msub.add_parser(
+        "info",
+        help="topics, counts, duration, schemas",
+        epilog="example:\n  pugsd mcap info recordings/*.mcap",
+    )
+    q.add_argument("files", nargs="+", help="MCAP files")
+    q.add_argument("--json", action="store_true", help="print the summaries as JSON")
     q.set_defaults(func=_info)
-    q = msub.add_parser("synth", help="write a synthetic recording")
+    q = msub.add_parser(
+        "synth",
+        help="write a synthetic recording",
+        epilog="example:\n  pugsd mcap synth mug.mcap --kind complete --object mug",
+    )
     _add_cfg(q)
-    q.add_argument("output")
-    q.add_argument("--kind", choices=("complete", "partial", "noisy_partial"), default="partial")
-    q.add_argument("--object", default="mug")
-    q.add_argument("--frames", type=int, default=None)
-    q.add_argument("--width", type=int, default=160)
-    q.add_argument("--height", type=int, default=120)
-    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("output", help="the MCAP file to write")
+    q.add_argument("--kind", choices=("complete", "partial", "noisy_partial"), default="partial",
+                   help="camera path around the object")
+    q.add_argument("--object", default="mug", help="synthetic object (mug, kettlebell, box, bottle, mallet)")
+    q.add_argument("--frames", type=int, default=None,
+                   help="number of stereo frames (default: the trajectory's own)")
+    q.add_argument("--width", type=int, default=160, help="image width [px]")
+    q.add_argument("--height", type=int, default=120, help="image height [px]")
+    q.add_argument("--seed", type=int, default=0, help="seed of the scene")
     q.set_defaults(func=_synth)

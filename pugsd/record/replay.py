@@ -16,7 +16,7 @@ import dataclasses
 import json
 import logging
 import math
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -155,6 +155,21 @@ class _Replayer:
         return self._take()
 
 
+def count_left_images(paths: Iterable[str | Path], topics: TopicsConfig) -> int | None:
+    """The left images in the recordings (from their summaries, or counted through a file
+    without one): about the frames a replay will have; None for a file that cannot be read."""
+    from pugsd.record.mcapio import scan
+
+    left = _norm_topic(topics.left_image)
+    n = 0
+    try:
+        for p in paths:
+            n += sum(c.count for c in scan(p).channels if _norm_topic(c.topic) == left)
+    except (PugsdError, OSError):
+        return None
+    return n
+
+
 def iter_frames(
     paths: Iterable[str | Path],
     topics: TopicsConfig | None = None,
@@ -234,9 +249,11 @@ def replay(
     out_dir: str | Path | None = None,
     mode: str = "paper",
     seed: int = 0,
+    on_frame: Callable[[], None] | None = None,
 ) -> ReplayResult:
     """Run ``PugsPipeline`` on the frames of a recording; write ``grasps.json`` and
-    ``grasps.mcap`` (GraspArray, MarkerArray, PointCloud2 on the ``[topics]`` outputs)."""
+    ``grasps.mcap`` (GraspArray, MarkerArray, PointCloud2 on the ``[topics]`` outputs).
+    ``on_frame`` is called after each frame is taken in (and, streaming, trained on)."""
     paths = [Path(p) for p in paths]
     od = None if out_dir is None else Path(out_dir)
     if od is not None:  # before the pipeline runs: an unusable --out is a one-line error at once
@@ -255,6 +272,8 @@ def replay(
         n += 1
         if mode == "streaming":
             pipe.train_steps()
+        if on_frame is not None:
+            on_frame()
     if n == 0:
         raise InputError(f"replay: no usable stereo frames in {', '.join(map(str, paths))} ({ast})")
     if mode == "paper":
@@ -311,11 +330,3 @@ def _write_outputs(path: Path, topics: TopicsConfig, result: Any, grasps: Scored
         w.finish()
 
 
-def iter_top(g: ScoredGrasps, k: int = 5) -> Iterator[str]:
-    for i in range(min(k, len(g))):
-        p = g.pose_W[i][:3, 3]
-        yield (
-            f"#{i} id={int(g.grasp_id[i])} pugs={g.pugs_confidence[i]:.3g} "
-            f"base={g.baseline_confidence[i]:.3f} s2={g.sigma2_occ[i]:.2e} "
-            f"at ({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) w={g.width_m[i] * 1000:.1f} mm"
-        )

@@ -1,8 +1,9 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Synthetic world (procedural objects, scenes, stereo rendering) and the physics evaluation.
+"""Synthetic world (procedural objects, scenes, stereo rendering) and the physics evaluation:
+the simulation extras (``pip install 'pugsd[sim]'``: trimesh, manifold3d, MuJoCo, matplotlib).
 
-Importing ``pugsd.sim`` does not import MuJoCo or open3d; the physics trial
-(:mod:`pugsd.sim.physics`) and the evaluation (:mod:`pugsd.sim.evaluate`) load them when used.
+Importing ``pugsd.sim`` imports none of them, so that the daemon's install (without the extras)
+can register the commands: each name below loads its module when first used.
 """
 
 from __future__ import annotations
@@ -10,36 +11,21 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-from pugsd.sim.objects import (
-    BUILTIN_OBJECTS,
-    ObjectSpec,
-    get_object,
-    load_object_mesh,
-)
-from pugsd.sim.render import Underwater, default_rig
-from pugsd.sim.sequence import (
-    POSES,
-    TRAJECTORIES,
-    SyntheticSequence,
-    camera_path,
-    make_sequence,
-    object_pose,
-    se3_exp,
-)
-
-_LAZY = {
-    "GraspTrial": "pugsd.sim.physics",
-    "TrialConfig": "pugsd.sim.physics",
-    "TrialResult": "pugsd.sim.physics",
-    "grasp_pose": "pugsd.sim.physics",
-    "run_trial": "pugsd.sim.physics",
-    "EvalOptions": "pugsd.sim.evaluate",
-    "run_evaluation": "pugsd.sim.evaluate",
-}
+_MODULE_NAMES = {
+    "pugsd.sim.objects": ("BUILTIN_OBJECTS", "ObjectSpec", "get_object", "load_object_mesh"),
+    "pugsd.sim.render": ("Underwater", "default_rig"),
+    "pugsd.sim.sequence": (
+        "POSES", "TRAJECTORIES", "SyntheticSequence", "camera_path", "make_sequence", "object_pose",
+        "se3_exp",
+    ),
+    "pugsd.sim.physics": ("GraspTrial", "TrialConfig", "TrialResult", "grasp_pose", "run_trial"),
+    "pugsd.sim.evaluate": ("EvalOptions", "run_evaluation"),
+}  # fmt: skip
+_LAZY = {name: module for module, names in _MODULE_NAMES.items() for name in names}
 
 
 def __getattr__(name: str) -> Any:
-    """Physics and evaluation names load MuJoCo (and the pipeline) only when first used."""
+    """A name's module (and with it trimesh, MuJoCo or the pipeline) loads when first used."""
     if name in _LAZY:
         return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'pugsd.sim' has no attribute {name!r}")

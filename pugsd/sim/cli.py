@@ -110,8 +110,13 @@ def _evaluate(args: argparse.Namespace) -> int:
         partial_path.parent.mkdir(parents=True, exist_ok=True)
         partial_path.write_text("")
 
+    from pugsd.progress import progress_bar, ticking
+
+    bar = progress_bar(total, "evaluate", unit="trial", quiet=args.quiet)
+
     def progress(r: dict[str, Any]) -> None:
         done[0] += 1
+        bar.update(1)
         if partial_path is not None:  # survives an interrupted run
             import json
 
@@ -122,12 +127,14 @@ def _evaluate(args: argparse.Namespace) -> int:
                 f"{m}={''.join('1' if v[k] else '0' for k in ('traversal', 'closed', 'lifted'))}"
                 for m, v in r["methods"].items()
             )
-            sys.stderr.write(
+            bar.write(  # above the bar (a plain line when stderr is not a terminal)
                 f"[{done[0]}/{total}] {r['object']} {r['recon']} seed {r['seed']} "
-                f"{r.get('mode', '')}: {marks}\n"
+                f"{r.get('mode', '')}: {marks}",
+                file=sys.stderr,
             )
 
-    results = run_evaluation(opts, progress)
+    with ticking(bar):
+        results = run_evaluation(opts, progress)
     table = markdown_table(results)
     sys.stdout.write(table)
     sys.stdout.write(f"\nwall time {results['wall_time_s']:.0f} s\n")
@@ -144,6 +151,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         help="simulated grasp evaluation (the paper's Table I): baselines vs PUGS",
         description="Render stereo sequences of synthetic objects, run the PUGS pipeline, and test "
         "each method's top grasp in MuJoCo (traversal, closed, lifted).",
+        epilog="example:\n  pugsd evaluate --objects mug --recon partial --trials 5 --json results.json",
     )
     p.add_argument("--objects", default="kettlebell,mug",
                    help="comma list of kettlebell, mug, box, bottle, mallet")
@@ -166,18 +174,24 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--frames", type=int, default=None,
                    help="frames per sequence (default 16 complete, 8 partial)")
     p.add_argument("--object-mesh", default=None, metavar="PATH",
-                   help="evaluate a user mesh (PLY, OBJ or STL, metres) instead of --objects")
-    p.add_argument("--mass", type=float, default=None, metavar="KG", help="mass of --object-mesh")
+                   help="evaluate a user mesh (PLY, OBJ or STL, metres) instead of --objects "
+                   "(default: none)")
+    p.add_argument("--mass", type=float, default=None, metavar="KG",
+                   help="mass of --object-mesh (default: none; needed with it)")
     p.add_argument("--underwater", action="store_true", help="apply the underwater image model")
-    p.add_argument("--config", default=None, help="pugsd TOML config for the pipeline")
-    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key")
+    p.add_argument("--config", default=None,
+                   help="pugsd TOML config for the pipeline (default: the built-in defaults)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a config key (repeatable)")
     p.add_argument("--workers", type=int, default=1, help="parallel worker processes")
     p.add_argument("--json", default=None, metavar="PATH",
-                   help="write results.json here (and each trial as it finishes to *.trials.jsonl)")
-    p.add_argument("--figures", default=None, metavar="DIR", help="write PNG figures here")
+                   help="write results.json here (and each trial as it finishes to *.trials.jsonl; "
+                   "default: not written)")
+    p.add_argument("--figures", default=None, metavar="DIR",
+                   help="write PNG figures here (default: none)")
     p.add_argument("--figures-per-cell", type=int, default=1,
                    help="figures per object x reconstruction (first trials)")
     p.add_argument("--rescore", default=None, metavar="RESULTS_JSON",
-                   help="re-run only the physics on the grasps stored in a results.json")
-    p.add_argument("--quiet", action="store_true", help="no per-trial progress on stderr")
+                   help="re-run only the physics on the grasps stored in a results.json (default: "
+                   "a full evaluation)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or per-trial lines on stderr")
     p.set_defaults(func=_evaluate)

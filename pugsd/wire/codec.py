@@ -594,6 +594,11 @@ def decode_grasp_array(data: bytes) -> ScoredGrasps:
     )
 
 
+def grasp_array_frame_id(data: bytes) -> str:
+    """The frame_id of a GraspArray's header (the frame of its poses and contacts)."""
+    return str(deserialize(data, GRASP_ARRAY).header.frame_id)
+
+
 # ---------------------------------------------------------------------------------------------
 # visualization_msgs/MarkerArray
 

@@ -49,6 +49,23 @@ def test_no_flags_run_the_full_benchmark(stub: _Stub, capsys: pytest.CaptureFixt
     assert call["opts"] == BenchOptions.full()
     assert (call["overrides"], call["device"], call["torch_threads"]) == ((), "auto", None)
     assert call["command"] == "pugsd bench"
+    io = capsys.readouterr()
+    assert io.out == "measuring\n\nTABLE 1\nTABLE 2\n" and io.err == ""  # no bar: not a terminal
+
+
+def test_a_terminal_gets_a_bar_naming_the_step_and_the_time_taken(
+    stub: _Stub, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import io
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    term = Terminal()
+    monkeypatch.setattr(sys, "stderr", term)
+    assert main(["bench"]) == 0
+    assert "bench: measuring: 1 step [00:0" in term.getvalue(), term.getvalue()
     assert capsys.readouterr().out == "measuring\n\nTABLE 1\nTABLE 2\n"
 
 

@@ -18,6 +18,7 @@ import pytest
 import zenoh
 
 import pugsd.wire.session as session_mod
+from pugsd import exit_codes
 from pugsd.cli import main
 from pugsd.config import load_config_dict
 from pugsd.daemon.client import query_daemon, status_lines
@@ -50,7 +51,7 @@ def test_status_grasps_and_reset_from_the_command_line(
         rc, out, _ = _run(capsys, "status", *conf)
         assert rc == 0 and "pugsd: healthy" in out and "ready False" in out, out
         rc, _, err = _run(capsys, "grasps", *conf)
-        assert rc == 1 and "no grasps yet: model not ready" in err
+        assert rc == exit_codes.NOT_READY == 5 and "no grasps yet: model not ready" in err
         for i in range(6):
             src.stereo(1_000_000_000 + i * 100_000_000, pose_at(0.01 * i), seed=i)
             time.sleep(0.05)
@@ -65,8 +66,9 @@ def test_status_grasps_and_reset_from_the_command_line(
         np.testing.assert_allclose(got["grasps"][1]["pose_W"], want.pose_W[1], atol=1e-12)
         rc, out, _ = _run(capsys, "grasps", *conf, "--top", "2")
         rows = out.strip().splitlines()
-        assert rc == 0 and rows[0].startswith(f"{len(want)} grasps") and len(rows) == 2 + 2
-        assert rows[2].split()[:2] == ["0", str(int(want.grasp_id[0]))]
+        assert rc == 0 and rows[0].startswith(f"{len(want)} grasps") and len(rows) == 1 + 2
+        assert rows[1].startswith("grasp 1: ") and rows[1].endswith(f", id {int(want.grasp_id[0])}")
+        assert " m in world, " in rows[1]  # the frame of the GraspArray's header
         rc, out, _ = _run(capsys, "status", *conf)
         integrated = len(pipe.integrated)
         assert rc == 0 and "ready True" in out and f"integrated {integrated}" in out, out
@@ -91,7 +93,7 @@ def test_no_daemon_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixtur
     port = free_tcp_port()
     cfg_path.write_text(toml_text({"zenoh": loopback_config(port)}))
     rc, out, err = _run(capsys, "status", "--config", str(cfg_path), "--timeout", "0.5")
-    assert rc == 1 and not out and "pugs/status: no reply within 0.5 s" in err
+    assert rc == exit_codes.NO_PEER == 4 and not out and "pugs/status: no reply within 0.5 s" in err
     # the endpoints it asked, so that a wrong port shows (it used to say only "these endpoints")
     assert f"from tcp/127.0.0.1:{port} (is the daemon running" in err
 
@@ -135,3 +137,23 @@ def test_status_lines_golden() -> None:
         "  dropped        3  pose_wait: no pose",
         "latency p50/p95 ms: depth 12/31",
     ]
+
+
+@pytest.mark.parametrize(
+    ("errors", "want"),
+    [
+        ([], exit_codes.NO_PEER),  # nothing answered
+        (["no grasps yet: model not ready"], exit_codes.NOT_READY),
+        (["no grasps: the map is being reset"], exit_codes.NOT_READY),
+        (["internal error: ValueError"], exit_codes.FAILURE),
+        (["busy: too many queries waiting; try again"], exit_codes.FAILURE),
+    ],
+)
+def test_grasps_exits_apart_on_no_reply_not_ready_and_failure(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], errors: list[str], want: int
+) -> None:
+    import pugsd.daemon.client as client_mod
+
+    monkeypatch.setattr(client_mod, "query_daemon", lambda cfg, suffix, timeout: (None, list(errors)))
+    rc, out, err = _run(capsys, "grasps")
+    assert rc == want and not out and err.startswith("pugsd: pugs/grasps/latest: ")

@@ -217,47 +217,58 @@ def _body(line: str) -> str:
 def test_the_grasp_printer_prints_when_the_ranking_changes() -> None:
     lines: list[str] = []
     p = demo.GraspPrinter(lines.append, time.monotonic())
+
+    def updates() -> list[str]:  # the timed lines: an update's header, a reset, the first grasps
+        return [_body(s) for s in lines if s.startswith("[")]
+
     p.on_grasps(b"\x00\x01 not cdr")
     assert len(lines) == 1 and lines[0].startswith("  (undecodable GraspArray: ")
     p.on_grasps(_grasps(1.0, n=0))  # an empty array: nothing to show yet
     assert len(lines) == 1 and p.first_s is None
     p.on_grasps(_grasps(10.0))
-    assert [_body(s) for s in lines[1:]] == [
+    assert [s if s.startswith("  ") else _body(s) for s in lines[1:]] == [
         "first scored grasps",
-        "4 grasps: #1 PUGS 10 (base 0.500, s2 0.0002) at (+0.000,-0.050,+0.500) m w 4.0 cm"
-        " | #2 PUGS 8.33 (base 0.500, s2 0.0002) at (+0.100,-0.050,+0.500) m w 4.0 cm"
-        " | #3 PUGS 6.67 (base 0.500, s2 0.0002) at (+0.200,-0.050,+0.500) m w 4.0 cm",
+        "4 grasps, best first:",
+        "  grasp 1: PUGS confidence 10 (baseline 0.500, sigma^2_occ 0.0002), contact (+0.000, -0.050, "
+        "+0.500) m in world, approach (+0.00, +0.00, +1.00), width 4.0 cm, id 0",
+        "  grasp 2: PUGS confidence 8.33 (baseline 0.500, sigma^2_occ 0.0002), contact (+0.100, -0.050, "
+        "+0.500) m in world, approach (+0.00, +0.00, +1.00), width 4.0 cm, id 1",
+        "  grasp 3: PUGS confidence 6.67 (baseline 0.500, sigma^2_occ 0.0002), contact (+0.200, -0.050, "
+        "+0.500) m in world, approach (+0.00, +0.00, +1.00), width 4.0 cm, id 2",
     ]
     assert p.first_s is not None and p.received == 3
     first = p.first_s
     p.on_grasps(_grasps(10.0))  # the same ranking
     p.on_grasps(_grasps(10.4))  # the top score within 5 %
     p.on_grasps(_grasps(10.0, dx=0.002))  # contacts moved less than the 5 mm grid
-    assert len(lines) == 3
+    assert len(updates()) == 2
     p.on_grasps(_grasps(10.6))  # more than 5 %
-    assert len(lines) == 4 and _body(lines[-1]).startswith("4 grasps: #1 PUGS 10.6 ")
+    assert len(updates()) == 3 and lines[-3].startswith("  grasp 1: PUGS confidence 10.6 ")
     p.on_grasps(_grasps(10.6, dx=0.01))  # the top contacts moved
-    assert len(lines) == 5
+    assert len(updates()) == 4
     p.on_grasps(_grasps(10.6, n=2, dx=0.01))  # fewer than three: the ranking changed
-    assert len(lines) == 6 and _body(lines[-1]).count("#") == 2
+    assert updates()[-1] == "2 grasps, best first:" and lines[-2].startswith("  grasp 1: ")
     p.t0 -= 14.0  # 14 s on without a change: quiet
     p.on_grasps(_grasps(10.6, n=2, dx=0.01))
-    assert len(lines) == 6
+    assert len(updates()) == 5
     p.t0 -= 2.0  # more than 15 s since the last line: printed again
     p.on_grasps(_grasps(10.6, n=2, dx=0.01))
-    assert len(lines) == 7
+    assert len(updates()) == 6
     assert p.first_s == first and p.received == 11 and len(p.history) == 9
     assert [n for _, n, _ in p.history].count(2) == 3
     p.on_grasps(_grasps(1.0, n=0))  # a reset: said once
     p.on_grasps(_grasps(1.0, n=0))
-    assert len(lines) == 8 and _body(lines[-1]) == "no grasps (the map was reset, or none were found)"
+    assert len(updates()) == 7 and _body(lines[-1]) == "no grasps (the map was reset, or none were found)"
     p.on_grasps(_grasps(10.6, n=2, dx=0.01))  # the same grasps as before the reset: shown again
-    assert len(lines) == 9 and _body(lines[-1]).startswith("2 grasps: #1 PUGS 10.6 ")
+    assert updates()[-1] == "2 grasps, best first:" and len(updates()) == 8
+    assert lines[-2].startswith("  grasp 1: PUGS confidence 10.6 ")
 
 
 class _StubDaemon:
     def __init__(self, latest: Any = None, grasps: int = 4, resets: int = 0) -> None:
-        self.outputs = SimpleNamespace(latest_result=latest, grasps_published=grasps)
+        self.outputs = SimpleNamespace(
+            latest_result=latest, latest_cloud_result=None, grasps_published=grasps
+        )
         self.resets = resets
 
     def status(self) -> dict[str, Any]:
@@ -348,6 +359,22 @@ def test_run_demo_refuses_a_non_loopback_endpoint_before_it_starts(
     with pytest.raises(ConfigError, match="loopback only"):
         demo.run_demo(1.0, tmp_path / "never", "tcp/0.0.0.0:7447")
     assert "args" not in stub_main and not (tmp_path / "never").exists()
+
+
+def test_run_demo_refuses_a_busy_port_before_it_renders(stub_main: dict[str, Any], tmp_path: Path) -> None:
+    """A port something listens on already: the demo said "listening", rendered for over a
+    minute, then failed; now it stops at once with a clear error, nothing rendered or written."""
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        lines: list[str] = []
+        with pytest.raises(ConfigError, match=rf"tcp/127\.0\.0\.1:{port} is in use .*--listen"):
+            demo.run_demo(1.0, tmp_path / "never", f"tcp/127.0.0.1:{port}", write=lines.append)
+    assert lines == [] and "rendered" not in stub_main and not (tmp_path / "never").exists()
+    demo.check_port_free(port)  # closed: free again
 
 
 def test_demo_main_sends_its_sweeps_prints_grasps_and_stops_on_ctrl_c(

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from pugsd import exit_codes
 from pugsd.cli import main
 from pugsd.config import default_config
 from pugsd.core.types import ScoredGrasps
@@ -34,6 +35,10 @@ class _CapturePlayer:
     unheard = 0
 
     def run(self) -> int:
+        from pugsd.record.player import PlayProgress
+
+        for position_s in (0.5, 2.0):
+            self.kw["progress"](PlayProgress(2, position_s, 2.0, 0))
         return 5
 
     def played_topics(self, among: Any) -> list[str]:
@@ -58,13 +63,33 @@ def test_play_defaults_reach_the_player(synth_recording: Any, captured_play: Any
                                         capsys: pytest.CaptureFixture[str]) -> None:  # fmt: skip
     src, _ = synth_recording
     assert main(["play", str(src)]) == 0
-    assert "5 messages published" in capsys.readouterr().err
+    assert capsys.readouterr().err == "pugsd play: 5 messages published\n"  # no bar: not a terminal
     (p,) = captured_play.made
     o = p.opts
     assert (o.rate, o.start_s, o.end_s, o.topics, dict(o.remap), o.loop, o.key_style, o.domain_id) == (
         1.0, 0.0, None, None, {}, False, None, None)  # fmt: skip
     assert o.hash_mode == default_config().topics.hash_mode
     assert p.kw["wait_for_subscribers_s"] == 0.0
+
+
+def test_play_shows_a_progress_bar_on_a_terminal(
+    synth_recording: Any, captured_play: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import io
+    import sys
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    src, _ = synth_recording
+    for quiet, drawn in (([], True), (["--quiet"], False)):
+        term = Terminal()
+        monkeypatch.setattr(sys, "stderr", term)
+        assert main(["play", str(src), *quiet]) == 0
+        text = term.getvalue()
+        assert ("play: 100%" in text and "2.0/2.0" in text and "2 msgs" in text) is drawn, text
+        assert text.endswith("pugsd play: 5 messages published\n")
 
 
 def test_play_flags_reach_the_player(synth_recording: Any, captured_play: Any) -> None:
@@ -125,7 +150,7 @@ def test_record_of_nothing_says_where_it_listened(
     rc = main(["record", "--connect", f"tcp/127.0.0.1:{port}", "--out", str(tmp_path), "--duration", "0.3",
                "--status-interval", "0"])  # fmt: skip
     out, err = capsys.readouterr()
-    assert rc == 0 and out == "" and not list(tmp_path.glob("*.mcap"))
+    assert rc == exit_codes.NO_PEER and out == "" and not list(tmp_path.glob("*.mcap"))
     assert err.splitlines()[-1] == (
         "pugsd record: no message received (is anything publishing on these keys, reachable at "
         f"tcp/127.0.0.1:{port}?)"
@@ -144,15 +169,23 @@ def test_info_says_incomplete_for_a_cut_file(synth_recording: Any, tmp_path: Pat
 
 
 class _Pipeline:
+    made: list[_Pipeline] = []
+
     def __init__(self, cfg: Any, seed: int) -> None:
         self.n = 0
+        self.calls: list[str] = []
+        _Pipeline.made.append(self)
 
     def add_stereo(self, f: Any) -> None:
         self.n += 1
         self.stamp = f.stamp_ns
+        self.calls.append("add")
+
+    def train_steps(self) -> None:
+        self.calls.append("train")
 
     def fit_paper(self) -> None:
-        pass
+        self.calls.append("fit_paper")
 
     def stats(self) -> dict[str, Any]:
         return {}
@@ -170,8 +203,35 @@ def test_replay_prints_frames_grasps_and_outputs(synth_recording: Any, tmp_path:
                                                  capsys: pytest.CaptureFixture[str]) -> None:  # fmt: skip
     src, frames = synth_recording
     monkeypatch.setattr("pugsd.pipeline_factory.make_pipeline", _Pipeline)
+    _Pipeline.made.clear()
     assert main(["replay", str(src), "--out", str(tmp_path)]) == 0
-    lines = capsys.readouterr().out.splitlines()
+    out = capsys.readouterr()
+    lines = out.out.splitlines()
     assert lines[0] == f"pugsd replay: {len(frames)} frames, 2 grasps"
-    assert lines[1].startswith("#0 id=7 ") and lines[2].startswith("#1 id=8 ")
+    assert lines[1].startswith("grasp 1: ") and lines[1].endswith(", id 7")
+    assert lines[2].startswith("grasp 2: ") and lines[2].endswith(", id 8")
     assert lines[3:] == [str(tmp_path / "grasps.json"), str(tmp_path / "grasps.mcap")]
+    assert out.err == ""  # no progress bar: stderr is not a terminal
+    # the daemon's streaming mode by default: trained after every frame, no batch fit
+    assert _Pipeline.made[0].calls == ["add", "train"] * len(frames)
+    assert main(["replay", str(src), "--mode", "paper"]) == 0
+    assert _Pipeline.made[1].calls == ["add"] * len(frames) + ["fit_paper"]
+
+
+def test_replay_shows_a_progress_bar_over_the_frames_on_a_terminal(
+    synth_recording: Any, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import io
+    import sys
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    src, frames = synth_recording
+    monkeypatch.setattr("pugsd.pipeline_factory.make_pipeline", _Pipeline)
+    term = Terminal()
+    monkeypatch.setattr(sys, "stderr", term)
+    assert main(["replay", str(src)]) == 0
+    n = len(frames)
+    assert "replay (streaming): 100%" in term.getvalue() and f"{n}/{n} [" in term.getvalue()

@@ -53,7 +53,7 @@ def test_play_to_nobody_says_so_and_names_where_it_published(
     n = len(list(iter_recording([src])))
     port = free_tcp_port()  # nothing listens there
     argv = ["play", str(src), "--rate", "0", "--quiet", "--set", SET.format(port)]
-    assert main([*argv, "--remap", "camera_pose:=/p2", "--remap", "/nope:=/x"]) == 0
+    assert main([*argv, "--remap", "camera_pose:=/p2", "--remap", "/nope:=/x"]) == 4  # none delivered
     err = capsys.readouterr().err
     assert err == (
         "pugsd play: warning: --remap /nope: not among the topics played\n"  # a typo renames nothing

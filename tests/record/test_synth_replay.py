@@ -311,7 +311,7 @@ def test_replay_uses_the_daemon_pose_max_gap(tmp_path: Path, monkeypatch: pytest
 def test_replay_prints_pugs_confidences_that_can_be_read() -> None:
     """PUGS confidences are small numbers (1e-7 in density units): `pugsd replay` printed them
     with three decimals, so every grasp read ``pugs=0.000``."""
-    from pugsd.record.replay import iter_top
+    from pugsd.grasp_text import grasp_lines
 
     g = ScoredGrasps(
         pose_W=np.tile(np.eye(4), (2, 1, 1)),
@@ -322,8 +322,8 @@ def test_replay_prints_pugs_confidences_that_can_be_read() -> None:
         pugs_confidence=np.array([9.9e-7, 5.0e-7]),
         grasp_id=np.arange(2, dtype=np.int64),
     )
-    lines = list(iter_top(g))
-    assert "pugs=9.9e-07" in lines[0] and "pugs=5e-07" in lines[1], lines
+    lines = list(grasp_lines(g, 5))  # what `pugsd replay` prints
+    assert "PUGS confidence 9.9e-07 " in lines[0] and "PUGS confidence 5e-07 " in lines[1], lines
 
 
 def test_replay_composes_a_recorded_body_odometry_with_the_camera_mount(

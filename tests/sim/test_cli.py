@@ -88,6 +88,24 @@ def test_quiet_runs_print_no_progress(
     assert calls[-1].object_mesh == "x.stl" and calls[-1].mass_kg == 0.3
 
 
+def test_a_terminal_gets_a_progress_bar_under_the_trial_lines(
+    calls: list[evaluate.EvalOptions], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import io
+    import sys
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    term = Terminal()
+    monkeypatch.setattr(sys, "stderr", term)
+    assert main(["evaluate", "--objects", "mug", "--recon", "partial", "--trials", "3"]) == 0
+    text = term.getvalue()
+    assert "[2/3] box partial seed 8 streaming: baseline=000 pugs=100\n" in text
+    assert "evaluate:  67%" in text and "2/3 [" in text, text  # with the elapsed time and the ETA
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
