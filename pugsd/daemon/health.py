@@ -349,7 +349,13 @@ def status_of(d: Daemon) -> dict[str, Any]:
         **snap,
         "dropped_total": d.dropped_total(),  # counts.dropped and the queues' own, below
         "mailboxes": {b.name: b.stats() for b in (d.stereo_box, d.depth_box, d.commands)},
-        "ingress": {"pending": b.ingress.pending, "dropped": b.ingress.dropped},
+        "ingress": {
+            "pending": b.ingress.pending,
+            "pending_bytes": b.ingress.pending_bytes,
+            "dropped": b.ingress.dropped,
+            "refused": dict(b.ingress.refused),  # count_bound, byte_bound
+            "too_large": dict(b.too_large),  # per input: above daemon.max_image_bytes, not copied
+        },
         "query_ingress": {"pending": b.query_ingress.pending, "dropped": b.query_ingress.dropped},
         # arm/stop queries and puts beyond the eight on their way (those do the stopping)
         "stop_ingress": {"pending": b.stop_ingress.pending, "dropped": b.stop_ingress.dropped},
@@ -370,6 +376,7 @@ def status_of(d: Daemon) -> dict[str, Any]:
             "pose_gate": len(f.gate),
             "unpaired": f.pairer.pending(),
             "unpaired_dropped": f.pairer.unpaired_dropped,
+            "buffered_bytes": f.buffered_bytes(),
             "poses": len(f.poses),
             "pose_clock_jumps_back": f.poses.jumps_back,
             "pose_strays": f.poses.strays,

@@ -566,6 +566,18 @@ def log_nth(n: int, first: int = 5) -> bool:
     return n <= first or n % 100 == 0
 
 
+def frame_nbytes(frame: Frame) -> int:
+    """The array bytes a frame holds (images, depth, std, mask, colour; 0 for anything else)."""
+    arrays: tuple[np.ndarray | None, ...]
+    if isinstance(frame, StereoFrame):
+        arrays = (frame.left, frame.right, frame.mask)
+    elif isinstance(frame, DepthFrame):
+        arrays = (frame.depth_m, frame.sigma_m, frame.mask, frame.color)
+    else:
+        return 0
+    return int(sum(a.nbytes for a in arrays if a is not None))
+
+
 def waiting_nbytes(entry: Waiting) -> int:
     """The pixel bytes of a frame waiting for its pose."""
     kind, payload, _ = entry

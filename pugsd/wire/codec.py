@@ -328,7 +328,7 @@ def check_image_layout(
     pixel data (step * height) above ``max_bytes``, and one whose declared height and width are
     not ``shape``. DecodeError ``too_large`` or ``wrong_size``; a layout that cannot be read is
     left to ``decode_image``."""
-    if max_bytes is not None and len(data) > max_bytes + _IMAGE_HEADER_SLACK:
+    if max_bytes is not None and len(data) > max_bytes + MESSAGE_OVERHEAD_BYTES:
         raise DecodeError(
             f"{what} message of {len(data)} bytes, above the maximum image size {max_bytes} B",
             reason="too_large",
@@ -350,7 +350,7 @@ def check_image_layout(
 
 # header, frame_id and encoding of an image message beside its pixels: bounded by the checks of
 # ``check_image_layout`` only through its declared sizes
-_IMAGE_HEADER_SLACK = 65536
+MESSAGE_OVERHEAD_BYTES = 65536
 
 
 def decode_image(

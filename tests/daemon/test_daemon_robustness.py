@@ -491,7 +491,9 @@ def test_bgra8_and_8uc1_stereo_images_reach_the_pipeline_as_rgb_and_mono(
             return super().depth_from_stereo(frame)
 
     pipe = Recording()
-    dt, src = start_with_source(load_config_dict(daemon_config_dict(port)), client, pipe)
+    cfg = daemon_config_dict(port)
+    cfg["queues"] = {"stereo": 2}  # the two frames may be released together: both are matched
+    dt, src = start_with_source(load_config_dict(cfg), client, pipe)
     d = dt.daemon
     try:
         rng = np.random.default_rng(5)
@@ -525,6 +527,7 @@ def test_a_disparity_search_short_of_min_depth_is_logged_once_per_rig(
     caplog.set_level(logging.WARNING, logger="pugsd.core.stereo")
     cfg = daemon_config_dict(port)
     cfg["stereo"] = {"min_depth_m": 0.01}
+    cfg["queues"] = {"stereo": 3}  # every frame matched, however close they come
     config = load_config_dict(cfg)
     assert disparity_levels(config.stereo, RIG) == 16 and reach_m(config.stereo, RIG) == pytest.approx(0.05)
     stereo = StereoDepth(config.stereo)
