@@ -60,6 +60,7 @@ class Health:
         self.stall_s = stall_s
         self.max_failures = max_failures
         self.failures: Counter[str] = Counter()  # consecutive failed calls per stage
+        self.last_failure: dict[str, str] = {}  # stage -> why its latest call failed (until one succeeds)
         self.counts: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()  # "<input>: <reason class>" -> n
         self.dropped: Counter[str] = Counter()  # "<stage>: <reason>" -> n
@@ -95,6 +96,12 @@ class Health:
 
     def succeeded(self, stage: str) -> None:
         self.failures.pop(stage, None)
+        self.last_failure.pop(stage, None)
+
+    def note_failure(self, stage: str, exc: BaseException) -> None:
+        """Keep why ``stage``'s latest call failed (status ``last_failure``; ``grasps/latest``
+        answers with it), bounded, until a call of it succeeds."""
+        self.last_failure[stage] = f"{type(exc).__name__}: {exc}"[:300]
 
     def failed(self, stage: str) -> int:
         """Count one more consecutive failure of ``stage``; returns the run length."""
@@ -130,6 +137,7 @@ class Health:
             "latency": {k: v.summary() for k, v in sorted(self.latency.items())},
             "busy": sorted(self._busy_since),
             "failing": dict(self.failures),
+            "last_failure": dict(self.last_failure),
         }
 
 
@@ -180,10 +188,12 @@ class Reporter:
             out = await coro
         except PugsdError as exc:
             self.reject(stage, exc)
+            self.health.note_failure(stage, exc)
             if reason_class(exc) in MAP_AT_FAULT:  # every later frame fails alike: not input's fault
                 self.health.failed(stage)
         except Exception as exc:
             self.health.failed(stage)
+            self.health.note_failure(stage, exc)
             key = f"errors.{stage}"
             self.health.count(key)
             n = self.health.counts[key]

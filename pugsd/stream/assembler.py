@@ -70,6 +70,7 @@ def reason_class(exc: BaseException) -> str:
         ("out_of_map_range", ("voxel hash",)),
         ("beyond_any_map", ("too far for any voxel index",)),
         ("too_small_for_stereo", ("too small for the disparity search",)),
+        ("touches_no_tsdf_block", ("touches no tsdf block",)),
         ("malformed_cdr", ("malformed cdr", "truncated cdr", "cdr encapsulation", "not bytes")),
         ("wrong_type", ("not accepted (expected", "unsupported pose type", "rmw_zenoh key")),
         ("no_camera_info", ("no camerainfo",)),
@@ -214,6 +215,8 @@ class FrameAssembler:
             if typename not in POSE_TYPES.values():
                 raise InputRejected("wrong_type", f"pose: type {typename[:100]!r} not accepted")
             pm = codec.decode_pose(data, typename, self.pose_stamped_cov)
+            if pm.cov is not None:
+                self._check_plausible(pm.cov)
             self._follow_pose_publisher(publisher, recv_s, key)
             T_W_C, cov = pm.T, carried_cov(pm.cov)
             if self.T_B_C is not None:  # the pose of the body carrying the camera
@@ -267,6 +270,24 @@ class FrameAssembler:
         if got is not None and got != typename:
             msg = f"{role}: type {got[:100]!r} not accepted (expected {typename})"
             raise InputRejected("wrong_type", msg)
+
+    def _check_plausible(self, cov: np.ndarray) -> None:
+        """InputRejected ``implausible_covariance`` for a pose covariance whose position or
+        rotation standard deviation (along its worst direction) exceeds ``daemon.max_pose_std_*``
+        (a diverging localiser): refused before it changes any state."""
+        for name, block, limit, unit in (
+            ("position", cov[:3, :3], self.d.max_pose_std_translation_m, "m"),
+            ("rotation", cov[3:, 3:], self.d.max_pose_std_rotation_rad, "rad"),
+        ):
+            worst = float(np.linalg.eigvalsh(0.5 * (block + block.T))[-1])
+            if not worst <= limit * limit:
+                raise InputRejected(
+                    "implausible_covariance",
+                    f"pose: {name} standard deviation {np.sqrt(max(worst, 0.0)):.3g} {unit} above "
+                    f"daemon.max_pose_std_{'translation_m' if name == 'position' else 'rotation_rad'}"
+                    f" = {limit:g} {unit}; pose ignored",
+                    "pose",
+                )
 
     def _follow_pose_publisher(self, gid: bytes | None, recv_s: float, key: str) -> None:
         """Take poses from one publisher at a time (``daemon.pose_publisher_hold_s``): a pose of
