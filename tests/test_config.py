@@ -1217,3 +1217,14 @@ def test_core_of_takes_exactly_the_core_sections() -> None:
     assert [f.name for f in dataclasses.fields(CoreConfig)] == [
         "stereo", "observation", "fof", "svgp", "cubature", "reconstruction", "freespace", "grasp"
     ]  # fmt: skip
+
+
+def test_a_byte_budget_below_a_pair_of_the_largest_images_is_warned_of() -> None:
+    image = {"max_image_bytes": 1 << 20}
+    at = load_config_dict({"daemon": image, "queues": {"buffered_bytes": 2 << 20}})
+    assert config_warnings(at) == []
+    below = load_config_dict({"daemon": image, "queues": {"buffered_bytes": (2 << 20) - 1}})
+    assert config_warnings(below) == [
+        "queues.buffered_bytes = 2097151 B is less than twice daemon.max_image_bytes = 1048576 B: a "
+        "stereo pair of images that large is dropped for the byte budget"
+    ]

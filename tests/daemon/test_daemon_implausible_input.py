@@ -13,6 +13,7 @@ import zenoh
 
 from pugsd.config import load_config_dict
 from pugsd.errors import CovarianceError
+from pugsd.wire import codec
 from tests.daemon.conftest import FakePipeline, daemon_config_dict, wait_for
 from tests.daemon.test_daemon_inprocess import start_with_source
 from tests.daemon.test_daemon_outputs_and_queries import FakeQuery, _daemon
@@ -68,3 +69,25 @@ def test_a_failing_grasp_computation_is_answered_with_its_reason() -> None:
     d.pipeline = FakePipeline()  # the next computation succeeds: the reason is cleared
     asyncio.run(one_round())
     assert "grasps" not in d.health.last_failure
+
+
+def test_oversized_images_are_refused_in_the_zenoh_callback_and_nothing_is_held(
+    port: int, client: zenoh.Session
+) -> None:
+    """Eight 2 MiB left images with distinct stamps, the maximum 1 MiB: each refused before it is
+    copied to the loop (counted per input), none received, decoded or held."""
+    cfg = load_config_dict(daemon_config_dict(port, max_image_bytes=1 << 20))
+    dt, src = start_with_source(cfg, client, FakePipeline())
+    d = dt.daemon
+    try:
+        big = np.zeros((1024, 2048), np.uint8)
+        for i in range(8):
+            src.put("left_image", codec.encode_image(big, (i + 1) * 10**9, "left"))
+        wait_for(lambda: d.bridge.too_large.get("left_image") == 8, 10.0, "eight refusals")
+        src.put("left_image", codec.encode_image(big[:48, :64], 9 * 10**9, "left"))  # the rig's size
+        wait_for(lambda: d.health.counts.get("received.left_image") == 1, 5.0, "the small image")
+        assert d.frames.pairer.pending() == 1 and d.frames.buffered_bytes() == 48 * 64
+        assert d.status()["ingress"]["too_large"] == {"left_image": 8}
+    finally:
+        src.close()
+        dt.stop()
