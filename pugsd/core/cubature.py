@@ -55,6 +55,8 @@ def sigma_points(mean: np.ndarray, cov: np.ndarray, alpha: float, kappa: float) 
         L = np.linalg.cholesky(scaled)
     except np.linalg.LinAlgError:
         L = robust_sqrt(scaled)
+    if not np.isfinite(L).all():  # a covariance whose scaling overflowed
+        L = robust_sqrt(scaled)
     cols = np.swapaxes(L, -1, -2)  # (Q, d, d): row i = column i of L
     return np.concatenate(
         [mean[:, None, :], mean[:, None, :] + cols, mean[:, None, :] - cols], axis=1

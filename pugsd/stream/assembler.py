@@ -4,8 +4,11 @@
 Left and right images pair by exact stamp; the rig comes from the latest left/right CameraInfo;
 each frame waits (``PoseGate``) for its pose, interpolated on SE(3) by the ``PoseBuffer``, taken
 from one pose publisher at a time, and for its mask (and depth std image) while that topic is
-active or undecided. Images of another size than their camera are rejected on arrival. Every
-rejection, drop and emitted frame goes to the caller through ``report`` and ``on_frame``.
+active or undecided. Images above ``daemon.max_image_bytes`` or of another size than their
+camera are rejected on arrival, from their declared layout, before any pixel is decoded; what
+waits is held within ``queues.buffered_bytes`` (the oldest dropped first); a pose covariance
+beyond ``daemon.max_pose_std_*`` is rejected before it is used. Every rejection, drop and emitted
+frame goes to the caller through ``report`` and ``on_frame``.
 
 Pure and synchronous with an injected clock: the daemon's is ``time.monotonic``, ``pugsd
 replay``'s the recording's log time.
@@ -215,7 +218,7 @@ class FrameAssembler:
             if typename not in POSE_TYPES.values():
                 raise InputRejected("wrong_type", f"pose: type {typename[:100]!r} not accepted")
             pm = codec.decode_pose(data, typename, self.pose_stamped_cov)
-            if pm.cov is not None:
+            if pm.cov is not None and typename != POSE_TYPES["PoseStamped"]:  # a carried one
                 self._check_plausible(pm.cov)
             self._follow_pose_publisher(publisher, recv_s, key)
             T_W_C, cov = pm.T, carried_cov(pm.cov)
