@@ -313,9 +313,9 @@ class QueuesConfig:
     """Bounded mailboxes between stages (sizes)."""
 
     stereo: int = opt(
-        1,
-        "complete frames waiting for depth estimation (drop oldest): the newest wins before "
-        "stereo matching",
+        2,
+        "complete frames waiting for depth estimation (drop oldest): the newest win before "
+        "stereo matching; 2 bridges a hiccup of the model at a rate it sustains",
         ge=1,
         le=64,
     )

@@ -17,6 +17,7 @@ replay``'s the recording's log time.
 from __future__ import annotations
 
 import logging
+import math
 from collections import OrderedDict, deque
 from collections.abc import Callable
 from typing import Any, Protocol
@@ -282,7 +283,12 @@ class FrameAssembler:
             ("position", cov[:3, :3], self.d.max_pose_std_translation_m, "m"),
             ("rotation", cov[3:, 3:], self.d.max_pose_std_rotation_rad, "rad"),
         ):
-            worst = float(np.linalg.eigvalsh(0.5 * (block + block.T))[-1])
+            scale = float(np.abs(block).max())  # judged scaled: entries near the float64 limit
+            try:
+                S = block / scale if scale > 0 else block
+                worst = float(np.linalg.eigvalsh(0.5 * S + 0.5 * S.T)[-1]) * scale
+            except np.linalg.LinAlgError:
+                worst = math.inf
             if not worst <= limit * limit:
                 raise InputRejected(
                     "implausible_covariance",
