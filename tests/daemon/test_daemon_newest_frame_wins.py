@@ -27,14 +27,14 @@ class MatchingPipeline(FakePipeline):
         return super().depth_from_stereo(frame)
 
 
-def test_the_newest_frame_is_matched_and_integrated_while_the_model_lags(
+def test_the_newest_frames_are_matched_and_integrated_while_the_model_lags(
     port: int, client: zenoh.Session
 ) -> None:
     """50 frames/s for 1.5 s; matching costs 50 ms, integrating 200 ms (the model sustains
     about 5 frames/s: 10x overload). Every matched frame is integrated (none matched in vain),
     the frames passed over are counted as stereo drops, the last frame sent is the last one
-    integrated, and no integrated frame is as old as a backlog would make it (a 32-deep depth
-    queue made the last ones seconds old)."""
+    integrated within 2 s of the burst's end, and no integrated frame is as old as a backlog
+    would make it (a 32-deep depth queue made the last ones seconds old)."""
     cfg = load_config_dict(
         daemon_config_dict(port, grasp_rate_hz=1.0, idle_train_steps=0, train_steps_per_frame=0)
     )
@@ -46,8 +46,10 @@ def test_the_newest_frame_is_matched_and_integrated_while_the_model_lags(
             src.stereo(10**9 + i * 10**7, np.eye(4), seed=i % 4)
             time.sleep(period_s)
         src.stereo(10**9 + n * 10**7, np.eye(4), seed=0)  # its pose brackets the last frame
+        t_sent = time.monotonic()
         last = 10**9 + n * 10**7
         wait_for(lambda: pipe.integrated and pipe.integrated[-1] == last, 10.0, "the last frame integrated")
+        recovery_s = time.monotonic() - t_sent
         st = query_json(client, "pugs/status")
     finally:
         src.close()
@@ -59,6 +61,8 @@ def test_the_newest_frame_is_matched_and_integrated_while_the_model_lags(
     assert mb["stereo"]["overflowed"] > 0 and mb["stereo"]["high_water"] <= 2
     assert mb["stereo"]["overflowed"] + len(pipe.integrated) == st["counts"]["frames.stereo"]
     age = st["latency"]["frame_age_at_integrate"]
-    assert age["max_ms"] < 1000, age  # a stereo time, an integration waited for and its own
+    assert age["max_ms"] < 1500, age  # a stereo time or two, an integration waited for, its own
+    assert recovery_s < 2.0  # no backlog to work off after the burst
     print(f"\nnewest frame wins: matched {len(pipe.matched)}, integrated {len(pipe.integrated)}, "
-          f"passed over {mb['stereo']['overflowed']}, frame age at integrate {age}")
+          f"passed over {mb['stereo']['overflowed']}, frame age at integrate {age}, last frame "
+          f"integrated {recovery_s:.2f} s after it was sent")
