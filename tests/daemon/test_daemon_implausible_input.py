@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 
 import numpy as np
 import zenoh
@@ -81,8 +82,9 @@ def test_oversized_images_are_refused_in_the_zenoh_callback_and_nothing_is_held(
     d = dt.daemon
     try:
         big = np.zeros((1024, 2048), np.uint8)
-        for i in range(8):
+        for i in range(8):  # spaced: a burst of 16 MB may meet the publisher's congestion control
             src.put("left_image", codec.encode_image(big, (i + 1) * 10**9, "left"))
+            time.sleep(0.1)
         wait_for(lambda: d.bridge.too_large.get("left_image") == 8, 10.0, "eight refusals")
         src.put("left_image", codec.encode_image(big[:48, :64], 9 * 10**9, "left"))  # the rig's size
         wait_for(lambda: d.health.counts.get("received.left_image") == 1, 5.0, "the small image")
