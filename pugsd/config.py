@@ -121,6 +121,12 @@ def config_warnings(cfg: PugsdConfig) -> list[str]:
             f"from its stand-off, and the first {pre_m - cfg.grasp.approach_check_m:.3g} m of that "
             "line (from the stand-off) are not checked against the cloud"
         )
+    image_b, held_b = cfg.daemon.max_image_bytes, cfg.queues.buffered_bytes
+    if held_b < 2 * image_b:
+        out.append(
+            f"queues.buffered_bytes = {held_b} B is less than twice daemon.max_image_bytes = "
+            f"{image_b} B: a stereo pair of images that large is dropped for the byte budget"
+        )
     t = cfg.topics
     if t.ros_graph_tokens == "auto" and (t.key_style, t.hash_mode) == ("rmw_zenoh", "rihs01"):
         problems = graph_token_problems(t, cfg.daemon.node_name)

@@ -97,7 +97,7 @@ class ObservationConfig:
         gt=0.0,
     )
     max_points_per_frame: int = opt(
-        20000, "random subsample of back-projected points per frame (0 keeps all)", ge=0
+        20000, "random subsample of back-projected points per frame (0 keeps all)", ge=0, le=10_000_000
     )
 
 
@@ -109,7 +109,9 @@ class FofConfig:
     voxel_size_m: float = opt(
         0.004, "voxel hash size of the point store (one fused Gaussian per voxel)", unit="m", gt=0.0
     )
-    max_voxels: int = opt(200000, "cap on stored voxels; the oldest are evicted beyond it", ge=100)
+    max_voxels: int = opt(
+        200000, "cap on stored voxels; the oldest are evicted beyond it", ge=100, le=20_000_000
+    )
     target_scale: str = opt(
         "p99",
         "divide FOF targets by their max or 99th percentile for conditioning",
@@ -132,6 +134,7 @@ class FofConfig:
         "threads for the nearest-neighbour queries of Algorithm 1 lines 1-2: -1 all cores, 0 auto "
         "(all cores when the SVGP runs on CUDA, else 1: a 2-core computer's other core trains)",
         ge=-1,
+        le=1024,
     )
 
 
@@ -159,7 +162,7 @@ class SvgpConfig:
     seed: int = opt(0, "random seed for inducing points and minibatches", ge=0)
     paper_lr: float = opt(1e-3, "Adam learning rate in paper mode (paper: 1e-3)", gt=0.0)
     paper_epochs: int = opt(100, "epochs in paper mode (paper: 100)", ge=1)
-    batch_size: int = opt(1024, "minibatch size", ge=16)
+    batch_size: int = opt(1024, "minibatch size", ge=16, le=1_000_000)
     lengthscale_init_m: float = opt(0.02, "initial ARD lengthscale", unit="m", gt=0.0)
     noise_init: float = opt(
         0.02, "initial likelihood noise variance, in squared units of the scaled target", gt=0.0
@@ -186,7 +189,7 @@ class SvgpConfig:
         le=1.0,
     )
     ready_move_window: int = opt(
-        4, "streaming: steps over which inducing-point moves count against readiness", ge=1
+        4, "streaming: steps over which inducing-point moves count against readiness", ge=1, le=100_000
     )
     ready_elbo_slope: float = opt(
         0.05,
@@ -196,7 +199,7 @@ class SvgpConfig:
         gt=0.0,
     )
     ready_elbo_window: int = opt(
-        10, "streaming: steps in each of the two windows that ready_elbo_slope compares", ge=1
+        10, "streaming: steps in each of the two windows that ready_elbo_slope compares", ge=1, le=100_000
     )
     inducing_policy: str = opt(
         "spread",
@@ -216,12 +219,13 @@ class SvgpConfig:
         "coverage: new points farther than this many lengthscales from all inducing points trigger a move",
         gt=0.0,
     )
-    predict_chunk: int = opt(20000, "points per batched prediction call on the CPU", ge=256)
+    predict_chunk: int = opt(20000, "points per batched prediction call on the CPU", ge=256, le=10_000_000)
     predict_chunk_cuda: int = opt(
         65536,
         "points per batched prediction call on CUDA (larger than on the CPU: each call's kernel "
         "launches cost the same whatever its size, so fewer, larger calls are faster)",
         ge=256,
+        le=10_000_000,
     )
     output_units: str = opt(
         "density",
@@ -251,7 +255,9 @@ class CubatureConfig:
         "observed surface rather than the torn edge",
         choices=("total", "paper_literal"),
     )
-    max_query_points: int = opt(5000, "random subsample cap on the query cloud given to Algorithm 1", ge=100)
+    max_query_points: int = opt(
+        5000, "random subsample cap on the query cloud given to Algorithm 1", ge=100, le=1_000_000
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -266,9 +272,10 @@ class ReconstructionConfig:
         "it the blocks observed longest ago are evicted, so the grid never grows with the "
         "explored space",
         ge=100,
+        le=400_000,
     )
-    sample_points: int = opt(8000, "points sampled from the fused surface", ge=100)
-    outlier_nb_neighbors: int = opt(20, "statistical outlier removal neighbourhood", ge=1)
+    sample_points: int = opt(8000, "points sampled from the fused surface", ge=100, le=10_000_000)
+    outlier_nb_neighbors: int = opt(20, "statistical outlier removal neighbourhood", ge=1, le=1000)
     outlier_std_ratio: float = opt(
         0.01, "statistical outlier removal std ratio (paper: 0.01; 0.1 less aggressive)", gt=0.0
     )
@@ -411,14 +418,14 @@ class GraspConfig:
     single_contact_rolls: int = opt(
         4, "single_contact: closing directions (rolls about the approach) per approach", ge=1, le=64
     )
-    top_k: int = opt(10, "grasps kept after ranking", ge=1)
+    top_k: int = opt(10, "grasps kept after ranking", ge=1, le=10_000)
     thin_distance_m: float = opt(
         0.01, "farthest-point thinning: minimum distance between kept grasps", unit="m", ge=0.0
     )
     normal_radius_m: float = opt(0.01, "PCA normal radius", unit="m", gt=0.0)
     friction_cone_deg: float = opt(25.0, "antipodal friction cone half-angle", unit="deg", gt=0.0, lt=90.0)
-    num_orientations: int = opt(8, "approach orientations tried per contact pair", ge=1)
-    max_contacts: int = opt(1500, "contacts sampled (farthest point) per proposal", ge=10)
+    num_orientations: int = opt(8, "approach orientations tried per contact pair", ge=1, le=360)
+    max_contacts: int = opt(1500, "contacts sampled (farthest point) per proposal", ge=10, le=1_000_000)
     min_support: int = opt(6, "points required in the closing region", ge=1)
     partner_radius_m: float = opt(0.004, "radius of the partner search cylinder", unit="m", gt=0.0)
     clearance_m: float = opt(

@@ -50,14 +50,37 @@ def sigma_points(mean: np.ndarray, cov: np.ndarray, alpha: float, kappa: float) 
     lam = alpha**2 * (d + kappa) - d
     if not (np.isfinite(cov).all() and np.isfinite(mean).all()):
         raise CovarianceError("cubature: non-finite mean or covariance")  # cholesky would pass NaN
+    scaled = (d + lam) * cov
     try:
-        L = np.linalg.cholesky((d + lam) * cov)
-    except np.linalg.LinAlgError as exc:
-        raise CovarianceError(f"cubature: covariance not positive definite ({exc})") from None
+        L = np.linalg.cholesky(scaled)
+    except np.linalg.LinAlgError:
+        L = robust_sqrt(scaled)
+    if not np.isfinite(L).all():  # a covariance whose scaling overflowed
+        L = robust_sqrt(scaled)
     cols = np.swapaxes(L, -1, -2)  # (Q, d, d): row i = column i of L
     return np.concatenate(
         [mean[:, None, :], mean[:, None, :] + cols, mean[:, None, :] - cols], axis=1
     )
+
+
+def robust_sqrt(cov: np.ndarray) -> np.ndarray:
+    """A square root ``A`` (``A A^T = cov``) of each of a stack of symmetric matrices, also of
+    those the Cholesky factorisation refuses: a matrix it factors keeps its Cholesky factor; any
+    other is symmetrised and its negative eigenvalues (rounding, on a singular or badly
+    conditioned covariance) set to zero, so that one such covariance yields finite sigma points
+    instead of failing every Algorithm 1 call that meets it. The cubature rule holds for any
+    square root of the covariance."""
+    out = np.empty_like(cov)
+    for i, C in enumerate(cov):
+        try:
+            out[i] = np.linalg.cholesky(C)
+        except np.linalg.LinAlgError:
+            S = 0.5 * (C + C.T)
+            w, V = np.linalg.eigh(S)
+            out[i] = V * np.sqrt(np.maximum(w, 0.0))
+    if not np.isfinite(out).all():
+        raise CovarianceError("cubature: covariance has no finite square root")
+    return out
 
 
 def combine(

@@ -180,6 +180,9 @@ class PugsPipeline:
         and integrate the frame into the TSDF. Returns the number of points added."""
         t0 = time.perf_counter()
         batch = self.observation.backproject(depth)
+        # everything that can refuse the frame runs before the store and the grid change: a frame
+        # the TSDF cannot take must not leave the map half-updated
+        tsdf = self.recon.prepare(depth)
         t1 = time.perf_counter()
         evicted = self.store.evicted
         touched = self.store.insert(batch.points_W, batch.cov_W)
@@ -188,7 +191,8 @@ class PugsPipeline:
             self._pending = [r[r >= 0] for r in (remap[p] for p in self._pending)]
         self.store.update_targets()
         t2 = time.perf_counter()
-        self.recon.integrate(depth)
+        if tsdf is not None:
+            self.recon.commit(tsdf)
         t3 = time.perf_counter()
         self.free.integrate(depth)
         t4 = time.perf_counter()

@@ -20,7 +20,7 @@ import open3d as _o3d
 from pugsd.core.camera import PinholeCamera
 from pugsd.core.config import ReconstructionConfig
 from pugsd.core.types import DepthFrame
-from pugsd.errors import EmptyCloudError
+from pugsd.errors import EmptyCloudError, ImageSizeError
 
 # open3d's bundled stubs reject valid numpy arguments (Tensor overloads): use it untyped
 o3d: Any = _o3d
@@ -65,6 +65,21 @@ def _unskew(
     return out, col, dataclasses.replace(cam, skew=0.0)
 
 
+@dataclasses.dataclass(frozen=True)
+class PreparedFrame:
+    """A depth frame ready to be fused: its touched blocks, images and projection."""
+
+    blocks: Any
+    depth_img: Any
+    color_img: Any
+    K: Any
+    ext: Any
+    max_depth: float
+    trunc: float
+    origin_W: np.ndarray
+    center_W: np.ndarray
+
+
 class Reconstruction:
     """Incremental TSDF fusion of depth frames and extraction of the query cloud."""
 
@@ -106,23 +121,33 @@ class Reconstruction:
         self.frames = 0
 
     def integrate(self, frame: DepthFrame) -> None:
+        prepared = self.prepare(frame)
+        if prepared is not None:
+            self.commit(prepared)
+
+    def prepare(self, frame: DepthFrame) -> PreparedFrame | None:
+        """Everything ``commit`` needs to fuse ``frame``, computed without changing the grid, so
+        that a frame the TSDF cannot take is refused before any state (the point store's
+        included) changes; None when the frame has no valid depth. Raises ImageSizeError for a
+        frame that touches no block of the grid (an image a pixel or two wide)."""
         if self._vbg is None:
             self.reset()
         depth = np.nan_to_num(frame.depth_m, nan=0.0).astype(np.float32)
         if frame.mask is not None:
             depth[~frame.mask] = 0.0  # the query cloud is the object
         if not np.any(depth > 0):
-            return
+            return None
         cam = frame.camera
         color_in = frame.color
         if cam.skew != 0.0:
             depth, color_in, cam = _unskew(depth, color_in, cam)
         K = o3d.core.Tensor(cam.K, o3d.core.float64)
-        if self.origin_W is None:
+        origin_W = self.origin_W
+        if origin_W is None:
             g = ORIGIN_GRID_VOXELS * self.cfg.tsdf_voxel_m
-            self.origin_W = np.round(frame.T_W_C[:3, 3] / g) * g
+            origin_W = np.round(frame.T_W_C[:3, 3] / g) * g
         T_L_C = np.array(frame.T_W_C, dtype=np.float64)
-        T_L_C[:3, 3] -= self.origin_W  # camera -> the grid's local frame (float64)
+        T_L_C[:3, 3] -= origin_W  # camera -> the grid's local frame (float64)
         T_C_W = np.linalg.inv(T_L_C)
         ext = o3d.core.Tensor(T_C_W, o3d.core.float64)
         depth_img = o3d.t.geometry.Image(o3d.core.Tensor(depth))
@@ -133,20 +158,32 @@ class Reconstruction:
         color_img = o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(color)))
         max_depth = float(np.nanmax(frame.depth_m)) + 0.01
         trunc = self.cfg.sdf_trunc_voxels  # open3d takes the truncation in voxels
-        blocks = self._vbg.compute_unique_block_coordinates(
-            depth_img, K, ext, 1.0, max_depth, trunc
-        )
-        self._make_room(blocks)
-        self._vbg.integrate(blocks, depth_img, color_img, K, ext, 1.0, max_depth, trunc)
+        try:
+            blocks = self._vbg.compute_unique_block_coordinates(depth_img, K, ext, 1.0, max_depth, trunc)
+        except RuntimeError as exc:
+            if "no block is touched" not in str(exc).lower():
+                raise
+            h, w = depth.shape
+            raise ImageSizeError(
+                f"depth frame ({w} x {h} px) touches no TSDF block; not integrated"
+            ) from None
+        return PreparedFrame(blocks, depth_img, color_img, K, ext, max_depth, trunc, origin_W,
+                             np.array(frame.T_W_C[:3, 3]))  # fmt: skip
+
+    def commit(self, p: PreparedFrame) -> None:
+        """Fuse a frame ``prepare`` returned (into the grid it was prepared for)."""
+        self.origin_W = p.origin_W
+        self._make_room(p.blocks)
+        self._vbg.integrate(p.blocks, p.depth_img, p.color_img, p.K, p.ext, 1.0, p.max_depth, p.trunc)
         self.frames += 1
         hm = self._vbg.hashmap()
         if len(self._last_seen) < hm.capacity():  # open3d grew the map (one frame over the bound)
             self._last_seen = np.concatenate(
                 [self._last_seen, np.zeros(hm.capacity() - len(self._last_seen), np.int64)]
             )
-        buf, found = hm.find(blocks)
+        buf, found = hm.find(p.blocks)
         self._last_seen[buf.numpy()[found.numpy()]] = self.frames
-        self._add_view(frame.T_W_C[:3, 3])
+        self._add_view(p.center_W)
 
     def _make_room(self, blocks: Any) -> None:
         """Keep the grid within its ``block_count`` capacity: before a frame would overfill it,

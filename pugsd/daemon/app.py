@@ -48,7 +48,7 @@ from pugsd.daemon.recording import start_recording, stop_recording
 from pugsd.daemon.ros_services import ARM_SERVICES, SERVICES, RosServices
 from pugsd.daemon.transforms import Transforms
 from pugsd.errors import DecodeError, EmptyCloudError, PugsdError
-from pugsd.stream.assembler import FrameAssembler, InputRejected, expected_type, log_nth
+from pugsd.stream.assembler import FrameAssembler, InputRejected, expected_type, frame_nbytes, log_nth
 from pugsd.stream.schedule import StreamingSchedule
 from pugsd.wire import codec
 from pugsd.wire.keys import parse_key
@@ -90,15 +90,25 @@ class Daemon:
         self.frames = FrameAssembler(
             d, q, self.report, self._on_frame, time.monotonic, expire_before=self._expire_before
         )
+        # each bounded in bytes too; the depth stage starts a frame only while the depth box has
+        # room (_depth_worker), so that the newest frame wins before stereo matching
+        frame_bytes = {"max_bytes": q.buffered_bytes, "size_of": lambda item: frame_nbytes(item[0])}
         self.stereo_box: Mailbox[tuple[StereoFrame, float]] = Mailbox(
-            "stereo", q.stereo, Overflow.DROP_OLDEST
+            "stereo", q.stereo, Overflow.DROP_OLDEST, **frame_bytes
         )
-        self.depth_box: Mailbox[tuple[DepthFrame, float]] = Mailbox("depth", q.depth, Overflow.DROP_OLDEST)
+        self.depth_box: Mailbox[tuple[DepthFrame, float]] = Mailbox(
+            "depth", q.depth, Overflow.DROP_OLDEST, **frame_bytes
+        )
         self.commands: Mailbox[Command] = Mailbox("commands", q.commands, Overflow.REJECT)
         self.arm = ArmBridge(self)
         self.schedule = StreamingSchedule(d)  # on time.monotonic()
         self.overload = OverloadWatch()
-        self.bridge = Bridge(d.ingress_limit, lambda: self._loop)
+        self.bridge = Bridge(
+            d.ingress_limit,
+            lambda: self._loop,
+            max_bytes=d.ingress_max_bytes,
+            max_message_bytes=d.max_image_bytes + codec.MESSAGE_OVERHEAD_BYTES,
+        )
         self._model_lock = threading.Lock()
         pool = concurrent.futures.ThreadPoolExecutor  # one thread each: depth, model, grasps
         self._depth_exec = pool(1, thread_name_prefix="pugsd-depth")
@@ -456,6 +466,7 @@ class Daemon:
 
     async def _depth_worker(self) -> None:
         while not self._stopping:
+            await self.depth_box.wait_room()  # match only what the model takes next: the newest
             frame, recv_s = await self.stereo_box.take()
             gen = self._generation
             depth = await self._guard("depth", self._offload("depth", self.pipeline.depth_from_stereo, frame))

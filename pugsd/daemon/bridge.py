@@ -42,39 +42,66 @@ class Command:
 
 
 class IngressGate:
-    """Thread-safe count of samples scheduled on the loop but not handled; bounds that backlog."""
+    """Thread-safe count of samples scheduled on the loop but not handled, and of their payload
+    bytes; bounds that backlog in both (``max_bytes`` None: in count only). ``refused`` counts
+    the samples turned away per reason: ``count_bound``, ``byte_bound``."""
 
-    def __init__(self, limit: int) -> None:
+    def __init__(self, limit: int, max_bytes: int | None = None) -> None:
         self.limit = limit
+        self.max_bytes = max_bytes
         self._pending = 0
+        self._pending_bytes = 0
         self._lock = threading.Lock()
         self.dropped = 0
+        self.refused: dict[str, int] = {}
 
-    def enter(self) -> bool:
+    def enter(self, nbytes: int = 0) -> bool:
         with self._lock:
             if self._pending >= self.limit:
-                self.dropped += 1
-                return False
-            self._pending += 1
-            return True
+                reason = "count_bound"
+            elif self.max_bytes is not None and self._pending_bytes + nbytes > self.max_bytes:
+                reason = "byte_bound"
+            else:
+                self._pending += 1
+                self._pending_bytes += nbytes
+                return True
+            self.dropped += 1
+            self.refused[reason] = self.refused.get(reason, 0) + 1
+            return False
 
-    def leave(self) -> None:
+    def leave(self, nbytes: int = 0) -> None:
         with self._lock:
             self._pending -= 1
+            self._pending_bytes -= nbytes
 
     @property
     def pending(self) -> int:
         return self._pending
 
+    @property
+    def pending_bytes(self) -> int:
+        return self._pending_bytes
+
 
 class Bridge:
-    """The zenoh callbacks of one daemon and their bounds and counters: ``ingress`` (samples),
-    ``query_ingress`` (queries and control puts), ``stop_ingress`` (arm stops, bounded apart so
-    that a flood of queries never turns a stop away); ``loop()`` is the daemon's event loop."""
+    """The zenoh callbacks of one daemon and their bounds and counters: ``ingress`` (samples,
+    bounded in count and, with ``max_bytes``, in payload bytes), ``query_ingress`` (queries and
+    control puts), ``stop_ingress`` (arm stops, bounded apart so that a flood of queries never
+    turns a stop away); ``loop()`` is the daemon's event loop. A sample whose payload exceeds
+    ``max_message_bytes`` is refused before it is copied (``too_large``, counted per input)."""
 
-    def __init__(self, limit: int, loop: Callable[[], asyncio.AbstractEventLoop | None]) -> None:
+    def __init__(
+        self,
+        limit: int,
+        loop: Callable[[], asyncio.AbstractEventLoop | None],
+        *,
+        max_bytes: int | None = None,
+        max_message_bytes: int | None = None,
+    ) -> None:
         self.loop = loop
-        self.ingress = IngressGate(limit)
+        self.ingress = IngressGate(limit, max_bytes)
+        self.max_message_bytes = max_message_bytes
+        self.too_large: dict[str, int] = {}  # samples refused for their size, per input
         self.query_ingress = IngressGate(limit)
         self.stop_ingress = IngressGate(8)
         self.deletes_ignored = 0  # zenoh DELETE samples on input keys (they carry no message)
@@ -93,7 +120,7 @@ class Bridge:
 
     def handled(self, item: Inbound) -> None:
         """On the loop, as ``item`` is taken: it no longer counts against the bound."""
-        self.ingress.leave()
+        self.ingress.leave(len(item.payload))
         if item.role == "pose" and self.pose_backlog_s:
             self.pose_backlog_s.popleft()
 
@@ -111,15 +138,19 @@ class Bridge:
                 att = sample.attachment
                 now_s = time.monotonic()
                 lost, gid = upstream.observe_publisher(role, None if att is None else att.to_bytes(), now_s)
+                nbytes = len(sample.payload)  # before the copy: what is refused is never copied
             except Exception as exc:  # a bug: counted and logged, never raised into zenoh
                 self.error(role, exc)
                 return
-            if not gate.enter():
+            if self.max_message_bytes is not None and nbytes > self.max_message_bytes:
+                self._too_large(role, nbytes)
+                return
+            if not gate.enter(nbytes):
                 return
             try:
                 item = Inbound(role, str(sample.key_expr), sample.payload.to_bytes(), now_s, lost, gid)
             except Exception as exc:
-                gate.leave()
+                gate.leave(nbytes)
                 self.error(role, exc)
                 return
             if role == "pose":
@@ -127,9 +158,21 @@ class Bridge:
             try:
                 loop.call_soon_threadsafe(handle, item)
             except RuntimeError:  # loop closed during shutdown
-                gate.leave()
+                gate.leave(nbytes)
 
         return on_sample
+
+    def _too_large(self, role: str, nbytes: int) -> None:
+        """A sample refused for its size (above ``max_message_bytes``): counted per input and
+        logged, the first five then every 100th."""
+        with self._lock:
+            n = self.too_large[role] = self.too_large.get(role, 0) + 1
+        if log_nth(n):
+            log.warning(
+                "rejected %s input (too_large, #%d): a message of %d bytes, above the largest "
+                "accepted (%d B: daemon.max_image_bytes and the message header); not copied",
+                role, n, nbytes, self.max_message_bytes,
+            )  # fmt: skip
 
     def error(self, role: str, exc: Exception) -> None:
         """A sample lost to an error in the zenoh callback (a bug): counted per input

@@ -78,6 +78,7 @@ class DaemonConfig:
         "estimation runs on its own thread in parallel, and oversubscribed cores slow torch "
         "down several-fold",
         ge=0,
+        le=1024,
     )
     malloc_arena_max: int = opt(
         2,
@@ -162,7 +163,7 @@ class DaemonConfig:
         "camera rotation in the frame of the pose input, a unit quaternion in ROS order x y z w "
         "(as tf2's static transforms)",
     )
-    markers_top_k: int = opt(10, "grasps drawn in the MarkerArray", ge=0)
+    markers_top_k: int = opt(10, "grasps drawn in the MarkerArray", ge=0, le=10000)
     publish_cloud: bool = opt(True, "publish the fused cloud with sigma2_occ and PUGS confidence")
     cloud_interval_s: float = opt(
         5.0,
@@ -193,6 +194,41 @@ class DaemonConfig:
         "samples handed from zenoh threads to the loop and not yet handled; beyond it the "
         "callback drops (zenoh is never blocked)",
         ge=1,
+        le=65536,
+    )
+    ingress_max_bytes: int = opt(
+        268435456,
+        "payload bytes handed from zenoh threads to the loop and not yet handled; a sample "
+        "beyond it is dropped and counted (ingress.refused.byte_bound), like one beyond "
+        "ingress_limit",
+        unit="B",
+        ge=1048576,
+        le=17179869184,
+    )
+    max_image_bytes: int = opt(
+        33554432,
+        "largest image accepted (height * step; a 2448 x 2048 bgra8 image is 20 MB): a larger "
+        "input message is refused before it is copied or decoded (counted as too_large), as is an "
+        "image whose declared size differs from its camera's CameraInfo",
+        unit="B",
+        ge=4096,
+        le=1073741824,
+    )
+    max_pose_std_translation_m: float = opt(
+        10.0,
+        "a pose whose covariance gives a position standard deviation above this (a diverging "
+        "localiser) is refused and counted (implausible_covariance) before it is used",
+        unit="m",
+        gt=0.0,
+        le=1e6,
+    )
+    max_pose_std_rotation_rad: float = opt(
+        math.pi,
+        "a pose whose covariance gives a rotation standard deviation above this is refused and "
+        "counted (implausible_covariance) before it is used",
+        unit="rad",
+        gt=0.0,
+        le=1e3,
     )
 
     def __post_init__(self) -> None:
@@ -282,17 +318,32 @@ class TopicsConfig:
 class QueuesConfig:
     """Bounded mailboxes between stages (sizes)."""
 
-    stereo: int = opt(2, "stereo frames waiting for depth (drop oldest)", ge=1)
-    depth: int = opt(
-        32,
-        "depth frames waiting for fusion (drop oldest); 32 downsampled frames (depth + sigma) are "
-        "about 5 MB and bridge 3 s of a busy model thread at 10 Hz. A camera faster than the daemon "
-        "integrates keeps it full, and frames wait in it (daemon.max_frame_rate_hz)",
+    stereo: int = opt(
+        2,
+        "complete frames waiting for depth estimation (drop oldest): the newest win before "
+        "stereo matching; 2 bridges a hiccup of the model at a rate it sustains",
         ge=1,
+        le=64,
     )
-    commands: int = opt(8, "commands waiting (reject when full)", ge=1)
-    record: int = opt(256, "messages waiting for the recorder (drop oldest)", ge=1)
-    pose_wait: int = opt(8, "frames waiting for a usable pose (drop oldest)", ge=1)
-    unpaired: int = opt(8, "stereo halves waiting for their partner stamp (drop oldest)", ge=1)
-    poses: int = opt(512, "poses kept for interpolation", ge=2)
-    side_images: int = opt(8, "masks and depth-std images kept for matching by stamp", ge=1)
+    depth: int = opt(
+        1,
+        "depth frames waiting for fusion (drop oldest); depth estimation starts on a frame only "
+        "while this has room, so that a frame is never matched only to wait or be dropped here",
+        ge=1,
+        le=64,
+    )
+    commands: int = opt(8, "commands waiting (reject when full)", ge=1, le=1024)
+    record: int = opt(256, "messages waiting for the recorder (drop oldest)", ge=1, le=1048576)
+    pose_wait: int = opt(8, "frames waiting for a usable pose (drop oldest)", ge=1, le=1024)
+    unpaired: int = opt(8, "stereo halves waiting for their partner stamp (drop oldest)", ge=1, le=1024)
+    poses: int = opt(512, "poses kept for interpolation", ge=2, le=1048576)
+    side_images: int = opt(8, "masks and depth-std images kept for matching by stamp", ge=1, le=1024)
+    buffered_bytes: int = opt(
+        268435456,
+        "pixel bytes the frame assembly holds (unpaired halves, frames waiting for a pose, masks "
+        "and depth std images), and each of the stereo and depth queues; beyond it the oldest "
+        "are dropped and counted (reason: byte budget). At least twice daemon.max_image_bytes",
+        unit="B",
+        ge=1048576,
+        le=17179869184,
+    )

@@ -61,6 +61,7 @@ class Health:
         self.stall_s = stall_s
         self.max_failures = max_failures
         self.failures: Counter[str] = Counter()  # consecutive failed calls per stage
+        self.last_failure: dict[str, str] = {}  # stage -> why its latest call failed (until one succeeds)
         self.counts: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()  # "<input>: <reason class>" -> n
         self.dropped: Counter[str] = Counter()  # "<stage>: <reason>" -> n
@@ -96,6 +97,12 @@ class Health:
 
     def succeeded(self, stage: str) -> None:
         self.failures.pop(stage, None)
+        self.last_failure.pop(stage, None)
+
+    def note_failure(self, stage: str, exc: BaseException) -> None:
+        """Keep why ``stage``'s latest call failed (status ``last_failure``; ``grasps/latest``
+        answers with it), bounded, until a call of it succeeds."""
+        self.last_failure[stage] = f"{type(exc).__name__}: {exc}"[:300]
 
     def failed(self, stage: str) -> int:
         """Count one more consecutive failure of ``stage``; returns the run length."""
@@ -131,6 +138,7 @@ class Health:
             "latency": {k: v.summary() for k, v in sorted(self.latency.items())},
             "busy": sorted(self._busy_since),
             "failing": dict(self.failures),
+            "last_failure": dict(self.last_failure),
         }
 
 
@@ -181,10 +189,12 @@ class Reporter:
             out = await coro
         except PugsdError as exc:
             self.reject(stage, exc)
+            self.health.note_failure(stage, exc)
             if reason_class(exc) in MAP_AT_FAULT:  # every later frame fails alike: not input's fault
                 self.health.failed(stage)
         except Exception as exc:
             self.health.failed(stage)
+            self.health.note_failure(stage, exc)
             key = f"errors.{stage}"
             self.health.count(key)
             n = self.health.counts[key]
@@ -350,7 +360,13 @@ def status_of(d: Daemon) -> dict[str, Any]:
         **snap,
         "dropped_total": d.dropped_total(),  # counts.dropped and the queues' own, below
         "mailboxes": {b.name: b.stats() for b in (d.stereo_box, d.depth_box, d.commands)},
-        "ingress": {"pending": b.ingress.pending, "dropped": b.ingress.dropped},
+        "ingress": {
+            "pending": b.ingress.pending,
+            "pending_bytes": b.ingress.pending_bytes,
+            "dropped": b.ingress.dropped,
+            "refused": dict(b.ingress.refused),  # count_bound, byte_bound
+            "too_large": dict(b.too_large),  # per input: above daemon.max_image_bytes, not copied
+        },
         "query_ingress": {"pending": b.query_ingress.pending, "dropped": b.query_ingress.dropped},
         # arm/stop queries and puts beyond the eight on their way (those do the stopping)
         "stop_ingress": {"pending": b.stop_ingress.pending, "dropped": b.stop_ingress.dropped},
@@ -371,6 +387,7 @@ def status_of(d: Daemon) -> dict[str, Any]:
             "pose_gate": len(f.gate),
             "unpaired": f.pairer.pending(),
             "unpaired_dropped": f.pairer.unpaired_dropped,
+            "buffered_bytes": f.buffered_bytes(),
             "poses": len(f.poses),
             "pose_clock_jumps_back": f.poses.jumps_back,
             "pose_strays": f.poses.strays,

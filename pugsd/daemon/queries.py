@@ -33,6 +33,8 @@ STATE_CHANGING = frozenset({"reset", "arm_execute", "arm_stop", "arm_release"})
 # how the error replies to grasps/latest begin when there are no grasps to give yet (no model yet,
 # or a reset clearing the map): clients tell "not ready" apart from a failure by it
 NO_GRASPS = "no grasps"
+# how they begin when the latest grasp computation failed (a failure, not "not ready")
+GRASPS_FAILED = "grasps failed"
 
 
 def answer(d: Daemon, kind: str, query: Any) -> None:
@@ -50,7 +52,7 @@ def answer(d: Daemon, kind: str, query: Any) -> None:
                 if d._resetting:  # latest_grasps is the map being cleared
                     query.reply_err(f"{NO_GRASPS}: the map is being reset")
                 elif d.outputs.latest_grasps is None:
-                    query.reply_err(f"{NO_GRASPS} yet: model not ready")
+                    query.reply_err(no_grasps_reason(d))
                 else:
                     query.reply(key, d.outputs.latest_grasps)
             elif kind == "status":
@@ -72,6 +74,17 @@ def answer(d: Daemon, kind: str, query: Any) -> None:
             d.report.internal_error(f"errors.query.{kind}", f"answering a {kind} query", exc)
             with contextlib.suppress(Exception):
                 query.reply_err(f"internal error: {type(exc).__name__}")
+
+
+def no_grasps_reason(d: Daemon) -> str:
+    """Why ``grasps/latest`` has no grasps to answer with: the latest grasp computation's
+    failure when it failed, else that the model is not ready (or has not been published yet)."""
+    failure = d.health.last_failure.get("grasps")
+    if failure is not None:
+        return f"{GRASPS_FAILED}: the last grasp computation failed ({failure})"
+    if not (d.ready or d.was_ready):
+        return f"{NO_GRASPS} yet: model not ready"
+    return f"{NO_GRASPS} yet: the first grasp computation has not finished"
 
 
 def refuse_wildcard(d: Daemon, kind: str, asked: str) -> None:

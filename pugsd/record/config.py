@@ -18,7 +18,7 @@ class RecordConfig:
     name_prefix: str = opt("pugsd", "file names are PREFIX_<UTC time>_<index>.mcap")
     keys: tuple[str, ...] = opt((), "zenoh key expressions to record; empty: every [topics] input and output")
     compression: str = opt("zstd", "MCAP chunk compression", choices=("zstd", "lz4", "none"))
-    chunk_size_bytes: int = opt(1048576, "MCAP chunk size (ZSTD)", unit="B", ge=4096)
+    chunk_size_bytes: int = opt(1048576, "MCAP chunk size (ZSTD)", unit="B", ge=4096, le=1073741824)
     flush_interval_s: float = opt(
         2.0,
         "close the open chunk at least this often (bounds what a crash loses)",
@@ -46,6 +46,7 @@ class RecordConfig:
         "(the message count bound is [queues] record)",
         unit="B",
         ge=1048576,
+        le=17179869184,
     )
 
     def __post_init__(self) -> None:

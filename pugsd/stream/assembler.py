@@ -4,8 +4,11 @@
 Left and right images pair by exact stamp; the rig comes from the latest left/right CameraInfo;
 each frame waits (``PoseGate``) for its pose, interpolated on SE(3) by the ``PoseBuffer``, taken
 from one pose publisher at a time, and for its mask (and depth std image) while that topic is
-active or undecided. Images of another size than their camera are rejected on arrival. Every
-rejection, drop and emitted frame goes to the caller through ``report`` and ``on_frame``.
+active or undecided. Images above ``daemon.max_image_bytes`` or of another size than their
+camera are rejected on arrival, from their declared layout, before any pixel is decoded; what
+waits is held within ``queues.buffered_bytes`` (the oldest dropped first); a pose covariance
+beyond ``daemon.max_pose_std_*`` is rejected before it is used. Every rejection, drop and emitted
+frame goes to the caller through ``report`` and ``on_frame``.
 
 Pure and synchronous with an injected clock: the daemon's is ``time.monotonic``, ``pugsd
 replay``'s the recording's log time.
@@ -14,6 +17,7 @@ replay``'s the recording's log time.
 from __future__ import annotations
 
 import logging
+import math
 from collections import OrderedDict, deque
 from collections.abc import Callable
 from typing import Any, Protocol
@@ -70,6 +74,7 @@ def reason_class(exc: BaseException) -> str:
         ("out_of_map_range", ("voxel hash",)),
         ("beyond_any_map", ("too far for any voxel index",)),
         ("too_small_for_stereo", ("too small for the disparity search",)),
+        ("touches_no_tsdf_block", ("touches no tsdf block",)),
         ("malformed_cdr", ("malformed cdr", "truncated cdr", "cdr encapsulation", "not bytes")),
         ("wrong_type", ("not accepted (expected", "unsupported pose type", "rmw_zenoh key")),
         ("no_camera_info", ("no camerainfo",)),
@@ -186,6 +191,7 @@ class FrameAssembler:
         checked) must be the role's type. Raises a PugsdError when the message is rejected."""
         if role in ("left_image", "right_image"):
             self._expect_type(role, typename, IMAGE)
+            self._check_layout(role, data)
             img = codec.decode_image(data, STEREO_ENCODINGS)
             self._check_size(role, img)
             dups = self.pairer.duplicates
@@ -199,6 +205,8 @@ class FrameAssembler:
             if pair is not None:
                 self.report.count("paired")
                 self._admit(img.stamp_ns, ("stereo", pair, recv_s), recv_s)
+            else:
+                self._keep_budget()
         elif role in ("left_info", "right_info", "depth_info"):
             self._expect_type(role, typename, CAMERA_INFO)
             info = codec.decode_camera_info(data)
@@ -211,6 +219,8 @@ class FrameAssembler:
             if typename not in POSE_TYPES.values():
                 raise InputRejected("wrong_type", f"pose: type {typename[:100]!r} not accepted")
             pm = codec.decode_pose(data, typename, self.pose_stamped_cov)
+            if pm.cov is not None and typename != POSE_TYPES["PoseStamped"]:  # a carried one
+                self._check_plausible(pm.cov)
             self._follow_pose_publisher(publisher, recv_s, key)
             T_W_C, cov = pm.T, carried_cov(pm.cov)
             if self.T_B_C is not None:  # the pose of the body carrying the camera
@@ -236,20 +246,25 @@ class FrameAssembler:
             self.poll()
         elif role == "mask":
             self._expect_type(role, typename, IMAGE)
+            self._check_layout(role, data)
             m = codec.decode_image(data, MASK_ENCODINGS)
             bounded_put(self.masks, m.stamp_ns, m.array > 0, self.q.side_images)
+            self._keep_budget()
             self.last_mask_s = recv_s
             self.side_undecided["mask"] = True
             self.poll()
         elif role == "depth_std":
             self._expect_type(role, typename, IMAGE)
+            self._check_layout(role, data)
             s = codec.decode_image(data, ("32FC1",))
             bounded_put(self.stds, s.stamp_ns, s.array.astype(np.float32), self.q.side_images)
+            self._keep_budget()
             self.last_std_s = recv_s
             self.side_undecided["depth_std"] = True
             self.poll()
         elif role == "depth":
             self._expect_type(role, typename, IMAGE)
+            self._check_layout(role, data)
             img = codec.decode_image(data, DEPTH_ENCODINGS)
             self._check_size(role, img)
             self._admit(img.stamp_ns, ("depth", img, recv_s), recv_s)
@@ -259,6 +274,29 @@ class FrameAssembler:
         if got is not None and got != typename:
             msg = f"{role}: type {got[:100]!r} not accepted (expected {typename})"
             raise InputRejected("wrong_type", msg)
+
+    def _check_plausible(self, cov: np.ndarray) -> None:
+        """InputRejected ``implausible_covariance`` for a pose covariance whose position or
+        rotation standard deviation (along its worst direction) exceeds ``daemon.max_pose_std_*``
+        (a diverging localiser): refused before it changes any state."""
+        for name, block, limit, unit in (
+            ("position", cov[:3, :3], self.d.max_pose_std_translation_m, "m"),
+            ("rotation", cov[3:, 3:], self.d.max_pose_std_rotation_rad, "rad"),
+        ):
+            scale = float(np.abs(block).max())  # judged scaled: entries near the float64 limit
+            try:
+                S = block / scale if scale > 0 else block
+                worst = float(np.linalg.eigvalsh(0.5 * S + 0.5 * S.T)[-1]) * scale
+            except np.linalg.LinAlgError:
+                worst = math.inf
+            if not worst <= limit * limit:
+                raise InputRejected(
+                    "implausible_covariance",
+                    f"pose: {name} standard deviation {np.sqrt(max(worst, 0.0)):.3g} {unit} above "
+                    f"daemon.max_pose_std_{'translation_m' if name == 'position' else 'rotation_rad'}"
+                    f" = {limit:g} {unit}; pose ignored",
+                    "pose",
+                )
 
     def _follow_pose_publisher(self, gid: bytes | None, recv_s: float, key: str) -> None:
         """Take poses from one publisher at a time (``daemon.pose_publisher_hold_s``): a pose of
@@ -292,6 +330,68 @@ class FrameAssembler:
             )  # fmt: skip
         self.pose_publisher, self.pose_publisher_s = gid, max(self.pose_publisher_s, recv_s)
 
+    def _camera_shape(self, role: str) -> tuple[int, int] | None:
+        """The (height, width) the camera of image input ``role`` has, None while unknown (no or
+        inconsistent CameraInfo; masks and depth std images are judged with their frame)."""
+        if role == "depth":
+            info = self.infos.get("depth_info")
+            return None if info is None else (info.camera.height, info.camera.width)
+        if role not in ("left_image", "right_image"):
+            return None
+        try:
+            cam = self.stereo_rig().left
+        except PugsdError:
+            return None
+        return (cam.height, cam.width)
+
+    def _check_layout(self, role: str, data: bytes) -> None:
+        """Refuse an image above ``daemon.max_image_bytes``, or of another size than its camera,
+        from its declared layout, before any of its pixels are decoded or copied."""
+        what = "depth image" if role == "depth" else f"{role}: image"
+        try:
+            codec.check_image_layout(data, self.d.max_image_bytes, self._camera_shape(role), what)
+        except DecodeError as exc:
+            raise InputRejected(reason_class(exc), str(exc), role) from None
+
+    def buffered_bytes(self) -> int:
+        """The pixel bytes held: unpaired halves, frames waiting for a pose, masks and std images."""
+        n = sum(img.array.nbytes for img in self.pairer.waiting())
+        n += sum(waiting_nbytes(entry) for entry in self.gate.items())
+        n += sum(a.nbytes for a in self.masks.values()) + sum(a.nbytes for a in self.stds.values())
+        return n
+
+    def _keep_budget(self) -> None:
+        """Hold at most ``queues.buffered_bytes``: beyond it the oldest by stamp go first, of the
+        unpaired halves, the masks and std images and the frames waiting for a pose (each counted
+        as a drop of its stage, reason byte budget), so that the newest frame wins."""
+        limit = self.q.buffered_bytes
+        total = self.buffered_bytes()
+        reason = f"byte budget (queues.buffered_bytes = {limit} B)"
+        while total > limit:
+            candidates = [
+                (stamp, stage)
+                for stamp, stage in (
+                    (self.pairer.oldest_stamp(), "unpaired"),
+                    (self.gate.oldest_stamp(), "pose_wait"),
+                    (next(iter(self.masks), None), "mask"),
+                    (next(iter(self.stds), None), "depth_std"),
+                )
+                if stamp is not None
+            ]
+            if not candidates:
+                break
+            _, stage = min(candidates)
+            if stage == "unpaired":
+                half = self.pairer.pop_oldest()
+                total -= 0 if half is None else half.array.nbytes
+            elif stage == "pose_wait":
+                entry = self.gate.pop_oldest()
+                total -= 0 if entry is None else waiting_nbytes(entry)
+            else:
+                total -= (self.masks if stage == "mask" else self.stds).popitem(last=False)[1].nbytes
+                stage = "side_images"
+            self.report.drop(stage, reason)
+
     def _check_size(self, role: str, img: codec.ImageMsg) -> None:
         """Reject an image of another size than its camera on arrival, so that it neither takes
         (or replaces) a good waiting stereo half of its stamp nor pushes good frames out of the
@@ -321,6 +421,7 @@ class FrameAssembler:
             self.stamp_skew_s.append((stamp_ns - newest) / 1e9)
         for _, reason in self.gate.add(stamp_ns, entry, now_s):
             self.report.drop("pose_wait", reason)
+        self._keep_budget()
         self.poll()
 
     # --- release ----------------------------------------------------------------------------
@@ -493,6 +594,26 @@ def log_nth(n: int, first: int = 5) -> bool:
     """Whether the ``n``-th (1-based) of a repeated event is logged: the first ``first``, then
     every 100th (each is counted regardless)."""
     return n <= first or n % 100 == 0
+
+
+def frame_nbytes(frame: Frame) -> int:
+    """The array bytes a frame holds (images, depth, std, mask, colour; 0 for anything else)."""
+    arrays: tuple[np.ndarray | None, ...]
+    if isinstance(frame, StereoFrame):
+        arrays = (frame.left, frame.right, frame.mask)
+    elif isinstance(frame, DepthFrame):
+        arrays = (frame.depth_m, frame.sigma_m, frame.mask, frame.color)
+    else:
+        return 0
+    return int(sum(a.nbytes for a in arrays if a is not None))
+
+
+def waiting_nbytes(entry: Waiting) -> int:
+    """The pixel bytes of a frame waiting for its pose."""
+    kind, payload, _ = entry
+    if kind == "stereo":
+        return int(payload[0].array.nbytes + payload[1].array.nbytes)
+    return int(payload.array.nbytes)
 
 
 def bounded_put(d: OrderedDict[int, np.ndarray], key: int, value: np.ndarray, cap: int) -> None:

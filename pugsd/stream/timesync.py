@@ -347,6 +347,24 @@ class ExactPairer(Generic[L, R]):
     def pending(self) -> int:
         return len(self._left) + len(self._right)
 
+    def waiting(self) -> list[L | R]:
+        """The halves waiting for their partner."""
+        return [*self._left.values(), *self._right.values()]
+
+    def oldest_stamp(self) -> int | None:
+        """The oldest stamp a half waits with (None: none waits)."""
+        stamps = [min(d) for d in (self._left, self._right) if d]
+        return min(stamps) if stamps else None
+
+    def pop_oldest(self) -> L | R | None:
+        """Remove and return the waiting half with the oldest stamp (None: none waits); the
+        caller counts it."""
+        sides: list[OrderedDict[int, L] | OrderedDict[int, R]] = [d for d in (self._left, self._right) if d]
+        if not sides:
+            return None
+        side = min(sides, key=lambda d: min(d))
+        return side.pop(min(side))
+
     def clear(self) -> int:
         """Discard the waiting halves; returns how many."""
         n = self.pending()
@@ -420,6 +438,18 @@ class PoseGate(Generic[T]):
                 keep.append(w)
         self._waiting = keep
         return ready, dropped
+
+    def items(self) -> list[T]:
+        """The waiting items, oldest first."""
+        return [w.item for w in self._waiting]
+
+    def oldest_stamp(self) -> int | None:
+        """The stamp of the item waiting longest (None: none)."""
+        return self._waiting[0].stamp_ns if self._waiting else None
+
+    def pop_oldest(self) -> T | None:
+        """Remove and return the item waiting longest (None: none); the caller counts it."""
+        return self._waiting.pop(0).item if self._waiting else None
 
     def clear(self) -> int:
         n = len(self._waiting)

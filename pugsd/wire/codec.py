@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -266,8 +267,106 @@ def encode_image(
     return serialize(msg, IMAGE)
 
 
-def decode_image(data: bytes, encodings: Sequence[str] | None = None) -> ImageMsg:
-    """Decode and validate a sensor_msgs/Image (encoding, step, data size); copies the pixels."""
+@dataclass(frozen=True, slots=True)
+class ImageLayout:
+    """What a sensor_msgs/Image declares about its pixels, read from the CDR without decoding
+    (or copying) them: ``data_bytes`` is the length of its data field."""
+
+    height: int
+    width: int
+    encoding: str
+    step: int
+    data_bytes: int
+
+
+def _cdr_string(buf: memoryview, pos: int, order: str) -> tuple[str, int] | None:
+    pos = (pos + 3) & ~3
+    if pos + 4 > len(buf):
+        return None
+    (n,) = struct.unpack_from(order + "I", buf, pos)
+    pos += 4
+    if n == 0 or pos + n > len(buf):
+        return None
+    try:
+        return bytes(buf[pos : pos + n - 1]).decode("utf-8"), pos + n
+    except UnicodeDecodeError:
+        return None
+
+
+def image_layout(data: bytes | bytearray | memoryview) -> ImageLayout | None:
+    """The declared size of a CDR sensor_msgs/Image (height, width, encoding, step, data length),
+    read from its fixed fields; None when they cannot be read (``decode_image`` then says why)."""
+    buf = memoryview(data)
+    if len(buf) < 4 or bytes(buf[:2]) not in (_CDR_LE[:2], _CDR_BE[:2]):
+        return None
+    order = "<" if buf[1] == 1 else ">"
+    body = buf[4:]
+    pos = 8  # header.stamp: sec, nanosec
+    frame = _cdr_string(body, pos, order)
+    if frame is None:
+        return None
+    pos = (frame[1] + 3) & ~3
+    if pos + 8 > len(body):
+        return None
+    h, w = struct.unpack_from(order + "II", body, pos)
+    enc = _cdr_string(body, pos + 8, order)
+    if enc is None:
+        return None
+    pos = enc[1] + 1  # is_bigendian
+    pos = (pos + 3) & ~3
+    if pos + 8 > len(body):
+        return None
+    step, n = struct.unpack_from(order + "II", body, pos)
+    return ImageLayout(int(h), int(w), enc[0], int(step), int(n))
+
+
+def check_image_layout(
+    data: bytes | bytearray | memoryview,
+    max_bytes: int | None = None,
+    shape: tuple[int, int] | None = None,
+    what: str = f"{IMAGE}: image",
+) -> None:
+    """Refuse an image before any of its pixels are decoded or copied: a payload or declared
+    pixel data (step * height) above ``max_bytes``, and one whose declared height and width are
+    not ``shape``. DecodeError ``too_large`` or ``wrong_size``; a layout that cannot be read is
+    left to ``decode_image``."""
+    if max_bytes is not None and len(data) > max_bytes + MESSAGE_OVERHEAD_BYTES:
+        raise DecodeError(
+            f"{what} message of {len(data)} bytes, above the maximum image size {max_bytes} B",
+            reason="too_large",
+        )
+    lay = image_layout(data)
+    if lay is None:
+        return
+    if max_bytes is not None and max(lay.step * lay.height, lay.data_bytes) > max_bytes:
+        raise DecodeError(
+            f"{what} declares {lay.height} rows of {lay.step} bytes, above the maximum image "
+            f"size {max_bytes} B",
+            reason="too_large",
+        )
+    if shape is not None and (lay.height, lay.width) != shape:
+        raise DecodeError(
+            f"{what} is {(lay.height, lay.width)}, camera expects {shape}", reason="wrong_size"
+        )
+
+
+# header, frame_id and encoding of an image message beside its pixels: bounded by the checks of
+# ``check_image_layout`` only through its declared sizes
+MESSAGE_OVERHEAD_BYTES = 65536
+
+
+def decode_image(
+    data: bytes,
+    encodings: Sequence[str] | None = None,
+    *,
+    max_bytes: int | None = None,
+    shape: tuple[int, int] | None = None,
+) -> ImageMsg:
+    """Decode and validate a sensor_msgs/Image (encoding, step, data size); copies the pixels
+    once. With ``max_bytes`` and ``shape`` the image is first refused by ``check_image_layout``
+    (too large, or not ``shape`` (height, width)) before any of it is decoded."""
+    if max_bytes is not None or shape is not None:
+        check_image_layout(data, max_bytes, shape)
     m = deserialize(data, IMAGE)
     enc = str(m.encoding)
     allowed = IMAGE_ENCODINGS if encodings is None else encodings
@@ -282,7 +381,7 @@ def decode_image(data: bytes, encodings: Sequence[str] | None = None) -> ImageMs
     row = w * ch * dtype.itemsize
     if step < row:
         raise DecodeError(f"{IMAGE}: step {step} < width*channels*bytes {row}")
-    raw = np.asarray(m.data, dtype=np.uint8)
+    raw = np.asarray(m.data, dtype=np.uint8)  # a view of ``data`` (rosbags does not copy)
     if raw.size != step * h:
         raise DecodeError(
             f"{IMAGE}: data has {raw.size} bytes, expected step*height = {step}*{h} = {step * h}"
@@ -291,8 +390,8 @@ def decode_image(data: bytes, encodings: Sequence[str] | None = None) -> ImageMs
         raise DecodeError(f"{IMAGE}: is_bigendian={m.is_bigendian}")
     rows = raw.reshape(h, step)[:, :row]
     dt = dtype.newbyteorder(">" if m.is_bigendian else "<")
-    arr = np.frombuffer(np.ascontiguousarray(rows).tobytes(), dtype=dt).astype(dtype, copy=False)
-    arr = arr.reshape((h, w) if ch == 1 else (h, w, ch))
+    arr = np.empty((h, w) if ch == 1 else (h, w, ch), dtype=dtype)  # the one copy
+    arr.reshape(h, row // dtype.itemsize)[...] = rows.view(dt)
     return ImageMsg(_stamp_ns(m.header, IMAGE), str(m.header.frame_id), enc, arr)
 
 

@@ -102,3 +102,20 @@ def test_non_finite_input_is_rejected_not_propagated(bad: str) -> None:
         mean[1, 2] = np.inf
     with pytest.raises(CovarianceError, match="non-finite"):
         sigma_points(mean, cov, 1.0, 0.0)
+
+
+def test_a_covariance_the_cholesky_refuses_still_gives_finite_sigma_points() -> None:
+    """1e30 along one axis and 1e-6 across it (a pose covariance of a diverging localiser carried
+    to a point): rounding makes it indefinite and the Cholesky factorisation refuses it. Its
+    sigma points are still finite and reproduce it; a well-conditioned covariance in the same
+    batch keeps its Cholesky columns."""
+    u = np.array([1.0, 2.0, 3.0]) / np.sqrt(14.0)
+    bad = 1e30 * np.outer(u, u) + 1e-6 * np.eye(3)
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.cholesky(3.0 * bad)
+    good = np.diag([1e-4, 2e-4, 3e-4])
+    pts = sigma_points(np.zeros((2, 3)), np.stack([good, bad]), 1.0, 0.0)
+    assert np.isfinite(pts).all()
+    np.testing.assert_array_equal(pts[0, 1:4], np.linalg.cholesky(3.0 * good).T)
+    spread = pts[1, 1:4] - pts[1, 0]
+    np.testing.assert_allclose(spread.T @ spread, 3.0 * bad, rtol=1e-9, atol=1e16)

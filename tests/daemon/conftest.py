@@ -117,6 +117,7 @@ class FakePipeline:
 
     ready_after: int = 4
     depth_delay_s: float = 0.0
+    integrate_delay_s: float = 0.0
     train_delay_s: float = 0.0
     compute_delay_s: float = 0.0
     steps: int = 0
@@ -142,6 +143,7 @@ class FakePipeline:
         )
 
     def integrate(self, depth: DepthFrame) -> int:
+        time.sleep(self.integrate_delay_s)
         self.integrated.append(depth.stamp_ns)
         self.frames.append(depth)
         self.version += 1

@@ -146,6 +146,7 @@ def test_status_lines_golden() -> None:
         (["no grasps yet: model not ready"], exit_codes.NOT_READY),
         (["no grasps: the map is being reset"], exit_codes.NOT_READY),
         (["internal error: ValueError"], exit_codes.FAILURE),
+        (["grasps failed: the last grasp computation failed (CovarianceError: x)"], exit_codes.FAILURE),
         (["busy: too many queries waiting; try again"], exit_codes.FAILURE),
     ],
 )

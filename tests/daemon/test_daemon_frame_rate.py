@@ -215,7 +215,9 @@ def test_a_hiccup_is_not_an_overload(
 
 
 def test_a_reset_clearing_the_queues_is_not_an_overload(port: int, caplog: pytest.LogCaptureFixture) -> None:
-    d = Daemon(load_config_dict(daemon_config_dict(port)), FakePipeline())
+    cfg = daemon_config_dict(port)
+    cfg["queues"] = {"stereo": 2, "depth": 8}
+    d = Daemon(load_config_dict(cfg), FakePipeline())
     caplog.set_level(logging.WARNING, logger="pugsd")
     d._report_overload(0.0)
     for _ in range(7):

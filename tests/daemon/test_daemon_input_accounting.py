@@ -124,7 +124,8 @@ def test_dropped_total_sums_every_kind_of_drop(port: int) -> None:
     assert (d.stereo_box.dropped, d.depth_box.dropped, d.frames.pairer.unpaired_dropped) == (2, 3, 7)
     st = d.status()
     assert d.dropped_total() == st["dropped_total"] == 2 + 3 + 5 + 7 + 11
-    assert st["ingress"] == {"pending": 1, "dropped": 5}
+    assert (st["ingress"]["pending"], st["ingress"]["dropped"]) == (1, 5)
+    assert st["ingress"]["refused"] == {"count_bound": 5} and st["ingress"]["too_large"] == {}
     assert st["waiting"]["unpaired"] == 1 and st["waiting"]["unpaired_dropped"] == 7
 
 

@@ -27,6 +27,7 @@ from pugsd.config import load_config_dict
 from pugsd.core.types import DepthFrame
 from pugsd.daemon.app import Command, Daemon
 from pugsd.daemon.bridge import IngressGate
+from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier
 from pugsd.daemon.process import apply_thread_limits
 from pugsd.errors import EmptyCloudError, PugsdError
@@ -325,6 +326,7 @@ def test_shutdown_reports_what_was_left_queued_and_answers_an_accepted_arm_reque
     """What the queues still held at shutdown was dropped without a word; a request already told
     "accepted: grasp N" never got a report."""
     d = _daemon()
+    d.depth_box = Mailbox("depth", 2, Overflow.DROP_OLDEST)  # two frames left in it
     session = PutSession()
     d._session = session  # type: ignore[assignment]
     depth = DepthFrame(1, np.ones((RIG.left.height, RIG.left.width), np.float32), RIG.left, np.eye(4))
@@ -914,7 +916,7 @@ def test_status_reports_its_counters_and_survives_a_failing_pipeline() -> None:
     assert st["pipeline"] == {"error": "cuda gone"}
     assert st["healthy"] is True and st["problems"] == []
     assert st["query_ingress"] == {"pending": 1, "dropped": 3}
-    assert st["ingress"] == {"pending": 0, "dropped": 0}
+    assert st["ingress"] == {"pending": 0, "pending_bytes": 0, "dropped": 0, "refused": {}, "too_large": {}}
     assert (st["deletes_ignored"], st["bridge_errors"]) == (4, {"pose": 2})
     assert st["bridge_errors"] is not d.bridge.errors
     assert st["upstream"]["pose_publisher"] == "000102030405"

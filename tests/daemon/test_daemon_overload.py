@@ -150,10 +150,11 @@ def test_overload_real_pipeline(tmp_path: Path, port: int, client: zenoh.Session
     assert offered >= 5 * sustainable, summary
     assert dropped > 0
     assert mb["stereo"]["high_water"] <= mb["stereo"]["maxsize"] == 2
-    assert mb["depth"]["high_water"] <= mb["depth"]["maxsize"] == 32
+    assert mb["depth"]["high_water"] <= mb["depth"]["maxsize"] == 1
     assert c.get("paired", 0) >= integrated + mb["stereo"]["dropped"] + mb["depth"]["dropped"]
-    # fresh frames keep flowing: the frame that reaches the model is at most a few stage times old
-    assert lat["frame_age_at_integrate"]["p95_ms"] < 10_000, summary
+    # fresh frames keep flowing: the newest frame wins before stereo matching, so the frame that
+    # reaches the model is a few stage times old (a deep depth queue made it seconds old)
+    assert lat["frame_age_at_integrate"]["p95_ms"] < 2_500, summary
     if "newest_frame_to_grasps" in lat:
         assert lat["newest_frame_to_grasps"]["max_ms"] < 20_000, summary
     # bounded: no further growth once warmed up (model, TSDF, allocator pools), and a sane total

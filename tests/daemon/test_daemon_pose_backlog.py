@@ -32,6 +32,9 @@ class _Payload:
     def to_bytes(self) -> bytes:
         return self.data
 
+    def __len__(self) -> int:
+        return len(self.data)
+
 
 @dataclass
 class _Sample:  # what the callback reads of a zenoh.Sample

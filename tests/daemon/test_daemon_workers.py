@@ -27,6 +27,7 @@ from pugsd.config import load_config_dict
 from pugsd.core.types import DepthFrame, StereoFrame
 from pugsd.daemon.app import Command, Daemon
 from pugsd.daemon.health import jsonable
+from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier
 from pugsd.errors import EmptyCloudError, PugsdError
 from pugsd.record.recorder import default_record_keys
@@ -481,6 +482,7 @@ def test_the_depth_worker_hands_frames_on_counts_failures_and_drops_what_a_reset
     pipe = GatedDepth()
     pipe.fail, pipe.hold = {2}, {3}
     d = _daemon(pipe, max_consecutive_failures=5)
+    d.depth_box = Mailbox("depth", 2, Overflow.DROP_OLDEST)  # room for the last two frames
 
     async def main() -> None:
         task = asyncio.create_task(d._depth_worker())
@@ -1218,3 +1220,34 @@ def test_ready_follows_the_inputs_and_the_alive_token_and_a_stop_then_ends_the_r
     assert notifier.sent[0] == "READY=1" and notifier.sent[-1] == "STOPPING=1"
     declared = [e for e in order if e.split(" ")[0] in ("publisher", "queryable", "subscriber", "token")]
     assert d._stopping and sorted(s.undeclared) == sorted(declared)
+
+
+def test_the_depth_worker_matches_only_while_the_depth_queue_has_room() -> None:
+    """With a depth frame still waiting for the model, stereo frames stay unmatched (the newest
+    are kept, the oldest dropped and counted); once the model takes it, the newest is matched."""
+    pipe = GatedDepth()
+    d = _daemon(pipe)
+    assert (d.stereo_box.maxsize, d.depth_box.maxsize) == (2, 1)
+
+    async def main() -> None:
+        task = asyncio.create_task(d._depth_worker())
+        try:
+            d.stereo_box.offer((_stereo(1), 11.0))
+            await _until(lambda: len(d.depth_box) == 1, "the first depth frame")
+            for s in (2, 3, 4):
+                d.stereo_box.offer((_stereo(s), 10.0 + s))
+            await asyncio.sleep(0.2)
+            assert d.health.counts["depth"] == 1 and len(d.stereo_box) == 2  # not matched meanwhile
+            assert d.stereo_box.overflowed == 1  # frame 2, the oldest, dropped and counted
+            d.depth_box.take_nowait()  # the model takes the waiting depth frame
+            await _until(lambda: len(d.depth_box) == 1, "the next depth frame")
+            depth, _ = d.depth_box.take_nowait()  # type: ignore[misc]
+            assert depth.stamp_ns == 3
+        finally:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+
+    try:
+        asyncio.run(main())
+    finally:
+        _shutdown(d)

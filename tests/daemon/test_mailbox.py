@@ -62,3 +62,33 @@ def test_a_drained_mailbox_waits_again() -> None:
     assert box.take_nowait() == 2
     assert not box._nonempty.is_set()  # take() now waits instead of spinning on the loop
     assert box.stats()["taken"] == 2
+
+
+def test_a_byte_bound_drops_the_oldest_until_the_newest_fits() -> None:
+    box: Mailbox[bytes] = Mailbox("stereo", 8, Overflow.DROP_OLDEST, max_bytes=100, size_of=len)
+    for n in (40, 40, 40):
+        assert box.offer(b"x" * n)
+    assert len(box) == 2 and box.bytes == 80 and box.overflowed == 1
+    assert box.offer(b"y" * 150)  # alone above the bound: the newest is kept, the rest dropped
+    assert len(box) == 1 and box.bytes == 150 and box.dropped == 3
+    assert box.take_nowait() == b"y" * 150 and box.bytes == 0
+
+
+def test_a_rejecting_mailbox_refuses_what_its_bytes_cannot_hold() -> None:
+    box: Mailbox[bytes] = Mailbox("commands", 8, Overflow.REJECT, max_bytes=100, size_of=len)
+    assert box.offer(b"x" * 60)
+    assert not box.offer(b"x" * 60) and box.rejected == 1 and box.bytes == 60
+
+
+def test_wait_room_returns_once_an_item_is_taken() -> None:
+    async def main() -> None:
+        box: Mailbox[int] = Mailbox("depth", 1, Overflow.DROP_OLDEST)
+        await asyncio.wait_for(box.wait_room(), 0.1)  # empty: room at once
+        box.offer(1)
+        waiter = asyncio.create_task(box.wait_room())
+        await asyncio.sleep(0.02)
+        assert not waiter.done()
+        assert box.take_nowait() == 1
+        await asyncio.wait_for(waiter, 0.5)
+
+    asyncio.run(main())

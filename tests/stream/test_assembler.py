@@ -292,3 +292,25 @@ def test_reason_class_takes_a_fixed_class_before_the_text_and_falls_back_to_the_
 def test_log_nth_logs_the_first_five_then_every_hundredth() -> None:
     assert [n for n in range(1, 1001) if log_nth(n)] == [1, 2, 3, 4, 5, *range(100, 1001, 100)]
     assert [n for n in range(1, 201) if log_nth(n, first=2)] == [1, 2, 100, 200]
+
+
+def test_an_implausible_pose_covariance_is_refused_before_it_changes_any_state() -> None:
+    """A diverging localiser's 1e30 * I passes the wire checks (finite, symmetric, PSD) but gives
+    a position std of 1e15 m: refused as implausible_covariance, neither buffered nor followed as
+    the pose publisher; the next good pose is taken as usual."""
+    r = Rig(max_pose_std_translation_m=10.0)
+    a = b"a" * 16
+    with pytest.raises(InputRejected, match="position standard deviation 1e\\+15 m") as exc:
+        r.feed("pose", codec.encode_pose_with_covariance(S, np.eye(4), np.eye(6) * 1e30), POSE_COV_STAMPED, a)
+    assert (exc.value.reason, exc.value.role) == ("implausible_covariance", "pose")
+    assert len(r.asm.poses) == 0 and r.asm.pose_publisher is None
+    rot = np.eye(6) * 1e-6
+    rot[3:, 3:] = np.eye(3) * 16.0  # a rotation std of 4 rad
+    with pytest.raises(InputRejected, match="rotation standard deviation 4 rad") as exc:
+        r.feed("pose", codec.encode_pose_with_covariance(S, np.eye(4), rot), POSE_COV_STAMPED)
+    assert exc.value.reason == "implausible_covariance"
+    ok = np.eye(6) * 99.0  # a std just below 10 m and 10 rad, refused only for its rotation
+    with pytest.raises(InputRejected, match="rotation"):
+        r.feed("pose", codec.encode_pose_with_covariance(S, np.eye(4), ok), POSE_COV_STAMPED)
+    r.pose(S, publisher=a)
+    assert len(r.asm.poses) == 1 and r.asm.pose_publisher == a
