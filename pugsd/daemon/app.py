@@ -3,11 +3,12 @@
 
 It wires, it does not decide: zenoh callbacks hand samples to the loop (``bridge``), the frame
 assembler (``pugsd.stream``) turns them into frames, bounded mailboxes carry the frames to the
-depth and model workers, the streaming schedule says when the model trains and when grasps and
-clouds are due, and ``outputs`` publishes them. Heavy calls run off the loop on three threads:
-depth estimation (stateless), ingest and training (the pipeline's mutable state) and grasp
-computations; every call that reads or writes that state holds ``_model_lock``, except the grasp
-proposal, which runs on a snapshot so that ingest and training go on meanwhile.
+depth and model workers and the model's changes to the grasp worker, the streaming schedule says
+when the model trains and when grasps and clouds are due, and ``outputs`` publishes them. Heavy
+calls run off the loop on three threads: depth estimation (stateless), ingest and training (the
+pipeline's mutable state) and grasp computations; every call that reads or writes that state holds
+``_model_lock``, except the grasp proposal, which runs on a snapshot so that ingest and training go
+on meanwhile.
 """
 
 from __future__ import annotations
@@ -83,6 +84,9 @@ class Daemon:
         )
         self.depth_box: Mailbox[tuple[DepthFrame, float]] = Mailbox("depth", q.depth, Overflow.DROP_OLDEST)
         self.commands: Mailbox[Command] = Mailbox("commands", q.commands, Overflow.REJECT)
+        # the model side to the grasp worker: what last changed ("frame", "step"), or a reset's
+        # end or a stop; the worker then looks at the model and the schedule again
+        self.model_changes: Mailbox[str] = Mailbox("model_changes", 1, Overflow.KEEP_LATEST)
         self.arm = ArmBridge(self)
         self.schedule = StreamingSchedule(d)  # on time.monotonic()
         self.overload = OverloadWatch()
@@ -204,8 +208,9 @@ class Daemon:
         t0 = time.monotonic()
         log.info("shutdown: stopping intake")
         self._stopping = True
+        self.model_changes.offer("stop")  # a waiting grasp worker ends at once
         self._undeclare_subscribers()
-        for box in (self.stereo_box, self.depth_box, self.commands, self.arm.box):
+        for box in (self.stereo_box, self.depth_box, self.commands, self.arm.box, self.model_changes):
             box.close()
         busy: list[asyncio.Task[None]] = []
         for name, task in workers.items():
@@ -460,6 +465,7 @@ class Daemon:
                 break
             self._note_train(stats, 1)
             s.stepped(decaying)
+            self.model_changes.offer("step")
 
     async def _model_worker(self) -> None:
         d, s = self.cfg.daemon, self.schedule
@@ -477,6 +483,7 @@ class Daemon:
                 self.health.count("points", n)
                 self.health.observe("frame_age_at_integrate", time.monotonic() - recv_s)
                 s.frame_integrated(time.monotonic())
+                self.model_changes.offer("frame")
                 self._newest_recv_s = recv_s
                 if d.train_steps_per_frame > 0 and not self._stopping:
                     await self._train(d.train_steps_per_frame)
@@ -517,14 +524,21 @@ class Daemon:
         return self._stopping or self.schedule.cloud_gives_way(time.monotonic(), len(self.depth_box))
 
     async def _grasp_worker(self) -> None:
-        loop, s = asyncio.get_running_loop(), self.schedule
+        """A grasp round when the model changed and the schedule says grasps are due. Between
+        rounds it waits on ``model_changes``: until the next change while there is nothing to
+        publish, and while a change waits for its grasps to be due, until then (or the next
+        change, which may make them due sooner)."""
+        loop, s, changes = asyncio.get_running_loop(), self.schedule, self.model_changes
         while not self._stopping:
-            await asyncio.sleep(0.02)
+            changes.take_nowait()  # this look at the model covers every change offered so far
             publishable = self.ready or (self.cfg.daemon.ready_latch and self.was_ready)
-            if not (publishable and s.changed) or self._stopping or self._resetting or self._reset_failed:
+            if not (publishable and s.changed) or self._resetting or self._reset_failed:
+                await changes.take()
                 continue
             now, queued = time.monotonic(), len(self.depth_box)
-            if not s.grasps_due(now, s.grasps_started_s, queued):
+            due_in = s.grasps_due_in(now, s.grasps_started_s, queued)
+            if due_in > 0.0:
+                await changes.take_within(due_in)
                 continue
             with_cloud = s.start_grasps(now, queued)
             newest_recv = self._newest_recv_s
@@ -566,6 +580,7 @@ class Daemon:
             await self._clear_all()
         finally:
             self._resetting = False
+            self.model_changes.offer("reset")  # the grasp worker looks again
 
     async def _clear_all(self) -> None:
         """``_reset`` proper: the queues, the pipeline (on the model thread) and the published state."""

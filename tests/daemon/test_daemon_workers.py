@@ -219,6 +219,8 @@ def test_each_integrated_frame_is_counted_and_followed_by_train_steps_per_frame(
     assert d.schedule.steps_since_frame == 3  # counted from the newest frame
     assert (d.schedule.last_frame_s, d._newest_recv_s) == (100.0, 99.75)
     assert d.schedule.changed and d.schedule.frame_unpublished
+    # each frame and each step is offered to the grasp worker; the mailbox keeps the latest
+    assert d.model_changes.offered == 2 + 6 and d.model_changes.take_nowait() == "step"
     assert d.health.latency["frame_age_at_integrate"].summary()["n"] == 2
     assert all(held for _, held in pipe.held), pipe.held  # integrate and train under the model lock
 
@@ -227,6 +229,7 @@ def test_without_train_steps_per_frame_a_frame_is_integrated_untrained(clock: Cl
     d, pipe = _lock_daemon(train_steps_per_frame=0, idle_train_steps=0)
     _drive_model(d, [lambda: (_depth(5), 100.0)])
     assert pipe.integrated == [5] and pipe.steps == 0 and "train_steps" not in d.health.counts
+    assert d.model_changes.offered == 1 and d.model_changes.take_nowait() == "frame"
 
 
 def test_a_failed_integration_is_not_counted_and_not_trained_on(clock: Clock) -> None:
@@ -240,6 +243,7 @@ def test_a_failed_integration_is_not_counted_and_not_trained_on(clock: Clock) ->
     assert pipe.steps == 0 and "integrated" not in d.health.counts
     assert d.health.counts["errors.integrate"] == 1 and d.health.failures["integrate"] == 1
     assert d.schedule.last_frame_s is None and not d.schedule.changed and not d.schedule.frame_unpublished
+    assert d.model_changes.offered == 0  # nothing changed: the grasp worker sleeps on
 
 
 def test_a_stop_during_integration_skips_the_training(clock: Clock) -> None:
@@ -398,11 +402,12 @@ def test_train_yields_to_a_waiting_frame_unless_the_last_step_is_overdue(clock: 
         d.schedule.last_train_s = 99.5  # exactly min_train_interval_s ago: not overdue
         await d._train(4)
         out.append(pipe.steps)
-        assert not d.schedule.changed  # no step: the model is unchanged
+        assert not d.schedule.changed and d.model_changes.offered == 0  # no step: the model is unchanged
         d.schedule.last_train_s = 99.25  # overdue: one step is forced, then the frame goes first
         await d._train(4)
         out.append(pipe.steps)
         assert d.schedule.changed  # a step changed the model: grasps are due again
+        assert d.model_changes.take_nowait() == "step"  # and the grasp worker is woken
         d.depth_box.clear()
         await d._train(4)  # nothing waiting: all four
         out.append(pipe.steps)
@@ -437,7 +442,7 @@ def test_a_round_that_meets_an_emptied_map_ends_without_changing_the_model(clock
         _shutdown(d)
     assert [w for w, _ in pipe.held] == ["train"]  # the round ended at its first step
     assert not d.schedule.changed and d.schedule.steps_since_frame == 0
-    assert "train_steps" not in d.health.counts
+    assert "train_steps" not in d.health.counts and d.model_changes.offered == 0
     assert not d.health.failures and not d.health.rejected
 
 
