@@ -390,6 +390,49 @@ def test_the_shutdown_wakes_a_waiting_worker_and_it_ends_by_itself(clock: Clock)
     assert pipe.rounds == [] and d.model_changes.closed
 
 
+def test_a_stage_that_raises_as_it_offers_a_change_ends_the_waiting_grasp_worker(
+    clock: Clock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The task group's other stage offers a change and raises: the group cancels the grasp
+    worker, waiting for its grasps to be due, in the iteration in which the change wakes it. The
+    worker ends (the error reaches the caller) and starts no round, instead of waiting on for
+    changes that no stage offers any more."""
+    d, pipe = _round_daemon(clock, grasp_rate_hz=1.0)
+    d.schedule.changed = True
+    d.schedule.grasps_started_s = 99.5  # due in 0.5 s
+    waits = _counted_waits(d, monkeypatch)
+
+    async def failing_stage() -> None:
+        await _until(lambda: waits == [0.5], "the worker waiting for its grasps to be due")
+        d.model_changes.offer("step")
+        raise RuntimeError("stage bug")
+
+    async def main() -> tuple[bool, BaseException | None]:
+        d._loop = asyncio.get_running_loop()
+        worker: list[asyncio.Task[None]] = []
+
+        async def group() -> None:
+            async with asyncio.TaskGroup() as tg:
+                worker.append(tg.create_task(d._grasp_worker()))
+                tg.create_task(failing_stage())
+
+        task = asyncio.create_task(group())
+        done, _ = await asyncio.wait([task], timeout=5.0)
+        if not done:  # the group waits for the worker forever: end it to report that
+            worker[0].cancel()
+        (error,) = await asyncio.gather(task, return_exceptions=True)
+        return bool(done), error
+
+    try:
+        ended, error = asyncio.run(main())
+    finally:
+        for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+            ex.shutdown(wait=True)
+    assert ended, "the cancelled grasp worker waited on"
+    assert isinstance(error, ExceptionGroup) and "stage bug" in repr(error.exceptions)
+    assert pipe.rounds == [] and d.outputs.grasps_published == 0
+
+
 def test_the_cloud_is_asked_to_give_way_to_fresh_grasps(
     clock: Clock, monkeypatch: pytest.MonkeyPatch
 ) -> None:
