@@ -34,7 +34,7 @@ from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier, watchdog_interval_s
 from pugsd.daemon.outputs import Outputs, output_stamp_ns
 from pugsd.daemon.pipeline_api import Pipeline
-from pugsd.daemon.process import apply_thread_limits
+from pugsd.daemon.process import FINISHED_AT_SHUTDOWN, WORKER_STAGES, apply_thread_limits
 from pugsd.daemon.queries import QUERY_KEYS
 from pugsd.daemon.recording import start_recording, stop_recording
 from pugsd.errors import DecodeError, EmptyCloudError, PugsdError
@@ -56,6 +56,7 @@ from pugsd.wire.topics import (
 log = logging.getLogger(__name__)
 
 R = TypeVar("R")
+
 
 class Daemon:
     """Owns the zenoh entities, mailboxes and workers; ``run(stop)`` serves until ``stop``."""
@@ -214,9 +215,12 @@ class Daemon:
             box.close()
         busy: list[asyncio.Task[None]] = []
         for name, task in workers.items():
-            if any(self._busy.get(stage) for stage in _WORKER_STAGES.get(name, ())):
-                busy.append(task)  # inside a call: let it finish (its loop then ends)
+            in_call = [stage for stage in WORKER_STAGES.get(name, ()) if self._busy.get(stage)]
+            if any(stage in FINISHED_AT_SHUTDOWN for stage in in_call):
+                busy.append(task)  # inside a call with an effect: let it finish (its loop then ends)
             else:
+                if in_call:  # the thread runs on until the call returns; the exit does not wait
+                    log.info("shutdown: abandoning the %s call in flight", " and ".join(in_call))
                 task.cancel()
         if busy:
             log.info("shutdown: finishing in-flight work (%s)", ", ".join(t.get_name() for t in busy))
@@ -274,7 +278,7 @@ class Daemon:
 
     def _close(self) -> None:
         if self.recorder is not None:
-            stop_recording(self.recorder, self.cfg.daemon.shutdown_timeout_s)
+            stop_recording(self.recorder)
             self.recorder = None
         self._undeclare_subscribers()
         for ent in self._entities:
@@ -684,15 +688,3 @@ class Daemon:
                     self.frames.poll()
                 except Exception as exc:  # a bug in the lookup itself: keep the worker alive
                     self.report.internal_error("errors.gate", "polling the pose gate", exc)
-
-
-
-# the stages (``_busy`` keys, health stages) each worker task runs its calls under
-_WORKER_STAGES: dict[str, tuple[str, ...]] = {
-    "depth": ("depth",),
-    "model": ("integrate", "train"),
-    "grasps": ("grasps",),
-    "commands": ("reset",),
-    "arm": ("arm",),
-}
-

@@ -1077,12 +1077,11 @@ def test_stopping_the_arm_closes_it_once_and_a_failing_close_is_logged_not_raise
 _WORKERS = ("depth", "model", "grasps", "commands", "status", "watchdog", "gate", "arm")
 
 
-@pytest.mark.parametrize(
-    ("worker", "stage"),
-    [("depth", "depth"), ("model", "integrate"), ("model", "train"), ("grasps", "grasps"),
-     ("commands", "reset"), ("arm", "arm")],
-)  # fmt: skip
-def test_shutdown_lets_the_worker_in_a_call_finish_and_cancels_the_others(worker: str, stage: str) -> None:
+@pytest.mark.parametrize(("worker", "stage"), [("grasps", "grasps"), ("commands", "reset"), ("arm", "arm")])
+def test_shutdown_lets_the_worker_in_a_call_with_an_effect_finish_and_cancels_the_others(
+    worker: str, stage: str
+) -> None:
+    """A grasp round publishes, a reset publishes the cleared map, an arm call moves the arm."""
     d = _daemon(shutdown_timeout_s=5.0)
     sub = types.SimpleNamespace(undeclare=lambda: undeclared.append(1))
     undeclared: list[int] = []
@@ -1122,6 +1121,37 @@ def test_shutdown_lets_the_worker_in_a_call_finish_and_cancels_the_others(worker
     assert all(b.closed for b in (d.stereo_box, d.depth_box, d.commands, d.arm.box))
 
 
+@pytest.mark.parametrize(
+    ("worker", "stage"), [("depth", "depth"), ("model", "integrate"), ("model", "train")]
+)
+def test_shutdown_cancels_a_worker_whose_call_dies_with_the_process_at_once(
+    worker: str, stage: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Depth, integrate and training results die with the process: the shutdown cancels the
+    worker inside such a call like an idle one, without waiting (the call's thread runs on)."""
+    caplog.set_level(logging.INFO, logger="pugsd")
+    d = _daemon(shutdown_timeout_s=5.0)
+
+    async def main() -> dict[str, asyncio.Task[None]]:
+        async def idle() -> None:
+            await asyncio.Event().wait()
+
+        tasks = {n: asyncio.create_task(idle(), name=n) for n in _WORKERS}
+        d._busy[stage] = True
+        stop = asyncio.Event()
+        stop.set()
+        await asyncio.wait_for(d._supervise(stop, tasks), 1.0)
+        await asyncio.gather(*tasks.values(), return_exceptions=True)
+        return tasks
+
+    tasks = asyncio.run(main())
+    _shutdown(d)
+    assert all(t.cancelled() for t in tasks.values())
+    msgs = [r.getMessage() for r in caplog.records]
+    assert f"shutdown: abandoning the {stage} call in flight" in msgs
+    assert not any("finishing in-flight work" in m for m in msgs)
+
+
 def test_shutdown_abandons_a_call_that_outlasts_the_timeout_then_reports_what_was_left(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
@@ -1134,20 +1164,20 @@ def test_shutdown_abandons_a_call_that_outlasts_the_timeout_then_reports_what_wa
             await asyncio.Event().wait()
 
         tasks = {n: asyncio.create_task(stuck(), name=n) for n in _WORKERS}
-        d._busy["train"] = True
+        d._busy["grasps"] = True
         stop = asyncio.Event()
         stop.set()
         await asyncio.wait_for(d._supervise(stop, tasks), 5.0)
-        done, _ = await asyncio.wait([tasks["model"]], timeout=2.0)
-        assert done == {tasks["model"]}  # abandoned means cancelled, not left running
-        return tasks["model"]
+        done, _ = await asyncio.wait([tasks["grasps"]], timeout=2.0)
+        assert done == {tasks["grasps"]}  # abandoned means cancelled, not left running
+        return tasks["grasps"]
 
-    model = asyncio.run(main())
+    grasps = asyncio.run(main())
     _shutdown(d)
-    assert model.cancelled()
+    assert grasps.cancelled()
     msgs = [r.getMessage() for r in caplog.records]
-    assert "shutdown: finishing in-flight work (model)" in msgs
-    assert "shutdown: model did not finish in time; abandoning it" in msgs
+    assert "shutdown: finishing in-flight work (grasps)" in msgs
+    assert "shutdown: grasps did not finish in time; abandoning it" in msgs
     assert "shutdown: left unprocessed: 1 in the stereo queue" in msgs
     assert d.health.counts["shutdown_unprocessed"] == 1
 
