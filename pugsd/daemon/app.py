@@ -136,8 +136,9 @@ class Daemon:
         return f"{self.cfg.daemon.prefix}/{suffix}"
 
     async def run(self, stop: asyncio.Event) -> None:
-        """Serve until ``stop`` is set; then stop intake, finish in-flight work within
-        ``shutdown_timeout_s``, undeclare everything and close the session."""
+        """Serve until ``stop`` is set; then stop intake, finish the calls in flight that have an
+        effect within ``shutdown_timeout_s`` (abandon the others), undeclare everything and close
+        the session."""
         self._loop = asyncio.get_running_loop()
         apply_thread_limits(self.cfg)
         for w in config_warnings(self.cfg):
@@ -201,7 +202,7 @@ class Daemon:
         return bool(self._subscribers) and not self._stopping
 
     def abandoned_work(self) -> int:
-        """Offloaded calls still running after shutdown (the CLI then exits hard)."""
+        """Offloaded calls still running after shutdown (abandoned; the CLI's exit does not wait)."""
         return sum(1 for f in self._in_flight if not f.done())
 
     async def _supervise(self, stop: asyncio.Event, workers: dict[str, asyncio.Task[None]]) -> None:
