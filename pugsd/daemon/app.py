@@ -3,11 +3,12 @@
 
 It wires, it does not decide: zenoh callbacks hand samples to the loop (``bridge``), the frame
 assembler (``pugsd.stream``) turns them into frames, bounded mailboxes carry the frames to the
-depth and model workers, the streaming schedule says when the model trains and when grasps and
-clouds are due, and ``outputs`` publishes them. Heavy calls run off the loop on three threads:
-depth estimation (stateless), ingest and training (the pipeline's mutable state) and grasp
-computations; every call that reads or writes that state holds ``_model_lock``, except the grasp
-proposal, which runs on a snapshot so that ingest and training go on meanwhile.
+depth and model workers and the model's changes to the grasp worker, the streaming schedule says
+when the model trains and when grasps and clouds are due, and ``outputs`` publishes them. Heavy
+calls run off the loop on three threads: depth estimation (stateless), ingest and training (the
+pipeline's mutable state) and grasp computations; every call that reads or writes that state holds
+``_model_lock``, except the grasp proposal, which runs on a snapshot so that ingest and training go
+on meanwhile.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier, watchdog_interval_s
 from pugsd.daemon.outputs import Outputs, output_stamp_ns
 from pugsd.daemon.pipeline_api import Pipeline
-from pugsd.daemon.process import apply_thread_limits
+from pugsd.daemon.process import FINISHED_AT_SHUTDOWN, WORKER_STAGES, apply_thread_limits
 from pugsd.daemon.queries import QUERY_KEYS
 from pugsd.daemon.recording import start_recording, stop_recording
 from pugsd.daemon.ros_services import ARM_SERVICES, SERVICES, RosServices
@@ -67,6 +68,7 @@ from pugsd.wire.topics import (
 log = logging.getLogger(__name__)
 
 R = TypeVar("R")
+
 
 class Daemon:
     """Owns the zenoh entities, mailboxes and workers; ``run(stop)`` serves until ``stop``."""
@@ -100,6 +102,9 @@ class Daemon:
             "depth", q.depth, Overflow.DROP_OLDEST, **frame_bytes
         )
         self.commands: Mailbox[Command] = Mailbox("commands", q.commands, Overflow.REJECT)
+        # the model side to the grasp worker: what last changed ("frame", "step"), or a reset's
+        # end or a stop; the worker then looks at the model and the schedule again
+        self.model_changes: Mailbox[str] = Mailbox("model_changes", 1, Overflow.KEEP_LATEST)
         self.arm = ArmBridge(self)
         self.schedule = StreamingSchedule(d)  # on time.monotonic()
         self.overload = OverloadWatch()
@@ -155,8 +160,9 @@ class Daemon:
         return f"{self.cfg.daemon.prefix}/{suffix}"
 
     async def run(self, stop: asyncio.Event) -> None:
-        """Serve until ``stop`` is set; then stop intake, finish in-flight work within
-        ``shutdown_timeout_s``, undeclare everything and close the session."""
+        """Serve until ``stop`` is set; then stop intake, finish the calls in flight that have an
+        effect within ``shutdown_timeout_s`` (abandon the others), undeclare everything and close
+        the session."""
         self._loop = asyncio.get_running_loop()
         apply_thread_limits(self.cfg)
         for w in config_warnings(self.cfg):
@@ -220,7 +226,7 @@ class Daemon:
         return bool(self._subscribers) and not self._stopping
 
     def abandoned_work(self) -> int:
-        """Offloaded calls still running after shutdown (the CLI then exits hard)."""
+        """Offloaded calls still running after shutdown (abandoned; the CLI's exit does not wait)."""
         return sum(1 for f in self._in_flight if not f.done())
 
     async def _supervise(self, stop: asyncio.Event, workers: dict[str, asyncio.Task[None]]) -> None:
@@ -228,14 +234,18 @@ class Daemon:
         t0 = time.monotonic()
         log.info("shutdown: stopping intake")
         self._stopping = True
+        self.model_changes.offer("stop")  # a waiting grasp worker ends at once
         self._undeclare_subscribers()
-        for box in (self.stereo_box, self.depth_box, self.commands, self.arm.box):
+        for box in (self.stereo_box, self.depth_box, self.commands, self.arm.box, self.model_changes):
             box.close()
         busy: list[asyncio.Task[None]] = []
         for name, task in workers.items():
-            if any(self._busy.get(stage) for stage in _WORKER_STAGES.get(name, ())):
-                busy.append(task)  # inside a call: let it finish (its loop then ends)
+            in_call = [stage for stage in WORKER_STAGES.get(name, ()) if self._busy.get(stage)]
+            if any(stage in FINISHED_AT_SHUTDOWN for stage in in_call):
+                busy.append(task)  # inside a call with an effect: let it finish (its loop then ends)
             else:
+                if in_call:  # the thread runs on until the call returns; the exit does not wait
+                    log.info("shutdown: abandoning the %s call in flight", " and ".join(in_call))
                 task.cancel()
         if busy:
             log.info("shutdown: finishing in-flight work (%s)", ", ".join(t.get_name() for t in busy))
@@ -294,7 +304,7 @@ class Daemon:
 
     def _close(self) -> None:
         if self.recorder is not None:
-            stop_recording(self.recorder, self.cfg.daemon.shutdown_timeout_s)
+            stop_recording(self.recorder)
             self.recorder = None
         self._undeclare_subscribers()
         for ent in self._entities:
@@ -490,6 +500,7 @@ class Daemon:
                 break
             self._note_train(stats, 1)
             s.stepped(decaying)
+            self.model_changes.offer("step")
 
     async def _model_worker(self) -> None:
         d, s = self.cfg.daemon, self.schedule
@@ -507,6 +518,7 @@ class Daemon:
                 self.health.count("points", n)
                 self.health.observe("frame_age_at_integrate", time.monotonic() - recv_s)
                 s.frame_integrated(time.monotonic())
+                self.model_changes.offer("frame")
                 self._newest_recv_s = recv_s
                 if d.train_steps_per_frame > 0 and not self._stopping:
                     await self._train(d.train_steps_per_frame)
@@ -547,14 +559,21 @@ class Daemon:
         return self._stopping or self.schedule.cloud_gives_way(time.monotonic(), len(self.depth_box))
 
     async def _grasp_worker(self) -> None:
-        loop, s = asyncio.get_running_loop(), self.schedule
+        """A grasp round when the model changed and the schedule says grasps are due. Between
+        rounds it waits on ``model_changes``: until the next change while there is nothing to
+        publish, and while a change waits for its grasps to be due, until then (or the next
+        change, which may make them due sooner)."""
+        loop, s, changes = asyncio.get_running_loop(), self.schedule, self.model_changes
         while not self._stopping:
-            await asyncio.sleep(0.02)
+            changes.take_nowait()  # this look at the model covers every change offered so far
             publishable = self.ready or (self.cfg.daemon.ready_latch and self.was_ready)
-            if not (publishable and s.changed) or self._stopping or self._resetting or self._reset_failed:
+            if not (publishable and s.changed) or self._resetting or self._reset_failed:
+                await changes.take()
                 continue
             now, queued = time.monotonic(), len(self.depth_box)
-            if not s.grasps_due(now, s.grasps_started_s, queued):
+            due_in = s.grasps_due_in(now, s.grasps_started_s, queued)
+            if due_in > 0.0:
+                await changes.take_within(due_in)
                 continue
             with_cloud = s.start_grasps(now, queued)
             newest_recv = self._newest_recv_s
@@ -596,6 +615,7 @@ class Daemon:
             await self._clear_all()
         finally:
             self._resetting = False
+            self.model_changes.offer("reset")  # the grasp worker looks again
 
     async def _clear_all(self) -> None:
         """``_reset`` proper: the queues, the pipeline (on the model thread) and the published state."""
@@ -702,15 +722,3 @@ class Daemon:
                     self.frames.poll()
                 except Exception as exc:  # a bug in the lookup itself: keep the worker alive
                     self.report.internal_error("errors.gate", "polling the pose gate", exc)
-
-
-
-# the stages (``_busy`` keys, health stages) each worker task runs its calls under
-_WORKER_STAGES: dict[str, tuple[str, ...]] = {
-    "depth": ("depth",),
-    "model": ("integrate", "train"),
-    "grasps": ("grasps",),
-    "commands": ("reset",),
-    "arm": ("arm",),
-}
-

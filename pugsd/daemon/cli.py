@@ -32,13 +32,16 @@ async def serve(daemon: Daemon, stop: asyncio.Event | None = None) -> None:
 
 
 def exit_after(daemon: Daemon) -> int:
-    """0; exits hard when offloaded work outlived the shutdown bound (threads cannot be joined)."""
+    """Exit 0 once the daemon has stopped (its recording finished, its session closed): the logs
+    are flushed and the interpreter's teardown is skipped (``os._exit``), as the finalisers of
+    torch and the other extension modules take seconds and the threads of abandoned calls cannot
+    be joined. Returns 0 only where ``os._exit`` is a test's stand-in."""
     if daemon.abandoned_work():
         log.warning("exiting with %d abandoned in-flight call(s)", daemon.abandoned_work())
-        logging.shutdown()
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(0)
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
     return 0
 
 

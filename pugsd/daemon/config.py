@@ -53,7 +53,13 @@ class DaemonConfig:
         unit="s",
         ge=0.0,
     )
-    shutdown_timeout_s: float = opt(5.0, "bound on finishing in-flight work at shutdown", unit="s", gt=0.0)
+    shutdown_timeout_s: float = opt(
+        1.0,
+        "bound on finishing a grasp round, reset or arm call in flight at shutdown (depth, integrate "
+        "and training calls are abandoned at once)",
+        unit="s",
+        gt=0.0,
+    )
     log_json: bool = opt(False, "structured JSON log lines (for the journal)")
     log_level: str = opt("info", "log level", choices=("debug", "info", "warning", "error"))
     node_name: str = opt(

@@ -126,12 +126,16 @@ class Mailbox(Generic[T]):
             await self._nonempty.wait()
 
     async def take_within(self, timeout_s: float) -> T | None:
-        """The oldest item, waiting at most ``timeout_s``; None on timeout."""
+        """The oldest item, waiting at most ``timeout_s``; None on timeout. A cancellation always
+        propagates, also when an item arrives in the same loop iteration. (Not ``wait_for``: on
+        Python 3.11 it returns the inner result then and swallows the cancel, so that a worker of
+        a cancelled task group went on waiting on a mailbox nobody offered to again.)"""
         item = self.take_nowait()
         if item is not None:
             return item
         try:
-            await asyncio.wait_for(self._nonempty.wait(), timeout_s)
+            async with asyncio.timeout(timeout_s):
+                await self._nonempty.wait()
         except TimeoutError:
             return None
         return self.take_nowait()

@@ -1,6 +1,6 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Process-wide settings the daemon applies at start: torch's thread count and glibc's malloc
-arenas."""
+"""Process-wide settings the daemon applies at start (torch's thread count and glibc's malloc
+arenas), and which calls in flight the shutdown waits for before the process exits."""
 
 from __future__ import annotations
 
@@ -34,3 +34,19 @@ def apply_malloc_arena_max(n: int) -> bool:
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
     mallopt.restype = ctypes.c_int
     return bool(mallopt(_M_ARENA_MAX, n))
+
+
+# the stages whose calls have an effect outside the process (a grasp round publishes, a reset
+# publishes the cleared map, an arm call moves the arm): shutdown lets a call in flight finish,
+# within ``[daemon] shutdown_timeout_s``; the others' results (depth, integrate, train) die with
+# the process, so their calls are abandoned at once
+FINISHED_AT_SHUTDOWN = frozenset({"grasps", "reset", "arm"})
+
+# the stages (the daemon's ``_busy`` keys, health stages) each worker task runs its calls under
+WORKER_STAGES: dict[str, tuple[str, ...]] = {
+    "depth": ("depth",),
+    "model": ("integrate", "train"),
+    "grasps": ("grasps",),
+    "commands": ("reset",),
+    "arm": ("arm",),
+}

@@ -34,7 +34,13 @@ def start_recording(cfg: Any, session: Any) -> Any:
     return rec
 
 
-def stop_recording(rec: Any, timeout_s: float) -> None:
+# how long the shutdown waits for the writer to write what is queued and finish the file (a full
+# queue of [record] queue_max_bytes on a slow disk); not [daemon] shutdown_timeout_s, which bounds
+# the calls in flight: what was recorded must not be left in a ``.part`` file by a short bound
+FINISH_TIMEOUT_S = 10.0
+
+
+def stop_recording(rec: Any, timeout_s: float = FINISH_TIMEOUT_S) -> None:
     files = rec.stop(timeout=timeout_s)
     # hours of rotation leave thousands of files: name the last five, count the rest
     shown = ", ".join(str(f) for f in files[-5:]) or "no file"

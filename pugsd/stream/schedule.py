@@ -101,18 +101,26 @@ class StreamingSchedule:
         """Every 1 / grasp_rate_hz while the model changes; and at once when the input pauses:
         the newest frame has had its training steps and no frame came for ``pause_publish_s``
         (then at most twice the configured rate)."""
+        return self.grasps_due_in(now, last_start, frames_queued) == 0.0
+
+    def grasps_due_in(self, now: float, last_start: float, frames_queued: int) -> float:
+        """Seconds from ``now`` until grasps are due (:meth:`grasps_due`; 0.0: they are due now)
+        if nothing else happens meanwhile. A frame integrated or queued and a training step change
+        the answer: ask again after each."""
         d = self.d
         period = 1.0 / d.grasp_rate_hz
-        if now - last_start >= period:
-            return True
-        return (
+        since_start = now - last_start
+        due_in = max(period - since_start, 0.0)
+        if (
             d.pause_publish_s > 0
             and self.frame_unpublished
             and self.last_frame_s is not None
-            and not self.streaming(now, frames_queued)
+            and frames_queued == 0
             and self.steps_since_frame >= d.train_steps_per_frame
-            and now - last_start >= 0.5 * period
-        )
+        ):  # early once the input has paused, but not before half a period
+            paused_in = d.pause_publish_s - (now - self.last_frame_s)
+            due_in = min(due_in, max(paused_in, 0.5 * period - since_start, 0.0))
+        return due_in
 
     def start_grasps(self, now: float, frames_queued: int) -> bool:
         """A grasp computation starts now; returns whether it publishes the cloud too. The whole

@@ -88,6 +88,9 @@ def test_run_sets_up_in_order_with_the_global_log_level_and_json(
         events.append(("serve", daemon))
 
     monkeypatch.setattr(dcli, "serve", fake_serve)
+    hard_exits: list[int] = []
+    monkeypatch.setattr(dcli.os, "_exit", hard_exits.append)
+    monkeypatch.setattr(dcli.logging, "shutdown", lambda: None)  # keep pytest's handlers usable
     f = tmp_path / "d.toml"
     f.write_text('[daemon]\nlog_json = true\nlog_level = "error"\nmalloc_arena_max = 3\n')
     rc = main(["--log-level", "debug", "run", "--config", str(f), "--set", "daemon.grasp_rate_hz=3"])
@@ -99,6 +102,7 @@ def test_run_sets_up_in_order_with_the_global_log_level_and_json(
     _FakeDaemon.instances = []
     assert main(["run", "--config", str(f)]) == 0
     assert ("logging", "error", True) in events  # no --log-level: [daemon] log_level
+    assert hard_exits == [0, 0]
     # the exit code is exit_after's, which exits hard when the daemon abandoned work
     exits: list[Any] = []
 
@@ -111,12 +115,17 @@ def test_run_sets_up_in_order_with_the_global_log_level_and_json(
     assert exits == [_FakeDaemon.instances[-1]]
 
 
-def test_exit_after_returns_0_without_abandoned_work(monkeypatch: pytest.MonkeyPatch) -> None:
-    exits: list[int] = []
-    monkeypatch.setattr(dcli.os, "_exit", exits.append)
+def test_exit_after_flushes_the_logs_and_exits_hard_with_0_also_without_abandoned_work(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The interpreter's teardown (extension modules' finalisers) is skipped after every stop."""
+    events: list[Any] = []
+    monkeypatch.setattr(dcli.os, "_exit", lambda code: events.append(("exit", code)))
+    monkeypatch.setattr(dcli.logging, "shutdown", lambda: events.append("logs flushed"))
+    caplog.set_level(logging.WARNING, logger="pugsd.daemon.cli")
     d = _FakeDaemon(None, None)
     assert dcli.exit_after(d) == 0  # type: ignore[arg-type]
-    assert exits == []
+    assert events == ["logs flushed", ("exit", 0)] and caplog.records == []
 
 
 def test_exit_after_exits_hard_with_0_when_work_was_abandoned(

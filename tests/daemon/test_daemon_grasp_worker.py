@@ -6,8 +6,8 @@ counted and logged and the worker goes on, the urgency of grasps for a new frame
 round; the overload warning says how many frames were pushed out, over how long, and the rates in
 and integrated, in that window; ``run()`` starts the recorder once the inputs listen and declares
 the node's and its publishers' graph tokens before anything else and the subscriptions' after their
-subscribers. No zenoh session: the workers run on their own with a stand-in clock, a scripted
-``asyncio.sleep`` and stand-in sessions."""
+subscribers. No zenoh session: the workers run on their own with a stand-in clock, scripted
+waits on the model-changes mailbox and stand-in sessions."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ from pugsd.daemon.notify import Notifier
 from pugsd.daemon.ros_services import service_names
 from pugsd.record.recorder import default_record_keys
 from pugsd.wire.topics import INPUT_ROLES, OUTPUT_ROLES, ros_graph_tokens
-from tests.daemon.conftest import FakePipeline, RecordingPublisher
+from tests.daemon.conftest import FakePipeline, RecordingPublisher, running_worker
 from tests.daemon.test_daemon_workers import Clock, DeclSession, _depth, stop_at_ready
 
 ROLES = ("grasps", "markers", "cloud", "status")
@@ -95,37 +95,40 @@ class RoundPipeline(FakePipeline):
 
 def _scripted_rounds(
     d: Daemon, monkeypatch: pytest.MonkeyPatch, steps: list[Callable[[], None]]
-) -> list[float]:
-    """Run the grasp worker with ``asyncio.sleep`` scripted: each of its waits (``sleep(0.02)``
-    at the top of a round) runs the next step (set the clock, mark the model changed, ...) and
-    returns at once; after the last step the daemon stops. The worker's offloaded computation
-    runs for real on the grasp thread. Returns the positive delays the worker slept."""
-    real = asyncio.sleep
-    delays: list[float] = []
+) -> list[float | None]:
+    """Run the grasp worker with its waits on ``model_changes`` scripted: each wait (``take``,
+    until the model changes, or ``take_within``, until grasps are due) runs the next step (set
+    the clock, mark the model changed, ...) and returns at once; after the last step the daemon
+    stops. The worker's offloaded computation runs for real on the grasp thread. Returns the
+    waits in order: None for one until the next change, else its timeout."""
+    waits: list[float | None] = []
     todo = list(steps)
 
-    async def fake(delay: float, result: Any = None) -> Any:
-        if delay > 0:
-            delays.append(delay)
-            if todo:
-                todo.pop(0)()
-            else:
-                d._stopping = True
-        await real(0)
-        return result
+    async def wait(timeout_s: float | None) -> str | None:
+        waits.append(timeout_s)
+        if todo:
+            todo.pop(0)()
+        else:
+            d._stopping = True
+        await asyncio.sleep(0)
+        return d.model_changes.take_nowait()
+
+    async def take() -> str | None:
+        return await wait(None)
 
     async def main() -> None:
         d._loop = asyncio.get_running_loop()
         await asyncio.wait_for(d._grasp_worker(), 10.0)
 
-    monkeypatch.setattr(app_mod.asyncio, "sleep", fake)
+    monkeypatch.setattr(d.model_changes, "take", take)
+    monkeypatch.setattr(d.model_changes, "take_within", wait)
     try:
         asyncio.run(main())
     finally:
         monkeypatch.undo()
         for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
             ex.shutdown(wait=True)
-    return delays
+    return waits
 
 
 def _round_daemon(clock: Clock, **daemon: Any) -> tuple[Daemon, RoundPipeline]:
@@ -157,8 +160,8 @@ def test_while_frames_stream_the_cloud_goes_out_every_cloud_interval_and_rounds_
 ) -> None:
     """Streaming (a frame waits in the depth queue): the first round starts the cloud interval
     (no cloud), a cloud goes out once ``cloud_interval_s`` has passed since the last one (exactly
-    then too), and a round within the grasp period does not start however the model changed;
-    once the input pauses every round has its cloud."""
+    then too), and a round within the grasp period does not start however the model changed: the
+    worker waits for the rest of the period; once the input pauses every round has its cloud."""
     d, pipe = _round_daemon(clock, grasp_rate_hz=1.0, cloud_interval_s=10.0, pause_publish_s=0.5)
     d.depth_box.offer((_depth(1), 0.0))  # a frame waits: the input streams
     paused = _at(d, clock, 130.0)
@@ -172,11 +175,12 @@ def test_while_frames_stream_the_cloud_goes_out_every_cloud_interval_and_rounds_
         _at(d, clock, 111.0), _at(d, clock, 112.0, changed=False), _at(d, clock, 119.0),
         _at(d, clock, 120.0), pause, _at(d, clock, 131.0),
     ]  # fmt: skip
-    delays = _scripted_rounds(d, monkeypatch, steps)
+    waits = _scripted_rounds(d, monkeypatch, steps)
     assert pipe.rounds == [100.0, 101.0, 110.0, 111.0, 119.0, 120.0, 130.0, 131.0]
     assert pipe.clouds == [110.0, 120.0, 130.0, 131.0]
     assert d.outputs.grasps_published == 8 and len(_puts(d, "cloud")) == 4
-    assert delays == [0.02] * (len(steps) + 1)  # one 20 ms wait per round, the last ends it
+    # until each change; the change at 100.5 s waits the 0.5 s left of the period; the last ends it
+    assert waits == [None, None, 0.5] + [None] * (len(steps) - 2)
 
 
 def test_a_frame_within_pause_publish_s_counts_as_streaming_for_the_cloud(
@@ -277,6 +281,157 @@ def test_a_stop_during_the_wait_starts_no_round(clock: Clock, monkeypatch: pytes
 
     _scripted_rounds(d, monkeypatch, [stop])
     assert pipe.rounds == [] and d.schedule.changed and d.outputs.grasps_published == 0
+
+
+def test_a_change_before_its_grasps_are_due_waits_for_the_period_or_the_pause_after_a_trained_frame(
+    clock: Clock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A frame integrated 0.125 s after a round waits for the rest of the period while its
+    training step is not done; once it is, for the pause (``pause_publish_s`` after the frame, but
+    not before half a period), and the round starts then."""
+    d, pipe = _round_daemon(clock, grasp_rate_hz=1.0, pause_publish_s=0.25, train_steps_per_frame=1)
+
+    def frame() -> None:
+        clock.t = 100.125
+        d.schedule.frame_integrated(clock.t)
+
+    def step() -> None:
+        clock.t = 100.25
+        d.schedule.stepped(False)
+
+    waits = _scripted_rounds(d, monkeypatch, [_at(d, clock, 100.0), frame, step, _at(d, clock, 100.5, False)])
+    assert pipe.rounds == [100.0, 100.5] and d.outputs.grasps_published == 2
+    assert waits == [None, None, 0.875, 0.25, None]
+
+
+def _counted_waits(d: Daemon, monkeypatch: pytest.MonkeyPatch) -> list[float | None]:
+    """Record the grasp worker's waits on ``model_changes`` (None: until a change, else the
+    timeout) and let them run as they are."""
+    box, waits = d.model_changes, []
+    take, take_within = box.take, box.take_within
+
+    async def counted_take() -> str:
+        waits.append(None)
+        return await take()
+
+    async def counted_take_within(timeout_s: float) -> str | None:
+        waits.append(timeout_s)
+        return await take_within(timeout_s)
+
+    monkeypatch.setattr(box, "take", counted_take)
+    monkeypatch.setattr(box, "take_within", counted_take_within)
+    return waits
+
+
+async def _until(pred: Callable[[], bool], what: str) -> None:
+    for _ in range(500):
+        if pred():
+            return
+        await asyncio.sleep(0.01)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def test_the_worker_sleeps_until_the_model_changes_and_looks_again_at_each_change(
+    clock: Clock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The real mailbox: with nothing changed the worker waits without waking; a change offered
+    starts a round at once; a change before its grasps are due waits for them, each further
+    change shortens that wait, and the change that finds them due starts the next round."""
+    d, pipe = _round_daemon(clock, grasp_rate_hz=0.01, publish_cloud=False)  # a period of 100 s
+    waits = _counted_waits(d, monkeypatch)
+
+    def change(t: float) -> None:
+        clock.t = t
+        d.schedule.stepped(False)  # what a training step does, then the model worker's offer
+        d.model_changes.offer("step")
+
+    async def main() -> None:
+        async with running_worker(d, d._grasp_worker()):
+            await asyncio.sleep(0.2)  # an observation window: a 20 ms poll would have woken 10 times
+            assert waits == [None] and pipe.rounds == []
+            change(100.0)
+            await _until(lambda: len(waits) == 2, "the wait after the first round")
+            assert pipe.rounds == [100.0] and d.outputs.grasps_published == 1
+            await asyncio.sleep(0.2)  # no change since that round: no wake-up
+            assert waits == [None, None]
+            change(150.0)
+            await _until(lambda: len(waits) == 3, "the wait for the grasps to be due")
+            change(175.0)
+            await _until(lambda: len(waits) == 4, "the shorter wait")
+            assert waits == [None, None, 50.0, 25.0] and pipe.rounds == [100.0]
+            change(200.0)
+            await _until(lambda: len(waits) == 5, "the wait after the second round")
+
+    asyncio.run(main())
+    assert pipe.rounds == [100.0, 200.0] and waits == [None, None, 50.0, 25.0, None]
+    assert d.outputs.grasps_published == 2
+
+
+def test_the_shutdown_wakes_a_waiting_worker_and_it_ends_by_itself(clock: Clock) -> None:
+    """The supervisor's stop offers to the model-changes mailbox: a worker waiting for a change
+    ends on its own (a worker in a computation is not cancelled, and must not wait on)."""
+    d, pipe = _round_daemon(clock, grasp_rate_hz=1.0)
+    stop = asyncio.Event()
+
+    async def main() -> bool:
+        d._loop = asyncio.get_running_loop()
+        worker = asyncio.create_task(d._grasp_worker())
+        await asyncio.sleep(0.05)
+        assert not worker.done()
+        stop.set()
+        await d._supervise(stop, {})  # no task to cancel: the worker must end by itself
+        await asyncio.wait_for(worker, 5.0)
+        return worker.cancelled()
+
+    try:
+        assert asyncio.run(main()) is False
+    finally:
+        for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+            ex.shutdown(wait=True)
+    assert pipe.rounds == [] and d.model_changes.closed
+
+
+def test_a_stage_that_raises_as_it_offers_a_change_ends_the_waiting_grasp_worker(
+    clock: Clock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The task group's other stage offers a change and raises: the group cancels the grasp
+    worker, waiting for its grasps to be due, in the iteration in which the change wakes it. The
+    worker ends (the error reaches the caller) and starts no round, instead of waiting on for
+    changes that no stage offers any more."""
+    d, pipe = _round_daemon(clock, grasp_rate_hz=1.0)
+    d.schedule.changed = True
+    d.schedule.grasps_started_s = 99.5  # due in 0.5 s
+    waits = _counted_waits(d, monkeypatch)
+
+    async def failing_stage() -> None:
+        await _until(lambda: waits == [0.5], "the worker waiting for its grasps to be due")
+        d.model_changes.offer("step")
+        raise RuntimeError("stage bug")
+
+    async def main() -> tuple[bool, BaseException | None]:
+        d._loop = asyncio.get_running_loop()
+        worker: list[asyncio.Task[None]] = []
+
+        async def group() -> None:
+            async with asyncio.TaskGroup() as tg:
+                worker.append(tg.create_task(d._grasp_worker()))
+                tg.create_task(failing_stage())
+
+        task = asyncio.create_task(group())
+        done, _ = await asyncio.wait([task], timeout=5.0)
+        if not done:  # the group waits for the worker forever: end it to report that
+            worker[0].cancel()
+        (error,) = await asyncio.gather(task, return_exceptions=True)
+        return bool(done), error
+
+    try:
+        ended, error = asyncio.run(main())
+    finally:
+        for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+            ex.shutdown(wait=True)
+    assert ended, "the cancelled grasp worker waited on"
+    assert isinstance(error, ExceptionGroup) and "stage bug" in repr(error.exceptions)
+    assert pipe.rounds == [] and d.outputs.grasps_published == 0
 
 
 def test_the_cloud_is_asked_to_give_way_to_fresh_grasps(

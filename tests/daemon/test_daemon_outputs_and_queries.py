@@ -30,6 +30,7 @@ from pugsd.daemon.bridge import IngressGate
 from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier
 from pugsd.daemon.process import apply_thread_limits
+from pugsd.daemon.recording import FINISH_TIMEOUT_S
 from pugsd.errors import EmptyCloudError, PugsdError
 from pugsd.wire import codec
 from pugsd.wire.types import GRASP_ARRAY, MARKER_ARRAY
@@ -976,7 +977,7 @@ def test_close_stops_the_recorder_and_names_the_last_five_files(caplog: pytest.L
     d.recorder = Rec()
     caplog.set_level(logging.INFO, logger="pugsd")
     d._close()
-    assert stopped == [3.5] and d.recorder is None
+    assert stopped == [FINISH_TIMEOUT_S] and d.recorder is None  # not the calls' shutdown bound
     files = "f3.mcap, f4.mcap, f5.mcap, f6.mcap, f7.mcap (and 2 earlier)"
     assert f"recording finished: 7 file(s): {files}" in caplog.text
 

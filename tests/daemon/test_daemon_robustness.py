@@ -215,12 +215,15 @@ def test_a_wrong_size_side_image_is_rejected_alone_and_the_frame_goes_on(
         dt.stop()
 
 
-def test_shutdown_lets_a_busy_training_step_finish(
+def test_shutdown_abandons_a_busy_training_step_at_once(
     port: int, client: zenoh.Session, caplog: pytest.LogCaptureFixture
 ) -> None:
+    """A training step's result dies with the process: shutdown does not wait for the step in
+    flight, however long ``shutdown_timeout_s`` (its thread runs on; ``pugsd run`` exits without
+    joining it)."""
     caplog.set_level(logging.INFO, logger="pugsd")
-    pipe = FakePipeline(train_delay_s=1.0, ready_after=1000)
-    cfg = load_config_dict(daemon_config_dict(port, shutdown_timeout_s=5.0))
+    pipe = FakePipeline(train_delay_s=5.0, ready_after=1000)
+    cfg = load_config_dict(daemon_config_dict(port, shutdown_timeout_s=10.0))
     dt, src = start_with_source(cfg, client, pipe)
     d = dt.daemon
     try:
@@ -230,10 +233,11 @@ def test_shutdown_lets_a_busy_training_step_finish(
     finally:
         src.close()
     took = dt.stop()
-    assert pipe.steps == steps + 1, "the step in flight was cancelled instead of finishing"
-    assert d.abandoned_work() == 0 and took < 5.0
-    waited = [r.getMessage() for r in caplog.records if "finishing in-flight work" in r.getMessage()]
-    assert waited == ["shutdown: finishing in-flight work (model)"]
+    assert d.abandoned_work() == 1 and pipe.steps == steps, "the shutdown waited for the step"
+    assert took < 4.0, f"the shutdown took {took:.1f} s"
+    msgs = [r.getMessage() for r in caplog.records]
+    assert "shutdown: abandoning the train call in flight" in msgs
+    assert not any("finishing in-flight work" in m for m in msgs)
 
 
 def test_status_line_counts_every_drop(port: int, client: zenoh.Session) -> None:

@@ -13,9 +13,12 @@ import psutil
 import pytest
 import zenoh
 
+from pugsd.config import PugsdConfig
+from pugsd.record.mcapio import iter_recording
 from tests.daemon.conftest import start_daemon, start_publisher, wait_alive
 
-BOUND_S = 10.0  # daemon.shutdown_timeout_s (5 s) + teardown
+BOUND_S = 10.0  # daemon.shutdown_timeout_s (5 s in start_daemon's config) + teardown
+EXIT_S = 2.0  # SIGTERM to exit with the default shutdown_timeout_s
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
@@ -83,3 +86,49 @@ def test_sigterm_while_busy(tmp_path: Path, port: int, client: zenoh.Session, se
     assert rc == 0, log[-3000:]
     assert took < BOUND_S, f"exit took {took:.1f} s"
     assert "first frame integrated" in log and "shutdown: stopping intake" in log
+
+
+def test_sigterm_while_working_exits_within_2_s_with_the_recording_finished(
+    tmp_path: Path, port: int, client: zenoh.Session, sequence_npz: Path
+) -> None:
+    """Frames stream and the model trains when SIGTERM arrives: the depth, integrate and training
+    calls in flight are abandoned (their results die with the process), the MCAP is finished
+    with everything recorded up to the stop, and the process exits 0 within 2 s without the
+    interpreter's teardown."""
+    rec = tmp_path / "rec"
+    extra = {
+        "daemon": {"shutdown_timeout_s": PugsdConfig().daemon.shutdown_timeout_s},
+        "svgp": {"num_inducing": 2000},  # training steps of seconds on a CPU: one is in flight at the stop
+        "record": {"enabled": True, "directory": str(rec)},
+    }
+    daemon, _ = start_daemon(tmp_path, port, extra)
+    publisher = None
+    try:
+        wait_alive(client, daemon)
+        publisher, _ = start_publisher(tmp_path, sequence_npz, port, 10.0, 60.0)
+        t_wait = time.monotonic()
+        while "first frame integrated" not in daemon.log() and time.monotonic() - t_wait < 40:
+            time.sleep(0.2)
+        time.sleep(2.0)
+        stop_ns = time.time_ns()
+        t0 = time.monotonic()
+        daemon.signal(signal.SIGTERM)
+        rc = daemon.wait(BOUND_S + 20)
+        took = time.monotonic() - t0
+        log = daemon.log()
+    finally:
+        if publisher is not None:
+            publisher.signal(signal.SIGTERM)
+            publisher.wait(10)
+            publisher.kill()
+        daemon.kill()
+    assert rc == 0, log[-3000:]
+    assert "first frame integrated" in log and "shutdown: stopping intake" in log
+    assert took < EXIT_S, f"exit took {took:.2f} s:\n{log[-3000:]}"
+    assert not list(rec.glob("*.part"))
+    (mcap,) = rec.glob("*.mcap")
+    msgs = list(iter_recording([mcap]))  # the summary's and every chunk's CRC checked
+    t = PugsdConfig().topics
+    assert {t.left_image, t.pose} <= {m.topic for m in msgs}, {m.topic for m in msgs}
+    # recorded up to the stop: the stream of 10 Hz frames ends less than a second before it
+    assert stop_ns - max(m.log_time_ns for m in msgs) < 10**9

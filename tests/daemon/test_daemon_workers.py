@@ -220,6 +220,8 @@ def test_each_integrated_frame_is_counted_and_followed_by_train_steps_per_frame(
     assert d.schedule.steps_since_frame == 3  # counted from the newest frame
     assert (d.schedule.last_frame_s, d._newest_recv_s) == (100.0, 99.75)
     assert d.schedule.changed and d.schedule.frame_unpublished
+    # each frame and each step is offered to the grasp worker; the mailbox keeps the latest
+    assert d.model_changes.offered == 2 + 6 and d.model_changes.take_nowait() == "step"
     assert d.health.latency["frame_age_at_integrate"].summary()["n"] == 2
     assert all(held for _, held in pipe.held), pipe.held  # integrate and train under the model lock
 
@@ -228,6 +230,7 @@ def test_without_train_steps_per_frame_a_frame_is_integrated_untrained(clock: Cl
     d, pipe = _lock_daemon(train_steps_per_frame=0, idle_train_steps=0)
     _drive_model(d, [lambda: (_depth(5), 100.0)])
     assert pipe.integrated == [5] and pipe.steps == 0 and "train_steps" not in d.health.counts
+    assert d.model_changes.offered == 1 and d.model_changes.take_nowait() == "frame"
 
 
 def test_a_failed_integration_is_not_counted_and_not_trained_on(clock: Clock) -> None:
@@ -241,6 +244,7 @@ def test_a_failed_integration_is_not_counted_and_not_trained_on(clock: Clock) ->
     assert pipe.steps == 0 and "integrated" not in d.health.counts
     assert d.health.counts["errors.integrate"] == 1 and d.health.failures["integrate"] == 1
     assert d.schedule.last_frame_s is None and not d.schedule.changed and not d.schedule.frame_unpublished
+    assert d.model_changes.offered == 0  # nothing changed: the grasp worker sleeps on
 
 
 def test_a_stop_during_integration_skips_the_training(clock: Clock) -> None:
@@ -399,11 +403,12 @@ def test_train_yields_to_a_waiting_frame_unless_the_last_step_is_overdue(clock: 
         d.schedule.last_train_s = 99.5  # exactly min_train_interval_s ago: not overdue
         await d._train(4)
         out.append(pipe.steps)
-        assert not d.schedule.changed  # no step: the model is unchanged
+        assert not d.schedule.changed and d.model_changes.offered == 0  # no step: the model is unchanged
         d.schedule.last_train_s = 99.25  # overdue: one step is forced, then the frame goes first
         await d._train(4)
         out.append(pipe.steps)
         assert d.schedule.changed  # a step changed the model: grasps are due again
+        assert d.model_changes.take_nowait() == "step"  # and the grasp worker is woken
         d.depth_box.clear()
         await d._train(4)  # nothing waiting: all four
         out.append(pipe.steps)
@@ -438,7 +443,7 @@ def test_a_round_that_meets_an_emptied_map_ends_without_changing_the_model(clock
         _shutdown(d)
     assert [w for w, _ in pipe.held] == ["train"]  # the round ended at its first step
     assert not d.schedule.changed and d.schedule.steps_since_frame == 0
-    assert "train_steps" not in d.health.counts
+    assert "train_steps" not in d.health.counts and d.model_changes.offered == 0
     assert not d.health.failures and not d.health.rejected
 
 
@@ -1080,12 +1085,11 @@ def test_stopping_the_arm_closes_it_once_and_a_failing_close_is_logged_not_raise
 _WORKERS = ("depth", "model", "grasps", "commands", "status", "watchdog", "gate", "arm")
 
 
-@pytest.mark.parametrize(
-    ("worker", "stage"),
-    [("depth", "depth"), ("model", "integrate"), ("model", "train"), ("grasps", "grasps"),
-     ("commands", "reset"), ("arm", "arm")],
-)  # fmt: skip
-def test_shutdown_lets_the_worker_in_a_call_finish_and_cancels_the_others(worker: str, stage: str) -> None:
+@pytest.mark.parametrize(("worker", "stage"), [("grasps", "grasps"), ("commands", "reset"), ("arm", "arm")])
+def test_shutdown_lets_the_worker_in_a_call_with_an_effect_finish_and_cancels_the_others(
+    worker: str, stage: str
+) -> None:
+    """A grasp round publishes, a reset publishes the cleared map, an arm call moves the arm."""
     d = _daemon(shutdown_timeout_s=5.0)
     sub = types.SimpleNamespace(undeclare=lambda: undeclared.append(1))
     undeclared: list[int] = []
@@ -1125,6 +1129,37 @@ def test_shutdown_lets_the_worker_in_a_call_finish_and_cancels_the_others(worker
     assert all(b.closed for b in (d.stereo_box, d.depth_box, d.commands, d.arm.box))
 
 
+@pytest.mark.parametrize(
+    ("worker", "stage"), [("depth", "depth"), ("model", "integrate"), ("model", "train")]
+)
+def test_shutdown_cancels_a_worker_whose_call_dies_with_the_process_at_once(
+    worker: str, stage: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Depth, integrate and training results die with the process: the shutdown cancels the
+    worker inside such a call like an idle one, without waiting (the call's thread runs on)."""
+    caplog.set_level(logging.INFO, logger="pugsd")
+    d = _daemon(shutdown_timeout_s=5.0)
+
+    async def main() -> dict[str, asyncio.Task[None]]:
+        async def idle() -> None:
+            await asyncio.Event().wait()
+
+        tasks = {n: asyncio.create_task(idle(), name=n) for n in _WORKERS}
+        d._busy[stage] = True
+        stop = asyncio.Event()
+        stop.set()
+        await asyncio.wait_for(d._supervise(stop, tasks), 1.0)
+        await asyncio.gather(*tasks.values(), return_exceptions=True)
+        return tasks
+
+    tasks = asyncio.run(main())
+    _shutdown(d)
+    assert all(t.cancelled() for t in tasks.values())
+    msgs = [r.getMessage() for r in caplog.records]
+    assert f"shutdown: abandoning the {stage} call in flight" in msgs
+    assert not any("finishing in-flight work" in m for m in msgs)
+
+
 def test_shutdown_abandons_a_call_that_outlasts_the_timeout_then_reports_what_was_left(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
@@ -1137,20 +1172,20 @@ def test_shutdown_abandons_a_call_that_outlasts_the_timeout_then_reports_what_wa
             await asyncio.Event().wait()
 
         tasks = {n: asyncio.create_task(stuck(), name=n) for n in _WORKERS}
-        d._busy["train"] = True
+        d._busy["grasps"] = True
         stop = asyncio.Event()
         stop.set()
         await asyncio.wait_for(d._supervise(stop, tasks), 5.0)
-        done, _ = await asyncio.wait([tasks["model"]], timeout=2.0)
-        assert done == {tasks["model"]}  # abandoned means cancelled, not left running
-        return tasks["model"]
+        done, _ = await asyncio.wait([tasks["grasps"]], timeout=2.0)
+        assert done == {tasks["grasps"]}  # abandoned means cancelled, not left running
+        return tasks["grasps"]
 
-    model = asyncio.run(main())
+    grasps = asyncio.run(main())
     _shutdown(d)
-    assert model.cancelled()
+    assert grasps.cancelled()
     msgs = [r.getMessage() for r in caplog.records]
-    assert "shutdown: finishing in-flight work (model)" in msgs
-    assert "shutdown: model did not finish in time; abandoning it" in msgs
+    assert "shutdown: finishing in-flight work (grasps)" in msgs
+    assert "shutdown: grasps did not finish in time; abandoning it" in msgs
     assert "shutdown: left unprocessed: 1 in the stereo queue" in msgs
     assert d.health.counts["shutdown_unprocessed"] == 1
 

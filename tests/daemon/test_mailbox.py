@@ -92,3 +92,21 @@ def test_wait_room_returns_once_an_item_is_taken() -> None:
         await asyncio.wait_for(waiter, 0.5)
 
     asyncio.run(main())
+
+
+@pytest.mark.parametrize("within", [False, True])
+def test_a_waiter_cancelled_as_an_item_arrives_is_cancelled_and_leaves_the_item(within: bool) -> None:
+    """A task group cancels a waiting worker in the loop iteration in which another task offers:
+    the cancel wins and the item stays queued (a swallowed cancel left the worker waiting on)."""
+
+    async def main() -> None:
+        box: Mailbox[int] = Mailbox("model_changes", 1, Overflow.KEEP_LATEST)
+        waiter = asyncio.create_task(box.take_within(10.0) if within else box.take())
+        await asyncio.sleep(0)  # the waiter waits
+        box.offer(1)
+        waiter.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await waiter
+        assert len(box) == 1 and box.taken == 0
+
+    asyncio.run(main())

@@ -81,6 +81,47 @@ def test_grasps_are_due_each_period_and_early_once_a_trained_frame_is_followed_b
     assert not s.grasps_due(100.25, 100.0, 1)  # a frame is queued: still streaming
 
 
+def test_grasps_are_due_in_the_rest_of_the_period_or_once_the_input_pauses_after_half_of_it() -> None:
+    s = _schedule(grasp_rate_hz=1.0, pause_publish_s=0.125, train_steps_per_frame=2)
+    assert s.grasps_due_in(100.0, -math.inf, 0) == 0.0  # no computation yet
+    assert s.grasps_due_in(100.25, 100.0, 0) == 0.75 and s.grasps_due_in(101.5, 100.0, 0) == 0.0
+    s.frame_integrated(100.5625)
+    s.stepped(False)
+    assert s.grasps_due_in(100.5625, 100.0, 0) == 0.4375  # its training steps are not done
+    s.stepped(False)
+    assert s.grasps_due_in(100.5625, 100.0, 0) == 0.125  # at the pause
+    assert s.grasps_due_in(100.5625, 100.0, 1) == 0.4375  # a frame is queued: streaming
+    s.frame_integrated(100.0625)
+    s.stepped(False)
+    s.stepped(False)
+    assert s.grasps_due_in(100.125, 100.0, 0) == 0.375  # paused at 100.1875, but half a period first
+    s.frame_unpublished = False  # its grasps were computed: the period again
+    assert s.grasps_due_in(100.125, 100.0, 0) == 0.875
+    off = _schedule(grasp_rate_hz=1.0, pause_publish_s=0.0, train_steps_per_frame=0)
+    off.frame_integrated(100.0)
+    assert off.grasps_due_in(100.75, 100.0, 0) == 0.25
+
+
+@pytest.mark.parametrize("frame_s", [None, 100.03, 100.2, 100.45])
+@pytest.mark.parametrize("steps", [0, 3])
+@pytest.mark.parametrize("queued", [0, 1])
+def test_grasps_are_due_exactly_when_due_in_is_zero_and_due_once_that_wait_has_passed(
+    frame_s: float | None, steps: int, queued: int
+) -> None:
+    s = _schedule(grasp_rate_hz=3.0, pause_publish_s=0.1, train_steps_per_frame=2)
+    if frame_s is not None:
+        s.frame_integrated(frame_s)
+    for _ in range(steps):
+        s.stepped(False)
+    last = 100.0
+    for k in range(60):
+        now = frame_s if frame_s is not None and k == 0 else 100.0 + k * 0.007
+        due_in = s.grasps_due_in(now, last, queued)
+        assert due_in >= 0.0 and s.grasps_due(now, last, queued) == (due_in == 0.0)
+        assert s.grasps_due_in(now + due_in, last, queued) == pytest.approx(0.0, abs=1e-12)
+        assert due_in == 0.0 or not s.grasps_due(now + 0.999 * due_in, last, queued)
+
+
 def test_a_computation_while_streaming_takes_the_cloud_every_cloud_interval() -> None:
     s = _schedule(cloud_interval_s=2.0, pause_publish_s=0.5, publish_cloud=True)
     s.frame_integrated(10.0)
