@@ -35,9 +35,9 @@ from pugsd.daemon.health import (
     OverloadWatch,
     Reporter,
     UnhealthyLog,
-    diagnostics_of,
-    jsonable,
+    report_unprocessed,
     status_of,
+    status_round,
 )
 from pugsd.daemon.mailbox import Mailbox, Overflow
 from pugsd.daemon.notify import Notifier, watchdog_interval_s
@@ -257,16 +257,7 @@ class Daemon:
         self._report_unprocessed()
 
     def _report_unprocessed(self) -> None:
-        """Shutdown: say what was still queued (the map dies with the process, so frames are not
-        worked off first), and answer an accepted arm request that never started with a failed
-        report on ``<prefix>/arm/report``: its requester was told "accepted"."""
-        left = {b.name: len(b) for b in (self.stereo_box, self.depth_box, self.commands) if len(b)}
-        if left:
-            self.health.count("shutdown_unprocessed", sum(left.values()))
-            log.warning(
-                "shutdown: left unprocessed: %s", ", ".join(f"{n} in the {k} queue" for k, n in left.items())
-            )
-        self.arm.cancel_queued()
+        report_unprocessed(self)
 
     def _undeclare_subscribers(self) -> None:
         for tok in self._sub_graph_tokens:
@@ -665,28 +656,9 @@ class Daemon:
         while not self._stopping:
             await asyncio.sleep(period)
             try:
-                self._status_round()
+                status_round(self)
             except Exception as exc:  # a bug: count and log; the daemon keeps serving
                 self.report.internal_error("errors.status", "the status round", exc)
-
-    def _status_round(self) -> None:
-        st = self.status()
-        self.latest_status = st
-        self.outputs.put("status", codec.encode_status(jsonable(st)))
-        diagnostics = diagnostics_of(jsonable(st))
-        self.outputs.put("diagnostics", codec.encode_diagnostics(time.time_ns(), diagnostics))
-        self.transforms.tick(time.monotonic())
-        c = st["counts"]
-        stale = st["inputs"]["stale"]
-        self.inputs.report_stale(stale, time.monotonic())
-        self.inputs.report_publishers(st["upstream"]["concurrent_publishers"])
-        self._report_overload(time.monotonic())
-        self.notifier.send(
-            f"STATUS=frames {c.get('frames.stereo', 0) + c.get('frames.depth', 0)}, "
-            f"integrated {c.get('integrated', 0)}, ready {self.ready}, "
-            f"grasps {self.outputs.grasps_published}, dropped {self.dropped_total()}, "
-            f"rejected {c.get('rejected', 0)}" + (f", stale input: {' '.join(stale)}" if stale else "")
-        )
 
     def _report_overload(self, now_s: float) -> None:
         c, age = self.health.counts, self.health.latency.get("frame_age_at_integrate")

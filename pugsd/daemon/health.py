@@ -16,6 +16,7 @@ import numpy as np
 
 from pugsd.errors import PugsdError
 from pugsd.stream.assembler import InputRejected, log_nth, reason_class
+from pugsd.wire import codec
 from pugsd.wire.codec import DIAG_ERROR, DIAG_OK, DIAG_WARN, DiagnosticStatus
 
 if TYPE_CHECKING:
@@ -395,6 +396,41 @@ def status_of(d: Daemon) -> dict[str, Any]:
         "pipeline": pstats,
         "recorder": None if d.recorder is None else d.recorder.stats.as_dict(),
     }
+
+
+def report_unprocessed(d: Daemon) -> None:
+    """Shutdown: say what was still queued (the map dies with the process, so frames are not
+    worked off first), and answer an accepted arm request that never started with a failed
+    report on ``<prefix>/arm/report``: its requester was told "accepted"."""
+    left = {b.name: len(b) for b in (d.stereo_box, d.depth_box, d.commands) if len(b)}
+    if left:
+        d.health.count("shutdown_unprocessed", sum(left.values()))
+        log.warning(
+            "shutdown: left unprocessed: %s", ", ".join(f"{n} in the {k} queue" for k, n in left.items())
+        )
+    d.arm.cancel_queued()
+
+
+def status_round(d: Daemon) -> None:
+    """One status round: the status and diagnostics messages, /tf_static when due, the stale-input,
+    publisher and overload reports, and systemd's STATUS line."""
+    st = d.status()
+    d.latest_status = st
+    d.outputs.put("status", codec.encode_status(jsonable(st)))
+    diagnostics = diagnostics_of(jsonable(st))
+    d.outputs.put("diagnostics", codec.encode_diagnostics(time.time_ns(), diagnostics))
+    d.transforms.tick(time.monotonic())
+    c = st["counts"]
+    stale = st["inputs"]["stale"]
+    d.inputs.report_stale(stale, time.monotonic())
+    d.inputs.report_publishers(st["upstream"]["concurrent_publishers"])
+    d._report_overload(time.monotonic())
+    d.notifier.send(
+        f"STATUS=frames {c.get('frames.stereo', 0) + c.get('frames.depth', 0)}, "
+        f"integrated {c.get('integrated', 0)}, ready {d.ready}, "
+        f"grasps {d.outputs.grasps_published}, dropped {d.dropped_total()}, "
+        f"rejected {c.get('rejected', 0)}" + (f", stale input: {' '.join(stale)}" if stale else "")
+    )
 
 
 def diagnostics_of(st: dict[str, Any]) -> list[DiagnosticStatus]:
