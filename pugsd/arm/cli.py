@@ -168,7 +168,8 @@ async def _sim_main(
             await stop.wait()
         else:
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(stop.wait(), duration)
+                async with asyncio.timeout(duration):  # not wait_for: it can swallow a cancel
+                    await stop.wait()
     finally:
         await sim.close()
         if master is not None:

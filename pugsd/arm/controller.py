@@ -422,7 +422,8 @@ class ArmLink:
         self._waiters.append(entry)
         try:
             await self.send([make_packet(device_id, PacketID.REQUEST, list(packet_ids))])
-            await asyncio.wait_for(fut, within_s)
+            async with asyncio.timeout(within_s):  # not wait_for: it can swallow a cancel
+                await fut
             return True
         except TimeoutError:
             return False

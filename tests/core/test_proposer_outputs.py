@@ -89,7 +89,7 @@ def test_torchscript_widths_are_clipped_to_the_gripper_opening() -> None:
     prop = TorchScriptProposer(cfg, torch.jit.script(_WideNet()))
     pts = np.array([[0.0, -0.01, 0.0], [0.0, 0.05, 0.0], [0.0, 0.3, 0.0]])
     gs = prop.propose(pts, None, VIEWS)
-    assert cfg.gripper.max_width_m == 0.10
-    np.testing.assert_allclose(gs.width, [0.0, 0.05, 0.10], rtol=0, atol=1e-7)
+    W = cfg.gripper.max_width_m  # the net asks for 0.3 m at the third point
+    np.testing.assert_allclose(gs.width, [0.0, 0.05, W], rtol=0, atol=1e-7)
     # the pose follows the clipped width: wrist = contact + w/2 b - depth a
-    np.testing.assert_allclose(gs.pose[2][:3, 3], [0.05, 0.3, cfg.gripper.depth_m], atol=1e-7)
+    np.testing.assert_allclose(gs.pose[2][:3, 3], [W / 2, 0.3, cfg.gripper.depth_m], atol=1e-7)
