@@ -40,8 +40,10 @@ def _bench(args: argparse.Namespace) -> int:
 
     from pugsd.progress import progress_bar, ticking
 
-    # no ETA (the sections' lengths are not known ahead): the step it is on and the time taken
-    bar = progress_bar(None, "bench", unit=" step")
+    # in the sections' typical seconds (pugsd.bench.run.section_weights): the ETA follows the
+    # pace observed so far
+    bar = progress_bar(None, "bench", unit=" s")
+    bar.bar_format = "{desc} {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]"
 
     def write(line: str) -> None:
         bar.clear()  # the bar on stderr, the report on stdout: one terminal
@@ -49,12 +51,16 @@ def _bench(args: argparse.Namespace) -> int:
         sys.stdout.flush()
         if line:
             bar.set_description_str(f"bench: {line[:50]}", refresh=False)
-            bar.update(1)
+
+    def progress(done: float, total: float) -> None:
+        bar.total = total
+        bar.n = done
+        bar.refresh()
 
     argv = sys.argv[1:] if "bench" in sys.argv[1:] else ["bench", *sys.argv[1:]]
     command = " ".join(shlex.quote(a) for a in ["pugsd", *argv])
     with ticking(bar):
-        result = run_bench(opts, args.set or (), args.device, write, command, args.torch_threads)
+        result = run_bench(opts, args.set or (), args.device, write, command, args.torch_threads, progress)
     write("")
     table = format_table(result)
     for line in table:

@@ -8,7 +8,7 @@ import datetime as dt
 import os
 import time
 import traceback
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -125,11 +125,13 @@ def run_bench(
     write: m.Writer = lambda s: None,
     command: str = "",
     torch_threads: int | None = None,
+    progress: Callable[[float, float], None] = lambda done, total: None,
 ) -> dict[str, Any]:
     """Run everything ``opts`` asks for and return the JSON-ready result.
 
     ``torch_threads``: ``torch.set_num_threads`` for the whole run (None: the config's
-    ``[daemon] torch_threads`` where it exists, as the daemon applies it; 0: torch's default)."""
+    ``[daemon] torch_threads`` where it exists, as the daemon applies it; 0: torch's default).
+    ``progress(done, total)`` after each section, in the units of :func:`section_weights`."""
     t_start = time.monotonic()
     dev = resolve_device(device)
     base = build_config(overrides, dev)
@@ -165,6 +167,13 @@ def run_bench(
         },
         "errors": {},
     }
+    weights = section_weights(opts, int(result["settings"]["paper_epochs"]), dev == "cuda")
+    total, done = sum(weights.values()), [0.0]
+
+    def finished(section: str) -> None:
+        done[0] = min(total, done[0] + weights.get(section, 0.0))
+        progress(done[0], total)
+
     write(
         f"pugsd bench{' --quick' if opts.quick else ''}: {opts.n_frames} frames "
         f"{opts.width}x{opts.height} per trajectory ({', '.join(opts.trajectories)}), "
@@ -174,6 +183,7 @@ def run_bench(
     frames, seq_overrides = m.render_sequences(opts)
     result["render_s"] = round(time.monotonic() - t0, 2)
     write(f"rendered {sum(len(v) for v in frames.values())} stereo pairs in {result['render_s']} s")
+    finished("render")
 
     pooled: dict[str, list[float]] = {}
     per_traj: dict[str, Any] = {}
@@ -319,6 +329,7 @@ def run_bench(
         for k, v in run.samples.items():
             pooled.setdefault(k, []).extend(v)
         del run
+        finished(f"pipeline {traj}")
     if opts.use_pipeline:
         result["stages"] = {k: m.summarize(pooled[k]) for k in STAGE_ORDER if k in pooled}
         result["stages_by_trajectory"] = per_traj
@@ -329,6 +340,7 @@ def run_bench(
             result["cuda"] = _cuda_section(overrides, frames[opts.trajectories[0]], opts)
         except Exception as exc:
             result["errors"]["cuda"] = _err(exc)
+        finished("cuda")
 
     feed = frames[opts.trajectories[0]]
     if opts.use_daemon:
@@ -343,11 +355,13 @@ def run_bench(
                     result.setdefault("daemon_alone", {})[traj] = dm
             except Exception as exc:
                 result["errors"][f"daemon_last_frame_{traj}"] = _err(exc)
+            finished(f"daemon {traj}")
         write("sustained throughput through the daemon (loopback zenoh, in-process)...")
         try:
             result["throughput"] = m.throughput_daemon(base, feed, opts, write)
         except Exception as exc:
             result["errors"]["throughput"] = _err(exc)
+        finished("throughput")
         write(
             f"long replay: {opts.replay_sim_min:g} simulated minutes offered in "
             f"{opts.replay_wall_s:g} s..."
@@ -356,6 +370,7 @@ def run_bench(
             result["replay"] = m.replay_daemon(base, feed, opts, write)
         except Exception as exc:
             result["errors"]["replay"] = _err(exc)
+        finished("replay")
     result["memory"] = {
         "peak_rss_mb": round(m.peak_rss_mb(), 1),
         "rss_end_mb": round(m.rss_mb(), 1),
@@ -365,6 +380,27 @@ def run_bench(
     result["wall_s"] = round(time.monotonic() - t_start, 1)
     result["targets"] = evaluate_targets(result)
     return result
+
+
+def section_weights(opts: BenchOptions, paper_epochs: int, cuda: bool) -> dict[str, float]:
+    """Each section of a run as its typical seconds on a 2-core CPU, for the progress bar's ETA
+    only (the bar scales them by the pace it observes). Rendering goes by the stereo pairs; a
+    trajectory's pipeline section by its paper fits' epochs; the throughput ladder by every rate
+    offered (it stops at the first rate held, and the bar then jumps); the replay by its pacing."""
+    w: dict[str, float] = {"render": 1.2 * opts.n_frames * len(opts.trajectories)}
+    fits = 1 + (opts.paper_reference_seed is not None)
+    for traj in opts.trajectories if opts.use_pipeline else ():
+        w[f"pipeline {traj}"] = 30.0 + 1.5 * paper_epochs * fits + 40.0 * opts.streaming_at_paper_m
+    if cuda:
+        w["cuda"] = 60.0
+    if opts.use_daemon:
+        for traj in opts.trajectories:
+            w[f"daemon {traj}"] = 25.0
+        w["throughput"] = sum(
+            max(opts.throughput_trial_s, opts.n_frames / r) + 12.0 for r in opts.throughput_rates_hz
+        )
+        w["replay"] = opts.replay_wall_s + 10.0
+    return w
 
 
 def _err(exc: BaseException) -> str:

@@ -26,10 +26,11 @@ class _Stub:
         self.calls: list[dict[str, Any]] = []
 
     def __call__(self, opts: BenchOptions, overrides: Any, device: str, write: Any, command: str,
-                 torch_threads: int | None) -> dict[str, Any]:  # fmt: skip
+                 torch_threads: int | None, progress: Any) -> dict[str, Any]:  # fmt: skip
         self.calls.append({"opts": opts, "overrides": overrides, "device": device,
                            "command": command, "torch_threads": torch_threads})  # fmt: skip
         write("measuring")
+        progress(300.0, 600.0)  # half the planned seconds done
         return {"schema": "stub", "nan": float("nan"), "inf": [1.0, float("-inf")],
                 "window": (5.0, 30.0), "nested": {"x": float("inf"), "ok": 0.5}}  # fmt: skip
 
@@ -53,7 +54,7 @@ def test_no_flags_run_the_full_benchmark(stub: _Stub, capsys: pytest.CaptureFixt
     assert io.out == "measuring\n\nTABLE 1\nTABLE 2\n" and io.err == ""  # no bar: not a terminal
 
 
-def test_a_terminal_gets_a_bar_naming_the_step_and_the_time_taken(
+def test_a_terminal_gets_a_bar_naming_the_step_with_the_time_taken_and_left(
     stub: _Stub, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     import io
@@ -65,7 +66,8 @@ def test_a_terminal_gets_a_bar_naming_the_step_and_the_time_taken(
     term = Terminal()
     monkeypatch.setattr(sys, "stderr", term)
     assert main(["bench"]) == 0
-    assert "bench: measuring: 1 step [00:0" in term.getvalue(), term.getvalue()
+    shown = term.getvalue()
+    assert "bench: measuring  50%|" in shown and "[00:00<00:" in shown, shown  # elapsed<remaining
     assert capsys.readouterr().out == "measuring\n\nTABLE 1\nTABLE 2\n"
 
 

@@ -30,6 +30,7 @@ from pugsd.bench.run import (
     build_config,
     resolve_device,
     run_bench,
+    section_weights,
 )
 
 # tags of the sigma2_occ arrays (primes: a product names its factors)
@@ -443,6 +444,34 @@ def test_no_daemon_skips_the_daemon_sections(monkeypatch: pytest.MonkeyPatch, en
     assert "throughput" not in res and "replay" not in res
     assert "daemon" not in res["paper_vs_streaming"]["complete"]
     assert res["memory"]["rss_growth_frac_replay"] is None
+
+
+@pytest.mark.parametrize("sections", [{}, {"use_daemon": False}, {"use_pipeline": False}])
+def test_progress_reaches_the_total_once_per_section_failures_included(
+    monkeypatch: pytest.MonkeyPatch, env: dict[str, Any], sections: dict[str, bool]
+) -> None:
+    f = _Fakes(throughput_error=True, daemon_error_on="partial")
+    seen: list[tuple[float, float]] = []
+    opts = _opts(**sections)
+    _bench(monkeypatch, f, opts, progress=lambda done, total: seen.append((done, total)))
+    weights = section_weights(opts, int(opts.paper_epochs or 0), cuda=False)
+    assert len(seen) == len(weights)  # one report per section, a failed one too
+    assert {t for _, t in seen} == {sum(weights.values())}
+    done = [d for d, _ in seen]
+    assert done == sorted(done) and done[-1] == pytest.approx(sum(weights.values()))
+
+
+def test_section_weights_follow_the_options() -> None:
+    full = BenchOptions.full()
+    w = section_weights(full, 100, cuda=False)
+    assert set(w) == {"render", "pipeline complete", "pipeline partial", "daemon complete",
+                      "daemon partial", "throughput", "replay"}  # fmt: skip
+    assert "cuda" in section_weights(full, 100, cuda=True)
+    # more frames render longer, more epochs fit longer, a longer replay paces longer
+    assert section_weights(full.replace(n_frames=60), 100, False)["render"] > w["render"]
+    assert section_weights(full, 200, False)["pipeline partial"] > w["pipeline partial"]
+    assert section_weights(full.replace(replay_wall_s=480.0), 100, False)["replay"] > w["replay"]
+    assert sum(section_weights(BenchOptions.quick_preset(), 3, False).values()) < sum(w.values())
 
 
 def test_a_cuda_run_adds_the_cuda_section_and_records_its_failure(
