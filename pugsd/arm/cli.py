@@ -344,8 +344,9 @@ async def _execute_main(cfg: Any, T: np.ndarray, frame: str, width: float, grasp
                 rep = await ctl.execute_grasp(T_B_G=T, width_m=width, grasp_id=grasp_id)
             return rep.to_dict()
         finally:
-            await ctl.close()  # zero velocity and the safe mode
-            safe = True
+            # zero velocity and the safe mode; if they were not written (a congested link, a
+            # cancel while stopping), the guard sends them
+            safe = await ctl.close()
     finally:
         if safe:
             guard.release()

@@ -569,11 +569,14 @@ class ArmController:
         for d in JOINT_DEVICES:
             await self.link.request(d, [PacketID.POSITION_LIMITS], within_s=0.1)
 
-    async def close(self) -> None:
-        """Shutdown: zero velocity + safe mode (if the arm may be commanded), then close."""
+    async def close(self) -> bool:
+        """Shutdown: zero velocity + safe mode (if the arm may be commanded), then close. Returns
+        whether that stop was written to the link (True when nothing was started): a caller with
+        a guard process leaves the stop to it otherwise."""
+        sent = not self._started
         if self._started:
             with contextlib.suppress(Exception):
-                await self.stop(reason="shutdown", latch=False)
+                sent = await self.stop(reason="shutdown", latch=False)
         if self._wd_task is not None:
             self._wd_task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -581,6 +584,7 @@ class ArmController:
             self._wd_task = None
         await self.link.close()
         self._started = False
+        return sent
 
     async def __aenter__(self) -> ArmController:
         await self.start()
@@ -606,8 +610,9 @@ class ArmController:
     def _stop_packets(self) -> list[Packet]:
         return stop_packets(self.cfg)
 
-    async def stop(self, reason: str = "requested", *, latch: bool = True) -> None:
+    async def stop(self, reason: str = "requested", *, latch: bool = True) -> bool:
         """Abort any motion; send zero velocity to all devices, then the configured safe mode.
+        Returns whether the packets were written to the link within ``STOP_FLUSH_S``.
 
         ``latch=True`` (an operator's stop: the daemon's ``arm/stop``, user code): execute_grasp
         is refused from now on, naming ``reason``, until :meth:`release_stop`. The controller's
@@ -618,13 +623,14 @@ class ArmController:
         await self._send_stop()
         if await self.link.transport.flush(self.STOP_FLUSH_S):
             log.warning("arm stop (%s): zero velocity + %s sent", reason, self.cfg.safety.safe_mode)
-        else:
-            log.error(
-                "arm stop (%s): zero velocity + %s queued but not yet written (link congested); "
-                "it goes out as soon as the link takes it",
-                reason,
-                self.cfg.safety.safe_mode,
-            )
+            return True
+        log.error(
+            "arm stop (%s): zero velocity + %s queued but not yet written (link congested); "
+            "it goes out as soon as the link takes it",
+            reason,
+            self.cfg.safety.safe_mode,
+        )
+        return False
 
     def _latch(self, reason: str) -> None:
         if self.stop_latched is None:

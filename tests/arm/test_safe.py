@@ -193,7 +193,9 @@ def test_a_signal_to_arm_execute_mid_motion_makes_the_arm_safe_within_1s(kind: s
             assert _ended(guards, within_s=5.0)  # the guard ends once the stop is confirmed
             assert proc.stderr is not None
             guard_sent = b"pugsd arm guard: zero velocity and disable sent" in proc.stderr.read()
-            assert guard_sent == (sig != signal.SIGINT)
+            # Ctrl-C: the commander stops the arm itself and the guard sends nothing, unless that
+            # stop was not written in time (a loaded machine): then the guard sends it
+            assert guard_sent or sig == signal.SIGINT
         finally:
             for pid in guards:
                 with contextlib.suppress(ProcessLookupError):
