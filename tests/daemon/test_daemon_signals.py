@@ -61,46 +61,11 @@ def test_signal_exits_zero_within_bound(tmp_path: Path, port: int, client: zenoh
     assert "SampleKind.DELETE" in gone, gone
 
 
-def test_sigterm_while_busy(tmp_path: Path, port: int, client: zenoh.Session, sequence_npz: Path) -> None:
-    """Frames in flight (depth, integrate, training) when SIGTERM arrives: still exit 0 in time."""
-    daemon, _ = start_daemon(tmp_path, port)
-    publisher = None
-    try:
-        wait_alive(client, daemon)
-        publisher, _ = start_publisher(tmp_path, sequence_npz, port, 10.0, 60.0)
-        t_wait = time.monotonic()
-        while "first frame integrated" not in daemon.log() and time.monotonic() - t_wait < 40:
-            time.sleep(0.2)
-        time.sleep(2.0)
-        t0 = time.monotonic()
-        daemon.signal(signal.SIGTERM)
-        rc = daemon.wait(BOUND_S + 20)
-        took = time.monotonic() - t0
-        log = daemon.log()
-    finally:
-        if publisher is not None:
-            publisher.signal(signal.SIGTERM)
-            publisher.wait(10)
-            publisher.kill()
-        daemon.kill()
-    assert rc == 0, log[-3000:]
-    assert took < BOUND_S, f"exit took {took:.1f} s"
-    assert "first frame integrated" in log and "shutdown: stopping intake" in log
-
-
-def test_sigterm_while_working_exits_within_2_s_with_the_recording_finished(
-    tmp_path: Path, port: int, client: zenoh.Session, sequence_npz: Path
-) -> None:
-    """Frames stream and the model trains when SIGTERM arrives: the depth, integrate and training
-    calls in flight are abandoned (their results die with the process), the MCAP is finished
-    with everything recorded up to the stop, and the process exits 0 within 2 s without the
-    interpreter's teardown."""
-    rec = tmp_path / "rec"
-    extra = {
-        "daemon": {"shutdown_timeout_s": PugsdConfig().daemon.shutdown_timeout_s},
-        "svgp": {"num_inducing": 2000},  # training steps of seconds on a CPU: one is in flight at the stop
-        "record": {"enabled": True, "directory": str(rec)},
-    }
+def _sigterm_while_streaming(
+    tmp_path: Path, port: int, client: zenoh.Session, sequence_npz: Path, extra: dict | None = None
+) -> tuple[int, float, str, int]:
+    """A daemon fed 10 Hz stereo, SIGTERM 2 s after its first integrated frame: (exit code,
+    seconds to exit, its log, the stop's wall-clock ns)."""
     daemon, _ = start_daemon(tmp_path, port, extra)
     publisher = None
     try:
@@ -122,6 +87,31 @@ def test_sigterm_while_working_exits_within_2_s_with_the_recording_finished(
             publisher.wait(10)
             publisher.kill()
         daemon.kill()
+    return rc, took, log, stop_ns
+
+
+def test_sigterm_while_busy(tmp_path: Path, port: int, client: zenoh.Session, sequence_npz: Path) -> None:
+    """Frames in flight (depth, integrate, training) when SIGTERM arrives: still exit 0 in time."""
+    rc, took, log, _ = _sigterm_while_streaming(tmp_path, port, client, sequence_npz)
+    assert rc == 0, log[-3000:]
+    assert took < BOUND_S, f"exit took {took:.1f} s"
+    assert "first frame integrated" in log and "shutdown: stopping intake" in log
+
+
+def test_sigterm_while_working_exits_within_2_s_with_the_recording_finished(
+    tmp_path: Path, port: int, client: zenoh.Session, sequence_npz: Path
+) -> None:
+    """Frames stream and the model trains when SIGTERM arrives: the depth, integrate and training
+    calls in flight are abandoned (their results die with the process), the MCAP is finished
+    with everything recorded up to the stop, and the process exits 0 within 2 s without the
+    interpreter's teardown."""
+    rec = tmp_path / "rec"
+    extra = {
+        "daemon": {"shutdown_timeout_s": PugsdConfig().daemon.shutdown_timeout_s},
+        "svgp": {"num_inducing": 2000},  # training steps of seconds on a CPU: one is in flight at the stop
+        "record": {"enabled": True, "directory": str(rec)},
+    }
+    rc, took, log, stop_ns = _sigterm_while_streaming(tmp_path, port, client, sequence_npz, extra)
     assert rc == 0, log[-3000:]
     assert "first frame integrated" in log and "shutdown: stopping intake" in log
     assert took < EXIT_S, f"exit took {took:.2f} s:\n{log[-3000:]}"
