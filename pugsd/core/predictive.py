@@ -20,12 +20,16 @@ Two training schemes share one model object:
 from __future__ import annotations
 
 import collections
+import contextlib
 import copy
+import functools
 import logging
 import math
+import threading
 import weakref
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ParamSpec, TypeVar
 
 import gpytorch
 import numpy as np
@@ -49,6 +53,48 @@ RECENTRE_M = 50.0
 ORPHAN_LENGTHSCALES = 3.0
 ORPHAN_FPS_POINTS = 16384  # orphaned inducing points are re-placed by FPS over at most this many points
 NUM_INDUCING_AUTO_CUDA = 500
+
+
+_flush_depth = threading.local()
+
+
+@contextlib.contextmanager
+def denormals_flushed() -> Iterator[None]:
+    """Within the block the calling thread's CPU arithmetic treats denormal floats as zero (x86
+    FTZ and DAZ); the mode is restored when the outermost such block ends.
+
+    The kernel between points many lengthscales apart underflows into float32's denormal range
+    (below 1.2e-38) rather than to zero, and x86 multiplies denormals in microcode: while the
+    hyperparameters settle, a training step whose kernel matrices hold many of them runs several
+    times slower than the same step on the same shapes later. Flushing them changes only values
+    below that range. The mode is per thread and scoped to the SVGP's own training and
+    prediction: code outside (open3d's normal estimation among it) has crashed under it. A no-op
+    where the CPU has no such mode."""
+    depth = getattr(_flush_depth, "n", 0)
+    if depth == 0:
+        _flush_depth.on = bool(torch.set_flush_denormal(True))
+    _flush_depth.n = depth + 1
+    try:
+        yield
+    finally:
+        _flush_depth.n = depth
+        if depth == 0 and _flush_depth.on:
+            torch.set_flush_denormal(False)
+
+
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
+def _flushing(fn: Callable[P, R]) -> Callable[P, R]:
+    """Run ``fn`` within :func:`denormals_flushed`."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
+        with denormals_flushed():
+            return fn(*args, **kwargs)
+
+    return wrapper
 
 
 def local_origin(x: np.ndarray) -> np.ndarray:
@@ -398,6 +444,7 @@ class OccupancySVGP:
         self._elbos.append(elbo)
         return elbo
 
+    @_flushing
     def fit_paper(self, x: np.ndarray, y: np.ndarray, epochs: int | None = None) -> TrainStats:
         """The paper's batch fit: a fresh model with ``paper_num_inducing`` inducing points (FPS),
         Adam (lr ``paper_lr``), ``paper_epochs`` epochs."""
@@ -421,6 +468,7 @@ class OccupancySVGP:
         self.version += 1
         return TrainStats(self.total_steps, elbo, True, 0, n)
 
+    @_flushing
     def update(
         self, x: np.ndarray, y: np.ndarray, new_idx: np.ndarray, steps: int | None = None
     ) -> TrainStats:
@@ -794,6 +842,7 @@ class OccupancySVGP:
                 vd.chol_variational_covar.data.copy_(torch.linalg.cholesky(S_w).to(self.dtype))
         vs._memoize_cache = {}
 
+    @_flushing
     def set_optimal_q(self, x: np.ndarray, y: np.ndarray, chunk: int = 4096) -> float:
         """Set q(u) to its exact optimum given the current hyperparameters, inducing points Z and
         all the data ``(x, y)`` (Titsias 2009; what full-batch NGD with lr 1 reaches in one step).
@@ -833,6 +882,7 @@ class OccupancySVGP:
         self.version += 1
         return self.elbo_per_point(x_W, y, chunk)
 
+    @_flushing
     def elbo_per_point(self, x: np.ndarray, y: np.ndarray, chunk: int = 4096) -> float:
         """The ELBO of the current model on all of ``(x, y)``, per point (full data, no minibatch
         noise): (sum of expected log-likelihoods - KL(q(u) || p(u))) / N."""
@@ -901,6 +951,7 @@ class SvgpSnapshot:
         return _predict(self._model, self._likelihood, self._cfg, self._t, x_local, scale)
 
 
+@_flushing
 def _predict(
     model: _SVGP,
     likelihood: gpytorch.likelihoods.GaussianLikelihood,
