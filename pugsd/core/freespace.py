@@ -213,6 +213,25 @@ class FreeSpaceMap:
         self.surface = self.surface[keep]
         self.last_frame = self.last_frame[keep]
 
+    def crop(self, lo_W: np.ndarray, hi_W: np.ndarray) -> FreeSpaceMap:
+        """A copy holding only the blocks that overlap the box [``lo_W``, ``hi_W``] (and one
+        block around it): ``state`` answers alike for every point in the box and UNKNOWN beyond.
+        What a grasp computation reads while frames go on being integrated into this map."""
+        out = FreeSpaceMap(self.cfg)
+        out.frames = self.frames
+        if self.origin_W is None:
+            return out
+        out.origin_W = self.origin_W.copy()
+        lo = np.floor((np.asarray(lo_W, dtype=np.float64) - self.origin_W) / self.block_m) - 1
+        hi = np.floor((np.asarray(hi_W, dtype=np.float64) - self.origin_W) / self.block_m) + 1
+        blk = _unpack(self.keys)
+        sel = np.flatnonzero(np.all((blk >= lo) & (blk <= hi), axis=1))
+        out.keys = self.keys[sel]
+        out.free = self.free[sel]
+        out.surface = self.surface[sel]
+        out.last_frame = self.last_frame[sel]
+        return out
+
     # ------------------------------------------------------------------ query
     def state(self, points_W: np.ndarray) -> np.ndarray:
         """UNKNOWN, FREE or SURFACE per point (N,) uint8: FREE where more frames saw the voxel

@@ -73,6 +73,9 @@ class GraspInput:
     cloud_W: np.ndarray  # (Q, 3) query cloud
     views_W: np.ndarray  # (V, 3) camera centres seen so far
     timings_s: dict[str, float] = field(default_factory=dict)
+    # grasp.uncertainty = swept: the free-space map around the cloud, far enough for every
+    # candidate's swept volume (``FreeSpaceMap.crop``)
+    free: FreeSpaceMap | None = None
 
 
 @dataclass(frozen=True)
@@ -82,6 +85,9 @@ class Proposal:
     cloud_W: np.ndarray
     candidates: GraspSet
     timings_s: dict[str, float] = field(default_factory=dict)
+    # with ``GraspInput.free``: the never-observed share of each candidate's swept volume
+    # (aligned with ``candidates``; NaN where invalid)
+    unknown_share: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -162,6 +168,12 @@ class PugsPipeline:
         self.proposer = make_proposer(self.cfg.grasp, seed, grasp_model)
         g = self.cfg.grasp
         self._swept_G = swept_samples(g.gripper, g.approach_check_m, g.swept_step_m)
+        # how far from its contact a candidate's swept samples reach: the samples from the wrist,
+        # plus the wrist from the contact (the depth along the approach, half the width across)
+        self._swept_reach_m = (
+            float(np.linalg.norm(np.vstack(self._swept_G), axis=1).max())
+            + float(np.hypot(g.gripper.depth_m, 0.5 * g.gripper.max_width_m))
+        )
         self._pending: list[np.ndarray] = []
         self._scale: float | None = None
         self.frames = 0
@@ -293,8 +305,9 @@ class PugsPipeline:
         return cloud
 
     def grasp_input(self, cloud_W: np.ndarray | None = None) -> GraspInput:
-        """Phase 1 of ``compute``: a snapshot of what the proposer needs (the query cloud and the
-        camera centres). Reads the reconstruction: call it under the same lock as ``integrate``."""
+        """Phase 1 of ``compute``: a snapshot of what the proposer needs (the query cloud, the
+        camera centres and, for the swept uncertainty, the free-space map around the cloud).
+        Reads the reconstruction: call it under the same lock as ``integrate``."""
         if len(self.store) == 0:
             raise EmptyCloudError("no observations")
         t0 = time.perf_counter()
@@ -304,16 +317,39 @@ class PugsPipeline:
             if self.recon.camera_centers_W
             else np.zeros((1, 3))
         )
-        return GraspInput(cloud_W=cloud, views_W=views, timings_s={"cloud": time.perf_counter() - t0})
+        free = None
+        if self.cfg.grasp.uncertainty == "swept" and len(cloud):
+            r = self._swept_reach_m
+            free = self.free.crop(cloud.min(0) - r, cloud.max(0) + r)
+        return GraspInput(
+            cloud_W=cloud, views_W=views, timings_s={"cloud": time.perf_counter() - t0}, free=free
+        )
 
     def propose(self, inp: GraspInput, proposer: GraspProposer | None = None) -> Proposal:
         """Phase 2 of ``compute``: grasp candidates on the snapshot (by ``proposer``, default the
-        configured one). Touches no pipeline state (the proposer is stateless), so the daemon runs
-        it without the model lock while frames are integrated and the SVGP trains."""
+        configured one) and, where the snapshot holds the free-space map, the never-observed
+        share of each one's swept volume (``pugsd.core.grasp.swept``). Touches no pipeline state
+        (the proposer is stateless), so the daemon runs it without the model lock while frames
+        are integrated and the SVGP trains."""
         t0 = time.perf_counter()
         cands = (proposer or self.proposer).propose(inp.cloud_W, None, inp.views_W)
-        timings = {**inp.timings_s, "propose": time.perf_counter() - t0}
-        return Proposal(cloud_W=inp.cloud_W, candidates=cands, timings_s=timings)
+        t1 = time.perf_counter()
+        unk = None if inp.free is None else self._unknown_share(inp.free, inp.cloud_W, cands)
+        timings = {**inp.timings_s, "propose": t1 - t0}
+        if unk is not None:
+            timings["swept"] = time.perf_counter() - t1
+        return Proposal(cloud_W=inp.cloud_W, candidates=cands, timings_s=timings, unknown_share=unk)
+
+    def _unknown_share(self, free: FreeSpaceMap, cloud_W: np.ndarray, cands: GraspSet) -> np.ndarray:
+        """U of each valid candidate (NaN for the others) against the free-space map ``free``."""
+        g = self.cfg.grasp
+        unk = np.full(len(cands), np.nan)
+        v = cands.valid
+        if v.any():
+            unk[v] = unknown_share(
+                free, cands.pose[v], *self._swept_G, cKDTree(cloud_W), g.unknown_decay_m, g.threads
+            )
+        return unk
 
     def score(self, proposal: Proposal, uncertainty: str | None = None) -> PipelineResult:
         """Phase 3 of ``compute``: Algorithm 1 (Eq. 9-12) at the contact points of the valid
@@ -338,13 +374,11 @@ class PugsPipeline:
             contact_s2 = s2[cands.src_index[v]]
             finite = contact_s2[np.isfinite(contact_s2) & (contact_s2 > 0)]
             ref = float(np.median(finite)) if len(finite) else 1.0
-            unk = np.full(len(cands), np.nan)
+            unk = proposal.unknown_share
+            if unk is None:  # proposed without the free-space map: read the live one
+                unk = self._unknown_share(self.free, cloud, cands)
             s2g = np.full(len(cands), np.nan)
             if v.any():
-                tree = cKDTree(cloud)
-                unk[v] = unknown_share(
-                    self.free, cands.pose[v], *self._swept_G, tree, g.unknown_decay_m, g.threads
-                )
                 s2g[v] = grasp_sigma2(contact_s2, ref, unk[v], g.unknown_weight)
         t4 = time.perf_counter()
         ranked = rank_grasps(
@@ -357,7 +391,7 @@ class PugsPipeline:
         pc = np.zeros(len(cloud))
         per_grasp = s2[cands.src_index[v]] if s2g is None else s2g[v]
         pc[cands.src_index[v]] = reweight(cands.confidence[v], per_grasp, g.gamma)
-        timings = {**proposal.timings_s, "algorithm1": t3 - t2, "swept": t4 - t3, "eq13": t5 - t4}
+        timings = {"swept": t4 - t3, **proposal.timings_s, "algorithm1": t3 - t2, "eq13": t5 - t4}
         self.timings_s.update(timings)
         return PipelineResult(
             grasps=ranked,

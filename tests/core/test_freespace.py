@@ -112,3 +112,27 @@ def test_disabled_or_empty_frames_leave_the_map_empty_and_reset_clears_it() -> N
     assert len(fmap) > 0
     fmap.reset()
     assert len(fmap) == 0 and fmap.state(np.zeros((1, 3)))[0] == UNKNOWN
+
+
+def test_a_crop_answers_like_the_map_inside_its_box_and_unknown_beyond() -> None:
+    fmap = FreeSpaceMap(CFG)
+    for frame in orbit_frames(
+        [box_mesh((0.05, 0.05, 0.05), (0, 0, 0.025))], np.array([0, 0, 0.025]), 0.4, 0.2,
+        np.linspace(-60, 60, 4), CAM,
+    ):  # fmt: skip
+        fmap.integrate(frame)
+    lo, hi = np.array([-0.06, -0.04, -0.01]), np.array([0.03, 0.05, 0.09])
+    crop = fmap.crop(lo, hi)
+    assert 0 < len(crop) < len(fmap)
+    rng = np.random.default_rng(0)
+    inside = rng.uniform(lo, hi, (20000, 3))
+    np.testing.assert_array_equal(crop.state(inside), fmap.state(inside))
+    assert {FREE, SURFACE, UNKNOWN} <= set(fmap.state(inside).tolist())
+    beyond = rng.uniform(-0.3, 0.3, (20000, 3))
+    beyond = beyond[np.any((beyond < lo - 2 * fmap.block_m) | (beyond > hi + 2 * fmap.block_m), axis=1)]
+    assert (fmap.state(beyond) != UNKNOWN).any()
+    assert (crop.state(beyond) == UNKNOWN).all()
+    # a copy: integrating more into the map leaves the crop as it was
+    before = crop.state(inside)
+    fmap.integrate(_wall_frame(np.zeros(3)))
+    np.testing.assert_array_equal(crop.state(inside), before)

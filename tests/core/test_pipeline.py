@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import ast
+import dataclasses
 import subprocess
 import sys
 from pathlib import Path
@@ -107,6 +108,23 @@ def test_grasps_first_then_the_cloud_gives_the_same_result(partial_box) -> None:
     np.testing.assert_allclose(full.sigma2_occ, r.sigma2_occ, rtol=1e-4, atol=1e-12)
     np.testing.assert_allclose(full.mu_occ, r.mu_occ, rtol=1e-4, atol=1e-9)
     assert "algorithm1_cloud" in full.timings_s and full.model_version == r.model_version
+
+
+def test_the_swept_share_comes_with_the_proposal_from_the_snapshot(partial_box) -> None:  # type: ignore[no-untyped-def]
+    """The proposal computes each candidate's never-observed share on the snapshot's crop of the
+    free-space map (without the lock); scoring gives what the live map gives."""
+    pipe, r = partial_box
+    inp = pipe.grasp_input(r.cloud_W)
+    assert inp.free is not None and 0 < len(inp.free) <= len(pipe.free)
+    prop = pipe.propose(inp)
+    v = prop.candidates.valid
+    assert prop.unknown_share is not None and v.any()
+    assert np.isnan(prop.unknown_share[~v]).all()
+    live = dataclasses.replace(prop, unknown_share=None)  # read from the live map in score
+    a, b = pipe.score(prop), pipe.score(live)
+    np.testing.assert_array_equal(a.unknown_share, b.unknown_share)
+    np.testing.assert_array_equal(a.grasps.grasp_id, b.grasps.grasp_id)
+    assert "swept" in prop.timings_s
 
 
 def test_grasp_phases_and_cloud_job_use_the_model_of_their_time() -> None:
