@@ -374,6 +374,11 @@ def _arm_execute(args: argparse.Namespace) -> int:
         gid = args.grasp_id
         if args.frame != "world":
             raise ArmError("--grasp-id poses are in the world frame; --frame base applies to --pose")
+    # Ctrl-C (or kill -INT) must stop the arm even when this process was started with SIGINT
+    # ignored (a job in the background of a non-interactive shell): Python then installs no
+    # KeyboardInterrupt handler, and the motion would run on to its end
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     rep = _run(_execute_main(cfg, T, args.frame, width, gid))
     if args.json:
         _out(json.dumps(rep, indent=2, default=float))

@@ -120,19 +120,19 @@ def _ended(pids: list[int], within_s: float) -> bool:
 
 
 @contextlib.contextmanager
-def _execute(link_args: list[str]) -> Iterator[subprocess.Popen[bytes]]:
+def _execute(link_args: list[str], sigint: Any = signal.SIG_DFL) -> Iterator[subprocess.Popen[bytes]]:
     """``pugsd arm execute`` of a reachable pose against the simulator (killed by pid, with
-    its guard, at the end)."""
+    its guard, at the end), started with SIGINT at ``sigint``."""
     cmd = [sys.executable, "-m", "pugsd", "arm", "execute", "--pose", *POSE, "--width", "0.03"]
     # the commanding process must not stop on its own watchdog on a loaded machine
     cmd += ["--set", "arm.enabled=true", "--set", "arm.safety.watchdog_s=1.0", *link_args]
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     # stderr to a file, not a pipe nobody reads while it runs (a full pipe would block the
-    # commander's own Ctrl-C stop); SIGINT at its default whatever the test runner inherited
+    # commander's own Ctrl-C stop); SIGINT as asked, whatever the test runner inherited
     err = tempfile.NamedTemporaryFile(prefix="arm-execute-", suffix=".log", delete=False)  # noqa: SIM115
     proc = subprocess.Popen(
         cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=err,
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        preexec_fn=lambda: signal.signal(signal.SIGINT, sigint),
     )  # fmt: skip
     err.close()
     proc.stderr = open(err.name, "rb")  # noqa: SIM115
@@ -182,14 +182,14 @@ def _assert_still(st: SimThread) -> None:
         ("udp", signal.SIGKILL),
         ("pty", signal.SIGKILL),  # the guard opens the port once the dead process's lock is gone
         ("udp", signal.SIGTERM),  # Python's default: the process ends at once, no cleanup
-        # Ctrl-C: the commander stops the arm itself, releases the guard (``_execute`` starts it
-        # with SIGINT at its default: a runner started in the background of a non-interactive
-        # shell ignores SIGINT, and Python then never raises KeyboardInterrupt)
+        # Ctrl-C: the commander stops the arm itself, releases the guard; started with SIGINT
+        # ignored, as a job in the background of a non-interactive shell is (``_execute``)
         ("udp", signal.SIGINT),
     ],
 )
 def test_a_signal_to_arm_execute_mid_motion_makes_the_arm_safe_within_1s(kind: str, sig: int) -> None:
-    with SimThread(kind) as st, _execute(st.link_args) as proc:
+    started = signal.SIG_IGN if sig == signal.SIGINT else signal.SIG_DFL
+    with SimThread(kind) as st, _execute(st.link_args, started) as proc:
         _wait_mid_motion(st, proc)
         guards = _children(proc.pid)
         try:
