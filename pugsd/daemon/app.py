@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import logging
+import math
 import threading
 import time
 from collections.abc import Awaitable, Callable
@@ -148,6 +149,8 @@ class Daemon:
         self.inputs = InputWatch(d.input_stale_s)
         # the outputs' stamp: written and read under _model_lock (with the map it labels)
         self._newest_stamp_ns = 0
+        # bumped under _model_lock by every integrate and reset: which map a snapshot was of
+        self.map_version = 0
 
     # --- lifecycle ------------------------------------------------------------------------------
 
@@ -524,12 +527,14 @@ class Daemon:
             n = self.pipeline.integrate(depth)
             gap_ns = self.frames.poses.max_gap_ns
             self._newest_stamp_ns = output_stamp_ns(self._newest_stamp_ns, depth.stamp_ns, gap_ns)
+            self.map_version += 1
             return n
 
     def _reset_locked(self) -> bool:
         """On the model thread: reset the pipeline and the outputs' stamp under the model lock."""
         with self._model_lock:
             self._newest_stamp_ns = 0
+            self.map_version += 1
             self.pipeline.reset()
         return True
 
@@ -558,7 +563,23 @@ class Daemon:
         while not self._stopping:
             changes.take_nowait()  # this look at the model covers every change offered so far
             publishable = self.ready or (self.cfg.daemon.ready_latch and self.was_ready)
-            if not (publishable and s.changed) or self._resetting or self._reset_failed:
+            if self._resetting or self._reset_failed:
+                await changes.take()
+                continue
+            if not publishable and s.frame_unpublished and self.outputs.prepared_for != self.map_version:
+                # not ready yet: once the input pauses, propose on the map as it is (the proposal
+                # needs no model), so that the first grasps need only Algorithm 1 at the
+                # contacts when the model becomes ready
+                paused_in = s.paused_in(time.monotonic(), len(self.depth_box))
+                if paused_in == 0.0:
+                    prepare = self.outputs.prepare
+                    await self._guard("grasps", self._offload("grasps", prepare, self._generation))
+                elif paused_in < math.inf:
+                    await changes.take_within(paused_in)
+                else:
+                    await changes.take()
+                continue
+            if not (publishable and s.changed):
                 await changes.take()
                 continue
             now, queued = time.monotonic(), len(self.depth_box)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -23,6 +24,16 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 GRASPS_LOG_S = 60.0  # published grasps are logged at most this often (the first ones at once)
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """A proposal made before the model was ready, on the map of ``map_version``."""
+
+    proposal: Any
+    stamp_ns: int
+    map_version: int
+    generation: int
 
 
 class Outputs:
@@ -42,12 +53,29 @@ class Outputs:
         self.grasps_published = 0
         self.grasps_logged_s = -math.inf  # when grasps were last logged
         self.grasps_logged_n = 0  # grasps_published then
+        # a proposal made while the model was not ready (``prepare``) and the map version it was
+        # made on (set before it is made: a failed one is not retried on the same map)
+        self.prepared: Prepared | None = None
+        self.prepared_for: int | None = None
 
     def clear(self) -> None:
         """A reset: no grasps of the cleared map are served any more; the new map's first grasps
         are logged."""
         self.latest_grasps = self.latest_result = self.latest_cloud_result = self.model_version = None
         self.grasps_logged_s = -math.inf
+        self.prepared = self.prepared_for = None
+
+    def prepare(self, generation: int) -> None:
+        """On the grasp thread, while the model is not ready: the snapshot and the proposal (the
+        grasp candidates and their swept volumes' unknown shares need only the map), kept for
+        the first grasp computation, which uses it if no frame was integrated since."""
+        d = self.d
+        with d._model_lock:
+            self.prepared, self.prepared_for = None, d.map_version
+            inp = d.pipeline.grasp_input()
+            stamp_ns = d._newest_stamp_ns
+        proposal = d.pipeline.propose(inp)
+        self.prepared = Prepared(proposal, stamp_ns, self.prepared_for, generation)
 
     def compute_and_encode(
         self,
@@ -57,7 +85,8 @@ class Outputs:
         with_cloud: bool,
     ) -> str:
         """On the grasp thread. Under the model lock: a snapshot of the query cloud. Without it:
-        the grasp proposal (frames are integrated and the SVGP trains meanwhile). Under the lock
+        the grasp proposal (frames are integrated and the SVGP trains meanwhile); the one
+        ``prepare`` made instead, when no frame was integrated since. Under the lock
         again: Algorithm 1 at the contacts and Eq. 13 with the model as it is now, handed to
         ``on_grasps`` at once; then, if ``with_cloud``, still under that lock, the fused
         covariances of the rest of the query cloud and a frozen copy of the same model, through
@@ -68,10 +97,14 @@ class Outputs:
         Returns "discarded" if a reset while this ran discarded the result ("cloud discarded" if
         it came after the grasps), "preempted" if the cloud gave way, else "published"."""
         d = self.d
+        prep, self.prepared = self.prepared, None
         with d._model_lock:
-            inp = d.pipeline.grasp_input()
-            stamp_ns = d._newest_stamp_ns
-        proposal = d.pipeline.propose(inp)
+            if prep is not None and (prep.map_version, prep.generation) == (d.map_version, generation):
+                inp, proposal, stamp_ns = None, prep.proposal, prep.stamp_ns
+            else:
+                inp, stamp_ns = d.pipeline.grasp_input(), d._newest_stamp_ns
+        if inp is not None:
+            proposal = d.pipeline.propose(inp)
         with d._model_lock:
             if generation != d._generation:
                 return "discarded"

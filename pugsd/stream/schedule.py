@@ -97,6 +97,13 @@ class StreamingSchedule:
             self.last_frame_s is not None and now - self.last_frame_s < self.d.pause_publish_s
         )
 
+    def paused_in(self, now: float, frames_queued: int) -> float:
+        """Seconds from ``now`` until the input counts as paused (no frame queued and none for
+        ``pause_publish_s``): 0.0 once it has, inf while a frame waits or none came yet."""
+        if frames_queued > 0 or self.last_frame_s is None:
+            return math.inf
+        return max(self.d.pause_publish_s - (now - self.last_frame_s), 0.0)
+
     def grasps_due(self, now: float, last_start: float, frames_queued: int) -> bool:
         """Every 1 / grasp_rate_hz while the model changes; and at once when the input pauses:
         the newest frame has had its training steps and no frame came for ``pause_publish_s``

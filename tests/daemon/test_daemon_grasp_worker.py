@@ -611,3 +611,88 @@ def test_run_declares_no_graph_token_when_they_are_off() -> None:
     asyncio.run(asyncio.wait_for(d.run(stop), 10.0))
     assert [e for e in order if e.startswith("token ")] == [f"token pugs/alive/{cfg.daemon.node_name}"]
     assert d._sub_graph_keys == []
+
+
+# --- a proposal made before the model is ready ---------------------------------------------------
+
+
+class ProposingPipeline(RoundPipeline):
+    """Counts proposals, and the round's scores; not ready until ``ready_now``."""
+
+    def __init__(self, clock: Clock) -> None:
+        super().__init__(clock)
+        self.proposals: list[float] = []
+        self.scored: list[int] = []
+        self.ready_now = False
+
+    @property
+    def ready(self) -> bool:
+        return self.ready_now
+
+    def propose(self, inp: int) -> int:
+        self.proposals.append(self.clock.t)
+        return super().propose(inp)
+
+    def score(self, proposal: int) -> Any:
+        self.scored.append(proposal)
+        return super().score(proposal)
+
+
+def _not_ready_daemon(clock: Clock) -> tuple[Daemon, ProposingPipeline]:
+    pipe = ProposingPipeline(clock)
+    d = _daemon(pipe, grasp_rate_hz=1.0, pause_publish_s=0.5, publish_cloud=False)
+    pipe.daemon = d
+    d.ready = False
+    d.schedule.frame_integrated(100.0)  # a frame came at 100 s; none is queued
+    d.map_version = 7
+    return d, pipe
+
+
+def test_before_the_model_is_ready_the_proposal_is_made_once_the_input_pauses_and_scored_when_ready(
+    clock: Clock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Not ready: no proposal while frames count as streaming (the worker waits for the pause),
+    one proposal once the input has paused, none again on the same map; when the model is ready
+    the first round scores that proposal without proposing again."""
+    d, pipe = _not_ready_daemon(clock)
+    clock.t = 100.2
+
+    def ready() -> None:
+        clock.t = 101.0
+        d.ready = True
+        d.schedule.changed = True
+
+    steps = [_at(d, clock, 100.5), _at(d, clock, 100.8), ready]
+    waits = _scripted_rounds(d, monkeypatch, steps)
+    assert waits[0] == pytest.approx(0.3)  # until the input counts as paused
+    assert pipe.proposals == [100.5]  # at the pause, and not again at 100.8 s (same map)
+    assert pipe.rounds == [100.5]  # grasp_input: that proposal's snapshot only
+    assert pipe.scored == [pipe.version] and d.outputs.grasps_published == 1
+    assert d.outputs.prepared is None
+
+
+def test_a_frame_integrated_after_the_early_proposal_makes_the_ready_round_propose_again(
+    clock: Clock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    d, pipe = _not_ready_daemon(clock)
+
+    def new_frame_then_ready() -> None:
+        clock.t = 102.0
+        d.map_version += 1  # integrated after the proposal
+        d.ready = True
+        d.schedule.changed = True
+
+    _scripted_rounds(d, monkeypatch, [_at(d, clock, 100.5), new_frame_then_ready])
+    assert pipe.proposals == [100.5, 102.0]
+    assert d.outputs.grasps_published == 1
+
+
+def test_an_early_proposal_that_fails_is_not_retried_on_the_same_map(
+    clock: Clock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    d, pipe = _not_ready_daemon(clock)
+    pipe.fail = "propose"
+    _scripted_rounds(d, monkeypatch, [_at(d, clock, 100.6), _at(d, clock, 100.9)])
+    assert pipe.proposals == [100.6]  # and not again at 100.9 s
+    assert d.outputs.prepared is None and d.outputs.prepared_for == 7
+    assert d.health.failures.get("grasps", 0) == 1

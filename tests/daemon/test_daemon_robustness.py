@@ -325,7 +325,8 @@ def test_unhealthy_state_is_logged_once_not_every_second(
     monkeypatch.delenv("WATCHDOG_PID", raising=False)
     caplog.set_level(logging.ERROR, logger="pugsd")
     pipe = FakePipeline(train_delay_s=1.5, ready_after=1000)
-    cfg = load_config_dict(daemon_config_dict(port, stall_timeout_s=0.2))
+    # the input does not pause within the test: no early proposal queues behind the stuck step
+    cfg = load_config_dict(daemon_config_dict(port, stall_timeout_s=0.2, pause_publish_s=5.0))
     dt, src = start_with_source(cfg, client, pipe)
     d = dt.daemon
     try:

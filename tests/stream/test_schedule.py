@@ -149,3 +149,12 @@ def test_a_reset_leaves_nothing_to_publish_until_a_new_frame() -> None:
     s.frame_integrated(1.0)
     s.reset()
     assert (s.changed, s.frame_unpublished, s.last_frame_s) == (False, False, None)
+
+
+def test_the_input_counts_as_paused_pause_publish_s_after_the_last_frame_with_none_queued() -> None:
+    s = StreamingSchedule(load_config_dict({"daemon": {"pause_publish_s": 0.5}}).daemon)
+    assert s.paused_in(100.0, 0) == math.inf  # no frame yet
+    s.frame_integrated(100.0)
+    assert s.paused_in(100.2, 0) == pytest.approx(0.3)
+    assert s.paused_in(100.2, 1) == math.inf  # a frame waits: still streaming
+    assert s.paused_in(100.5, 0) == 0.0 and s.paused_in(107.0, 0) == 0.0
