@@ -16,7 +16,6 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import logging
-import math
 import threading
 import time
 from collections.abc import Awaitable, Callable
@@ -565,50 +564,12 @@ class Daemon:
             publishable = self.ready or (self.cfg.daemon.ready_latch and self.was_ready)
             if self._resetting or self._reset_failed:
                 await changes.take()
-                continue
-            if not publishable and s.frame_unpublished and self.outputs.prepared_for != self.map_version:
-                # not ready yet: once the input pauses, propose on the map as it is (the proposal
-                # needs no model), so that the first grasps need only Algorithm 1 at the
-                # contacts when the model becomes ready
-                paused_in = s.paused_in(time.monotonic(), len(self.depth_box))
-                if paused_in == 0.0:
-                    prepare = self.outputs.prepare
-                    await self._guard("grasps", self._offload("grasps", prepare, self._generation))
-                elif paused_in < math.inf:
-                    await changes.take_within(paused_in)
-                else:
-                    await changes.take()
-                continue
-            if not (publishable and s.changed):
+            elif not publishable and s.frame_unpublished and self.outputs.prepared_for != self.map_version:
+                await self.outputs.propose_early(changes)  # the model is not ready yet
+            elif not (publishable and s.changed):
                 await changes.take()
-                continue
-            now, queued = time.monotonic(), len(self.depth_box)
-            due_in = s.grasps_due_in(now, s.grasps_started_s, queued)
-            if due_in > 0.0:
-                await changes.take_within(due_in)
-                continue
-            with_cloud = s.start_grasps(now, queued)
-            newest_recv = self._newest_recv_s
-            generation = self._generation
-
-            def hand_over(result: Any, payloads: dict[str, bytes], newest: float | None = newest_recv,
-                          gen: int = generation) -> None:  # fmt: skip
-                loop.call_soon_threadsafe(self.outputs.publish, result, payloads, newest, gen)
-
-            try:
-                compute = self.outputs.compute_and_encode
-                args = (self.frames.frame_id, generation, hand_over, with_cloud)
-                outcome = await self._guard("grasps", self._offload("grasps", compute, *args))
-            finally:
-                s.grasps_urgent = False
-            if outcome == "discarded":
-                self.health.count("grasps_discarded")
-                log.info("grasp computation discarded: the map was reset while it ran")
-            elif outcome == "preempted":
-                self.health.count("clouds_preempted")
-            elif outcome == "cloud discarded":
-                self.health.count("clouds_discarded")
-            await asyncio.sleep(0)  # let the hand-over callbacks run before the next round
+            else:
+                await self.outputs.grasp_round(loop)
 
     async def _command_worker(self) -> None:
         while not self._stopping:

@@ -1,10 +1,12 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The daemon's outputs: a grasp computation (on the grasp thread), its publication on the loop
-(grasps, markers, the cloud), the latest results served on ``grasps/latest``, and the cleared
-outputs after a reset."""
+"""The daemon's outputs: a grasp round (started on the loop when the schedule says grasps are
+due, computed on the grasp thread), a proposal made before the model is ready, their publication
+on the loop (grasps, markers, the cloud), the latest results served on ``grasps/latest``, and the
+cleared outputs after a reset."""
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import math
 from collections.abc import Callable
@@ -64,6 +66,50 @@ class Outputs:
         self.latest_grasps = self.latest_result = self.latest_cloud_result = self.model_version = None
         self.grasps_logged_s = -math.inf
         self.prepared = self.prepared_for = None
+
+    async def grasp_round(self, loop: asyncio.AbstractEventLoop) -> None:
+        """On the loop: one grasp computation (``compute_and_encode`` on the grasp thread) if
+        the schedule says grasps are due; else wait until they are, or the model changes."""
+        d = self.d
+        s, now, queued = d.schedule, self.clock(), len(d.depth_box)
+        due_in = s.grasps_due_in(now, s.grasps_started_s, queued)
+        if due_in > 0.0:
+            await d.model_changes.take_within(due_in)
+            return
+        with_cloud = s.start_grasps(now, queued)
+        newest_recv = d._newest_recv_s
+        generation = d._generation
+
+        def hand_over(result: Any, payloads: dict[str, bytes], newest: float | None = newest_recv,
+                      gen: int = generation) -> None:  # fmt: skip
+            loop.call_soon_threadsafe(self.publish, result, payloads, newest, gen)
+
+        try:
+            args = (d.frames.frame_id, generation, hand_over, with_cloud)
+            outcome = await d._guard("grasps", d._offload("grasps", self.compute_and_encode, *args))
+        finally:
+            s.grasps_urgent = False
+        if outcome == "discarded":
+            d.health.count("grasps_discarded")
+            log.info("grasp computation discarded: the map was reset while it ran")
+        elif outcome == "preempted":
+            d.health.count("clouds_preempted")
+        elif outcome == "cloud discarded":
+            d.health.count("clouds_discarded")
+        await asyncio.sleep(0)  # let the hand-over callbacks run before the next round
+
+    async def propose_early(self, changes: Any) -> None:
+        """The model is not ready yet: once the input pauses, ``prepare`` a proposal on the map
+        as it is (it needs no model), so that the first grasps need only Algorithm 1 at the
+        contacts when the model becomes ready. Until the pause, wait on ``changes``."""
+        d = self.d
+        paused_in = d.schedule.paused_in(self.clock(), len(d.depth_box))
+        if paused_in == 0.0:
+            await d._guard("grasps", d._offload("grasps", self.prepare, d._generation))
+        elif paused_in < math.inf:
+            await changes.take_within(paused_in)
+        else:
+            await changes.take()
 
     def prepare(self, generation: int) -> None:
         """On the grasp thread, while the model is not ready: the snapshot and the proposal (the
