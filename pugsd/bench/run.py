@@ -390,7 +390,7 @@ def section_weights(opts: BenchOptions, paper_epochs: int, cuda: bool) -> dict[s
     w: dict[str, float] = {"render": 1.2 * opts.n_frames * len(opts.trajectories)}
     fits = 1 + (opts.paper_reference_seed is not None)
     for traj in opts.trajectories if opts.use_pipeline else ():
-        w[f"pipeline {traj}"] = 30.0 + 1.5 * paper_epochs * fits + 40.0 * opts.streaming_at_paper_m
+        w[f"pipeline {traj}"] = 30.0 + 0.55 * paper_epochs * fits + 40.0 * opts.streaming_at_paper_m
     if cuda:
         w["cuda"] = 60.0
     if opts.use_daemon:

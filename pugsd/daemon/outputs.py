@@ -35,7 +35,6 @@ class Prepared:
     proposal: Any
     stamp_ns: int
     map_version: int
-    generation: int
 
 
 class Outputs:
@@ -105,23 +104,24 @@ class Outputs:
         d = self.d
         paused_in = d.schedule.paused_in(self.clock(), len(d.depth_box))
         if paused_in == 0.0:
-            await d._guard("grasps", d._offload("grasps", self.prepare, d._generation))
+            await d._guard("grasps", d._offload("grasps", self.prepare))
         elif paused_in < math.inf:
             await changes.take_within(paused_in)
         else:
             await changes.take()
 
-    def prepare(self, generation: int) -> None:
+    def prepare(self) -> None:
         """On the grasp thread, while the model is not ready: the snapshot and the proposal (the
         grasp candidates and their swept volumes' unknown shares need only the map), kept for
-        the first grasp computation, which uses it if no frame was integrated since."""
+        the first grasp computation, which uses it if the map is still the same (no frame
+        integrated, no reset: both bump ``map_version``)."""
         d = self.d
         with d._model_lock:
             self.prepared, self.prepared_for = None, d.map_version
             inp = d.pipeline.grasp_input()
             stamp_ns = d._newest_stamp_ns
         proposal = d.pipeline.propose(inp)
-        self.prepared = Prepared(proposal, stamp_ns, self.prepared_for, generation)
+        self.prepared = Prepared(proposal, stamp_ns, self.prepared_for)
 
     def compute_and_encode(
         self,
@@ -145,7 +145,7 @@ class Outputs:
         d = self.d
         prep, self.prepared = self.prepared, None
         with d._model_lock:
-            if prep is not None and (prep.map_version, prep.generation) == (d.map_version, generation):
+            if prep is not None and prep.map_version == d.map_version:
                 inp, proposal, stamp_ns = None, prep.proposal, prep.stamp_ns
             else:
                 inp, stamp_ns = d.pipeline.grasp_input(), d._newest_stamp_ns

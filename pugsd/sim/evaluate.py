@@ -301,9 +301,9 @@ def _scored(
                 pipe.train_steps()
         inp = pipe.grasp_input()
         views = inp.views_W
-        props = {
-            kind: pipe.propose(inp, make_proposer(cfg.grasp, job.seed, kind=kind))
-            for kind in ("single_contact", "antipodal")
+        props = {  # the antipodal candidates are scored at their contacts: no swept volume
+            kind: pipe.propose(i, make_proposer(cfg.grasp, job.seed, kind=kind))
+            for kind, i in (("single_contact", inp), ("antipodal", dataclasses.replace(inp, free=None)))
         }
     except Exception as exc:  # the pipeline failing on a trial is a failed trial, not a crash
         log.warning("pipeline failed on %s/%s seed %d: %s", job.object_name, job.recon, job.seed, exc)

@@ -121,11 +121,9 @@ class StreamingSchedule:
         if (
             d.pause_publish_s > 0
             and self.frame_unpublished
-            and self.last_frame_s is not None
-            and frames_queued == 0
             and self.steps_since_frame >= d.train_steps_per_frame
         ):  # early once the input has paused, but not before half a period
-            paused_in = d.pause_publish_s - (now - self.last_frame_s)
+            paused_in = self.paused_in(now, frames_queued)
             due_in = min(due_in, max(paused_in, 0.5 * period - since_start, 0.0))
         return due_in
 
