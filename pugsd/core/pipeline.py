@@ -131,6 +131,17 @@ class CubatureJob:
 
 
 @dataclass(frozen=True)
+class TrainingBatch:
+    """One streaming update's data (Eq. 7), copied out of the store: inputs [m, world] (N, 3),
+    Eq. 4 targets over the target scale (N,), and the indices of the points changed since the
+    previous batch."""
+
+    x_W: np.ndarray
+    target: np.ndarray
+    new_idx: np.ndarray
+
+
+@dataclass(frozen=True)
 class CloudJob:
     """What ``finish_cloud`` needs to fill in the query cloud of a ``compute(full_cloud=False)``
     result (``PugsPipeline.cloud_job``)."""
@@ -240,14 +251,28 @@ class PugsPipeline:
     def train_steps(self, steps: int | None = None, rate_scale: float = 1.0) -> TrainStats:
         """Streaming SVGP update (warm start, NGD + Adam, replay) on what changed since last call,
         with the learning rates multiplied by ``rate_scale`` in (0, 1] (``OccupancySVGP.set_rate_scale``;
-        the daemon's idle training lowers it)."""
+        the daemon's idle training lowers it): :meth:`train_on` the :meth:`training_batch`."""
+        return self.train_on(self.training_batch(), steps, rate_scale)
+
+    def training_batch(self) -> TrainingBatch:
+        """What the next streaming update trains on: copies of the store's inputs and Eq. 4
+        targets (Eq. 7) and the points changed since the last batch. It reads the store and
+        nothing else; :meth:`train_on` reads nothing but the batch and the SVGP, so the daemon
+        takes it under the map's lock and trains without holding that lock."""
+        x, y = self._targets()
+        if len(x) == 0:
+            raise EmptyCloudError("no training points")
+        new = np.unique(np.concatenate(self._pending)) if self._pending else np.zeros(0, np.int64)
+        self._pending.clear()
+        return TrainingBatch(x, y, new[new < len(x)])
+
+    def train_on(
+        self, batch: TrainingBatch, steps: int | None = None, rate_scale: float = 1.0
+    ) -> TrainStats:
+        """Streaming SVGP update on ``batch`` (see :meth:`train_steps`)."""
         t0 = time.perf_counter()
         self.svgp.set_rate_scale(rate_scale)
-        x, y = self._targets()
-        new = np.unique(np.concatenate(self._pending)) if self._pending else np.zeros(0, np.int64)
-        new = new[new < len(x)]
-        self._pending.clear()
-        self.last_train = self.svgp.update(x, y, new, steps)
+        self.last_train = self.svgp.update(batch.x_W, batch.target, batch.new_idx, steps)
         self.timings_s["train"] = time.perf_counter() - t0
         return self.last_train
 

@@ -5,10 +5,11 @@ It wires, it does not decide: zenoh callbacks hand samples to the loop (``bridge
 assembler (``pugsd.stream``) turns them into frames, bounded mailboxes carry the frames to the
 depth and model workers and the model's changes to the grasp worker, the streaming schedule says
 when the model trains and when grasps and clouds are due, and ``outputs`` publishes them. Heavy
-calls run off the loop on three threads: depth estimation (stateless), ingest and training (the
-pipeline's mutable state) and grasp computations; every call that reads or writes that state holds
-``_model_lock``, except the grasp proposal, which runs on a snapshot so that ingest and training go
-on meanwhile.
+calls run off the loop on four threads: depth estimation (stateless), ingest, training and grasp
+computations. Ingest, reset and the grasp snapshot hold ``_model_lock`` (the map: store, TSDF,
+free space); training takes its batch under it and steps the SVGP under ``_svgp_lock`` alone, so
+that frames are integrated while the model trains; scoring and resets hold both (always
+``_model_lock`` first). The grasp proposal runs on a snapshot, holding neither.
 """
 
 from __future__ import annotations
@@ -115,9 +116,13 @@ class Daemon:
             max_message_bytes=d.max_image_bytes + codec.MESSAGE_OVERHEAD_BYTES,
         )
         self._model_lock = threading.Lock()
-        pool = concurrent.futures.ThreadPoolExecutor  # one thread each: depth, model, grasps
+        self._svgp_lock = threading.Lock()
+        # each integrated frame wakes the training worker
+        self.integrated: Mailbox[str] = Mailbox("integrated", 1, Overflow.KEEP_LATEST)
+        pool = concurrent.futures.ThreadPoolExecutor  # one thread each: depth, model, train, grasps
         self._depth_exec = pool(1, thread_name_prefix="pugsd-depth")
         self._model_exec = pool(1, thread_name_prefix="pugsd-model")
+        self._train_exec = pool(1, thread_name_prefix="pugsd-train")
         self._grasp_exec = pool(1, thread_name_prefix="pugsd-grasps")
         self._in_flight: set[concurrent.futures.Future[Any]] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -206,6 +211,7 @@ class Daemon:
                 workers = {
                     "depth": tg.create_task(self._depth_worker(), name="depth"),
                     "model": tg.create_task(self._model_worker(), name="model"),
+                    "train": tg.create_task(self._train_worker(), name="train"),
                     "grasps": tg.create_task(self._grasp_worker(), name="grasps"),
                     "commands": tg.create_task(self._command_worker(), name="commands"),
                     "status": tg.create_task(self._status_worker(), name="status"),
@@ -218,7 +224,7 @@ class Daemon:
             self.notifier.send("STOPPING=1")
             await self.arm.close()
             self._close()
-            for ex in (self._depth_exec, self._model_exec, self._grasp_exec):
+            for ex in (self._depth_exec, self._model_exec, self._train_exec, self._grasp_exec):
                 ex.shutdown(wait=False, cancel_futures=True)
             log.info("pugsd stopped")
 
@@ -238,7 +244,9 @@ class Daemon:
         self._stopping = True
         self.model_changes.offer("stop")  # a waiting grasp worker ends at once
         self._undeclare_subscribers()
-        for box in (self.stereo_box, self.depth_box, self.commands, self.arm.box, self.model_changes):
+        for box in (
+            self.stereo_box, self.depth_box, self.commands, self.arm.box, self.model_changes, self.integrated
+        ):  # fmt: skip
             box.close()
         busy: list[asyncio.Task[None]] = []
         for name, task in workers.items():
@@ -443,7 +451,9 @@ class Daemon:
         self._busy[stage] = True
         try:
             with self.health.busy(stage):
-                ex = {"depth": self._depth_exec, "grasps": self._grasp_exec}.get(stage, self._model_exec)
+                ex = {"depth": self._depth_exec, "train": self._train_exec, "grasps": self._grasp_exec}.get(
+                    stage, self._model_exec
+                )
                 fut = ex.submit(fn, *args)
                 self._in_flight.add(fut)
                 fut.add_done_callback(self._in_flight.discard)
@@ -452,17 +462,25 @@ class Daemon:
             self._busy[stage] = False
 
     def _locked(self, fn: Callable[..., R], *args: Any) -> R:
-        with self._model_lock:
+        with self._model_lock, self._svgp_lock:
             return fn(*args)
 
     def _train_step_locked(self, rate_scale: float = 1.0) -> Any:
-        """One SVGP step under the model lock; None when the map is empty: a reset between two
-        steps of a round emptied it, which ends the round and is not a rejected input."""
+        """On the training thread: one SVGP step. The batch is taken under the model lock, which
+        is handed over to the SVGP lock (taken before it is released: no reset comes between the
+        batch and the step), so that frames are integrated during the step. None when the map is
+        empty: a reset between two steps of a round emptied it, which ends the round and is not a
+        rejected input."""
         with self._model_lock:
             try:
-                return self.pipeline.train_steps(1, rate_scale=rate_scale)
+                batch = self.pipeline.training_batch()
             except EmptyCloudError:
                 return None
+            self._svgp_lock.acquire()
+        try:
+            return self.pipeline.train_on(batch, 1, rate_scale=rate_scale)
+        finally:
+            self._svgp_lock.release()
 
     async def _guard(self, stage: str, coro: Awaitable[R]) -> R | None:
         return await self.report.guard(stage, coro)
@@ -496,26 +514,42 @@ class Daemon:
             self.model_changes.offer("step")
 
     async def _model_worker(self) -> None:
+        """Integrates each depth frame; the training worker trains meanwhile."""
+        while not self._stopping:
+            depth, recv_s = await self.depth_box.take()
+            if await self._integrate(depth, recv_s):
+                self.integrated.offer("frame")
+
+    async def _integrate(self, depth: DepthFrame, recv_s: float) -> bool:
+        """Integrate one frame (on the model thread), count it and tell the schedule and the grasp
+        worker; False if it failed (counted by the guard)."""
+        n = await self._guard("integrate", self._offload("integrate", self._integrate_locked, depth))
+        if n is None:
+            return False
+        self.health.count("integrated")
+        if self.health.counts["integrated"] == 1:
+            log.info("first frame integrated (%d points)", n)
+        self.health.count("points", n)
+        self.health.observe("frame_age_at_integrate", time.monotonic() - recv_s)
+        self.schedule.frame_integrated(time.monotonic())
+        self.model_changes.offer("frame")
+        self._newest_recv_s = recv_s
+        return True
+
+    async def _train_worker(self) -> None:
+        """Trains beside the ingest: ``train_steps_per_frame`` steps after each integrated frame;
+        while no frame comes, idle rounds of ``idle_train_steps`` (within ``idle_train_s`` of the
+        last frame, every 20 ms at most, with backoff after failures)."""
         d, s = self.cfg.daemon, self.schedule
         while not self._stopping:
             idle = s.idle(time.monotonic())
-            item = await self.depth_box.take_within(0.02 if idle else 0.5)
-            if item is not None:
-                depth, recv_s = item
-                n = await self._guard("integrate", self._offload("integrate", self._integrate_locked, depth))
-                if n is None:
-                    continue
-                self.health.count("integrated")
-                if self.health.counts["integrated"] == 1:
-                    log.info("first frame integrated (%d points)", n)
-                self.health.count("points", n)
-                self.health.observe("frame_age_at_integrate", time.monotonic() - recv_s)
-                s.frame_integrated(time.monotonic())
-                self.model_changes.offer("frame")
-                self._newest_recv_s = recv_s
-                if d.train_steps_per_frame > 0 and not self._stopping:
+            frame = await self.integrated.take_within(0.02 if idle else 0.5)
+            if self._stopping:
+                break
+            if frame is not None:
+                if d.train_steps_per_frame > 0:
                     await self._train(d.train_steps_per_frame)
-            elif idle and not self._stopping and s.idle_round_due(time.monotonic()):
+            elif idle and s.idle_round_due(time.monotonic()):
                 await self._train(d.idle_train_steps, idle=True)
                 s.round_ended(time.monotonic(), self.health.failures.get("train", 0))
 
@@ -530,8 +564,8 @@ class Daemon:
             return n
 
     def _reset_locked(self) -> bool:
-        """On the model thread: reset the pipeline and the outputs' stamp under the model lock."""
-        with self._model_lock:
+        """On the model thread: reset the pipeline and the outputs' stamp under both locks."""
+        with self._model_lock, self._svgp_lock:
             self._newest_stamp_ns = 0
             self.map_version += 1
             self.pipeline.reset()

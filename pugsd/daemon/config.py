@@ -86,6 +86,13 @@ class DaemonConfig:
         ge=0,
         le=1024,
     )
+    blas_threads: int = opt(
+        1,
+        "threads of numpy's BLAS (0: the library's default, one per core): pugsd's matrices are "
+        "small, and an idle OpenBLAS worker spins on a core between calls",
+        ge=0,
+        le=1024,
+    )
     malloc_arena_max: int = opt(
         2,
         "glibc malloc arenas (M_ARENA_MAX), set when `pugsd run` or `pugsd demo` starts (0: glibc's "

@@ -151,7 +151,7 @@ class Outputs:
                 inp, stamp_ns = d.pipeline.grasp_input(), d._newest_stamp_ns
         if inp is not None:
             proposal = d.pipeline.propose(inp)
-        with d._model_lock:
+        with d._model_lock, d._svgp_lock:
             if generation != d._generation:
                 return "discarded"
             result = d.pipeline.score(proposal)

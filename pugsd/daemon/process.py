@@ -1,6 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
-"""Process-wide settings the daemon applies at start (torch's thread count and glibc's malloc
-arenas), and which calls in flight the shutdown waits for before the process exits."""
+"""Process-wide settings the daemon applies at start (torch's and the BLAS's thread counts and
+glibc's malloc arenas), and which calls in flight the shutdown waits for before the process
+exits."""
 
 from __future__ import annotations
 
@@ -9,12 +10,17 @@ import os
 import sys
 from typing import Any
 
+import threadpoolctl
+
 
 def apply_thread_limits(cfg: Any) -> None:
-    """``[daemon] torch_threads`` (process-wide; a no-op until the pipeline has imported torch)."""
+    """``[daemon] torch_threads`` (process-wide; a no-op until the pipeline has imported torch)
+    and ``[daemon] blas_threads`` (the BLAS libraries loaded so far, numpy's among them)."""
     torch = sys.modules.get("torch")
     if cfg.daemon.torch_threads > 0 and torch is not None:
         torch.set_num_threads(cfg.daemon.torch_threads)
+    if cfg.daemon.blas_threads > 0:
+        threadpoolctl.threadpool_limits(cfg.daemon.blas_threads, user_api="blas")
 
 
 _M_ARENA_MAX = -8  # glibc malloc.h
@@ -45,7 +51,8 @@ FINISHED_AT_SHUTDOWN = frozenset({"grasps", "reset", "arm"})
 # the stages (the daemon's ``_busy`` keys, health stages) each worker task runs its calls under
 WORKER_STAGES: dict[str, tuple[str, ...]] = {
     "depth": ("depth",),
-    "model": ("integrate", "train"),
+    "model": ("integrate",),
+    "train": ("train",),
     "grasps": ("grasps",),
     "commands": ("reset",),
     "arm": ("arm",),

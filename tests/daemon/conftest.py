@@ -107,7 +107,7 @@ async def running_worker(d: Any, worker: Coroutine[Any, Any, None]) -> AsyncIter
         d._stopping = True
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
-        for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+        for ex in (d._depth_exec, d._model_exec, d._train_exec, d._grasp_exec):
             ex.shutdown(wait=True)
 
 
@@ -148,6 +148,13 @@ class FakePipeline:
         self.frames.append(depth)
         self.version += 1
         return int(np.isfinite(depth.depth_m).sum())
+
+    def training_batch(self) -> int:
+        """The stand-in's batch: the map's version when it was taken."""
+        return self.version
+
+    def train_on(self, batch: int, n: int, rate_scale: float = 1.0) -> TrainStats:
+        return self.train_steps(n, rate_scale)
 
     def train_steps(self, n: int, rate_scale: float = 1.0) -> TrainStats:
         time.sleep(self.train_delay_s)

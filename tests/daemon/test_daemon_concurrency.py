@@ -1,7 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
-"""The grasp computation runs beside ingest: the proposal on a snapshot without the model lock,
-the whole-cloud Algorithm 1 through a frozen model copy that gives way to fresher grasps, and a
-reset while a computation runs discards its result. Fake pipeline, real loopback zenoh."""
+"""The grasp computation and training run beside ingest: the proposal on a snapshot without the
+model lock, training steps under the SVGP's lock alone, the whole-cloud Algorithm 1 through a
+frozen model copy that gives way to fresher grasps, and a reset while a computation runs discards
+its result. Fake pipeline, real loopback zenoh."""
 
 from __future__ import annotations
 
@@ -55,8 +56,11 @@ class TimedPipeline(FakePipeline):
     def integrate(self, depth: Any) -> int:
         return int(self._timed("integrate", super().integrate, depth))
 
-    def train_steps(self, n: int, rate_scale: float = 1.0) -> Any:
-        return self._timed("train", super().train_steps, n, rate_scale)
+    def training_batch(self) -> int:
+        return int(self._timed("batch", super().training_batch))
+
+    def train_on(self, batch: int, n: int, rate_scale: float = 1.0) -> Any:
+        return self._timed("train", super().train_on, batch, n, rate_scale)
 
     def grasp_input(self) -> int:
         return int(self._timed("grasp_input", super().grasp_input))
@@ -125,10 +129,38 @@ def test_frames_are_integrated_while_grasps_are_proposed(port: int, client: zeno
         (a, b) for a, b in pipe.intervals("integrate") if any(p0 < a and b < p1 for p0, p1 in proposals)
     ]
     assert len(during) >= 3, f"only {len(during)} frames integrated during {len(proposals)} proposals"
-    # the calls made under the model lock never overlap (finish_cloud and propose run without it)
-    stateful = {"integrate", "train", "grasp_input", "score"}
-    bad = [(a, b) for a, b in pipe.overlaps if a in stateful and b in stateful]
-    assert not bad, f"calls that touch the model state overlapped: {bad[:5]}"
+    _assert_locked_calls_never_overlap(pipe)
+
+
+def _assert_locked_calls_never_overlap(pipe: TimedPipeline) -> None:
+    """The calls that touch the map never overlap one another, nor do those that touch the SVGP
+    (finish_cloud and propose run without either lock)."""
+    for held in ({"integrate", "batch", "grasp_input", "score"}, {"train", "score"}):
+        bad = [(a, b) for a, b in pipe.overlaps if a in held and b in held]
+        assert not bad, f"calls under the same lock overlapped: {bad[:5]}"
+
+
+def test_frames_are_integrated_while_the_model_trains(port: int, client: zenoh.Session) -> None:
+    """Training steps (here 0.15 s each, three frame intervals) run on their own thread: frames
+    sent at 20 Hz are integrated during them and none is held back or dropped, while training
+    goes on step after step."""
+    pipe = TimedPipeline(train_delay_s=0.15, integrate_delay_s=0.01, ready_after=10**6)  # never ready
+    dt, src = _start(port, client, pipe, train_steps_per_frame=1, idle_train_steps=0)
+    try:
+        for i in range(20):  # 20 Hz for 1 s
+            _frame(src, 10**9 + i * 5 * 10**7, seed=i % 4)
+            time.sleep(0.05)
+        wait_for(lambda: len(pipe.integrated) == 20, 10.0, "all 20 frames integrated")
+        wait_for(lambda: "train" not in pipe.inside, 5.0, "the last step to end")
+        st = query_json(client, "pugs/status")
+    finally:
+        src.close()
+        dt.stop()
+    steps = pipe.intervals("train")
+    during = [(a, b) for a, b in pipe.intervals("integrate") if any(s0 < a and b < s1 for s0, s1 in steps)]
+    assert len(during) >= 5, f"only {len(during)} of 20 frames integrated during {len(steps)} steps"
+    assert len(steps) >= 5 and st["counts"]["train_steps"] == len(steps)
+    _assert_locked_calls_never_overlap(pipe)
 
 
 def test_the_cloud_gives_way_to_grasps_for_a_newer_frame(port: int, client: zenoh.Session) -> None:

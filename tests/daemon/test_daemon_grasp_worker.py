@@ -126,7 +126,7 @@ def _scripted_rounds(
         asyncio.run(main())
     finally:
         monkeypatch.undo()
-        for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+        for ex in (d._depth_exec, d._model_exec, d._train_exec, d._grasp_exec):
             ex.shutdown(wait=True)
     return waits
 
@@ -386,7 +386,7 @@ def test_the_shutdown_wakes_a_waiting_worker_and_it_ends_by_itself(clock: Clock)
     try:
         assert asyncio.run(main()) is False
     finally:
-        for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+        for ex in (d._depth_exec, d._model_exec, d._train_exec, d._grasp_exec):
             ex.shutdown(wait=True)
     assert pipe.rounds == [] and d.model_changes.closed
 
@@ -427,7 +427,7 @@ def test_a_stage_that_raises_as_it_offers_a_change_ends_the_waiting_grasp_worker
     try:
         ended, error = asyncio.run(main())
     finally:
-        for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+        for ex in (d._depth_exec, d._model_exec, d._train_exec, d._grasp_exec):
             ex.shutdown(wait=True)
     assert ended, "the cancelled grasp worker waited on"
     assert isinstance(error, ExceptionGroup) and "stage bug" in repr(error.exceptions)

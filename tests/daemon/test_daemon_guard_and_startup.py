@@ -134,7 +134,7 @@ def _daemon(**daemon: Any) -> Daemon:
 
 
 def _shutdown(d: Daemon) -> None:
-    for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+    for ex in (d._depth_exec, d._model_exec, d._train_exec, d._grasp_exec):
         ex.shutdown(wait=True)
 
 

@@ -115,5 +115,5 @@ def test_a_recorder_that_cannot_write_is_not_announced(
         assert subs  # still subscribed: its drops are counted in the status
     finally:
         d.recorder.stop(timeout=2.0)
-        for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+        for ex in (d._depth_exec, d._model_exec, d._train_exec, d._grasp_exec):
             ex.shutdown(wait=True)

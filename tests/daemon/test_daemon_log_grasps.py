@@ -40,5 +40,5 @@ def test_published_grasps_are_not_logged_once_per_publication(
     d.outputs.publish(pipe.compute(full_cloud=False), payloads, None, d._generation)
     lines = _grasp_lines(caplog)
     assert len(lines) == 1 and "200 update(s) published since the last such line" in lines[0], lines
-    for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+    for ex in (d._depth_exec, d._model_exec, d._train_exec, d._grasp_exec):
         ex.shutdown(wait=True)

@@ -91,7 +91,7 @@ def test_grasps_are_stamped_with_the_newest_frame_in_their_snapshot() -> None:
                 if t is not None:
                     t.cancel()
             await asyncio.gather(*(t for t in (model, grasps) if t is not None), return_exceptions=True)
-            for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+            for ex in (d._depth_exec, d._model_exec, d._train_exec, d._grasp_exec):
                 ex.shutdown(wait=True)
 
     asyncio.run(main())

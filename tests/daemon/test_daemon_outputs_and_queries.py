@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import threadpoolctl
 
 from pugsd.config import load_config_dict
 from pugsd.core.types import DepthFrame
@@ -46,7 +47,7 @@ def _daemon(pipe: FakePipeline | None = None, **daemon: Any) -> Daemon:
 
 
 def _shutdown(d: Daemon) -> None:
-    for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+    for ex in (d._depth_exec, d._model_exec, d._train_exec, d._grasp_exec):
         ex.shutdown(wait=True)
 
 
@@ -554,14 +555,35 @@ def test_output_stamps_never_go_back_within_the_gap_follow_beyond_it_and_restart
 
 def test_a_training_step_on_an_emptied_map_returns_none() -> None:
     class Emptied(FakePipeline):
-        def train_steps(self, n: int, rate_scale: float = 1.0) -> Any:
+        def training_batch(self) -> int:
             raise EmptyCloudError("no points")
 
     d = _daemon()
     stats = d._train_step_locked()
     assert stats.elbo == -0.5 and d.pipeline.steps == 1  # type: ignore[attr-defined]
-    assert _daemon(Emptied())._train_step_locked() is None
-    assert not d._model_lock.locked()
+    e = _daemon(Emptied())
+    assert e._train_step_locked() is None and e.pipeline.steps == 0  # type: ignore[attr-defined]
+    for x in (d, e):
+        assert not x._model_lock.locked() and not x._svgp_lock.locked()
+
+
+def test_a_training_step_takes_its_batch_under_the_model_lock_and_steps_under_the_svgp_lock() -> None:
+    held: list[tuple[str, bool, bool]] = []
+
+    class Spy(FakePipeline):
+        def training_batch(self) -> int:
+            held.append(("batch", d._model_lock.locked(), d._svgp_lock.locked()))
+            return super().training_batch()
+
+        def train_on(self, batch: int, n: int, rate_scale: float = 1.0) -> Any:
+            held.append(("step", d._model_lock.locked(), d._svgp_lock.locked()))
+            return super().train_on(batch, n, rate_scale)
+
+    d = _daemon(Spy())
+    d._train_step_locked()
+    # the SVGP lock is taken before the model lock is released: no reset between batch and step
+    assert held == [("batch", True, False), ("step", False, True)]
+    assert not d._model_lock.locked() and not d._svgp_lock.locked()
 
 
 def test_note_train_counts_steps_latches_readiness_and_hides_a_non_finite_elbo(
@@ -1009,6 +1031,19 @@ def test_thread_limits_apply_to_an_imported_torch_only_when_set(monkeypatch: pyt
     monkeypatch.delitem(sys.modules, "torch")
     apply_thread_limits(load_config_dict({"daemon": {"torch_threads": 2}}))  # not imported: nothing
     assert calls == [3]
+
+
+def test_blas_threads_limit_numpys_blas_and_0_leaves_it_alone() -> None:
+    def blas_threads() -> set[int]:
+        return {i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"}
+
+    with threadpoolctl.threadpool_limits(2, user_api="blas"):  # restored after the test
+        before = blas_threads()
+        assert before and before != {1}
+        apply_thread_limits(load_config_dict({"daemon": {"blas_threads": 0, "torch_threads": 0}}))
+        assert blas_threads() == before
+        apply_thread_limits(load_config_dict({"daemon": {"blas_threads": 1, "torch_threads": 0}}))
+        assert blas_threads() == {1}
 
 
 def test_the_grasp_worker_counts_each_outcome_of_a_round(caplog: pytest.LogCaptureFixture) -> None:

@@ -24,7 +24,7 @@ def _run_reset(d: Daemon) -> None:
         try:
             await d._reset()
         finally:
-            for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+            for ex in (d._depth_exec, d._model_exec, d._train_exec, d._grasp_exec):
                 ex.shutdown(wait=True)
 
     asyncio.run(main())

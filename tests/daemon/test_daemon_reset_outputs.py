@@ -66,18 +66,21 @@ def test_grasps_scored_across_a_reset_are_not_published() -> None:
 
 @dataclass
 class GatedTrainPipeline(FakePipeline):
-    """``train_steps`` (run under the model lock) waits until the test lets it finish; like
-    ``PugsPipeline``, a step on an empty map raises ``EmptyCloudError``."""
+    """``train_on`` (run under the SVGP lock) waits until the test lets it finish; like
+    ``PugsPipeline``, a batch of an empty map raises ``EmptyCloudError``."""
 
     training: threading.Event = field(default_factory=threading.Event)
     finish: threading.Event = field(default_factory=threading.Event)
 
-    def train_steps(self, n: int, rate_scale: float = 1.0) -> TrainStats:
+    def training_batch(self) -> int:
         if not self.integrated:
             raise EmptyCloudError("no training points")
+        return super().training_batch()
+
+    def train_on(self, batch: int, n: int, rate_scale: float = 1.0) -> TrainStats:
         self.training.set()
         assert self.finish.wait(10.0)
-        return super().train_steps(n, rate_scale)
+        return super().train_on(batch, n, rate_scale)
 
 
 def test_a_reset_during_idle_training_rejects_nothing() -> None:
@@ -91,10 +94,11 @@ def test_a_reset_during_idle_training_rejects_nothing() -> None:
 
     async def main() -> None:
         d.schedule.last_frame_s = time.monotonic()  # a frame was integrated: idle training rounds run
-        async with running_worker(d, d._model_worker()):
-            assert await asyncio.to_thread(pipe.training.wait, 10.0)  # a step holds the model lock
-            reset = asyncio.create_task(d._reset())  # bumps the generation, waits for the lock
+        async with running_worker(d, d._train_worker()):
+            assert await asyncio.to_thread(pipe.training.wait, 10.0)  # a step holds the SVGP lock
+            reset = asyncio.create_task(d._reset())  # bumps the generation, waits for both locks
             await asyncio.sleep(0.1)
+            assert pipe.resets == 0  # not while the step runs
             pipe.finish.set()
             await asyncio.wait_for(reset, 10.0)
             await asyncio.sleep(0.3)

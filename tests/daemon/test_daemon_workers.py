@@ -46,7 +46,7 @@ def _daemon(pipe: FakePipeline | None = None, notifier: Notifier | None = None, 
 
 
 def _shutdown(d: Daemon) -> None:
-    for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+    for ex in (d._depth_exec, d._model_exec, d._train_exec, d._grasp_exec):
         ex.shutdown(wait=True)
 
 
@@ -134,31 +134,40 @@ def stop_at_ready(order: list[str] | None = None) -> tuple[asyncio.Event, Record
 
 
 class LockPipeline(FakePipeline):
-    """Records whether the daemon's model lock was held at each model call; training fails while
-    ``fail`` is set, or raises EmptyCloudError while ``empty`` is set."""
+    """Records whether the daemon's locks that each model call needs were held during it (the
+    map's for ingest and the training batch, the SVGP's for a step, both for a reset and the
+    warm-up); training fails while ``fail`` is set, and the batch raises EmptyCloudError while
+    ``empty`` is set."""
+
+    NEEDS = {"integrate": ("model",), "batch": ("model",), "train": ("svgp",), "reset": ("model", "svgp"),
+             "warm_up": ("model", "svgp")}  # fmt: skip
 
     def __init__(self, **kw: Any) -> None:
         super().__init__(**kw)
-        self.lock: threading.Lock | None = None
+        self.locks: dict[str, threading.Lock] = {}
         self.held: list[tuple[str, bool]] = []
         self.fail = False
         self.empty = False
 
     def _seen(self, what: str) -> None:
-        assert self.lock is not None
-        self.held.append((what, self.lock.locked()))
+        assert self.locks
+        self.held.append((what, all(self.locks[n].locked() for n in self.NEEDS[what])))
 
     def integrate(self, depth: DepthFrame) -> int:
         self._seen("integrate")
         return super().integrate(depth)
 
-    def train_steps(self, n: int, rate_scale: float = 1.0) -> TrainStats:
+    def training_batch(self) -> int:
+        self._seen("batch")
+        if self.empty:
+            raise EmptyCloudError("empty map")
+        return super().training_batch()
+
+    def train_on(self, batch: int, n: int, rate_scale: float = 1.0) -> TrainStats:
         self._seen("train")
         if self.fail:
             raise RuntimeError("model diverged")
-        if self.empty:
-            raise EmptyCloudError("empty map")
-        return super().train_steps(n, rate_scale)
+        return super().train_on(batch, n, rate_scale)
 
     def reset(self) -> None:
         self._seen("reset")
@@ -171,14 +180,16 @@ class LockPipeline(FakePipeline):
 def _lock_daemon(**daemon: Any) -> tuple[Daemon, LockPipeline]:
     pipe = LockPipeline()
     d = _daemon(pipe, **daemon)
-    pipe.lock = d._model_lock
+    pipe.locks = {"model": d._model_lock, "svgp": d._svgp_lock}
     return d, pipe
 
 
 def _drive_model(d: Daemon, rounds: list[Callable[[], Any]]) -> list[float]:
-    """Run the model worker with the depth mailbox's ``take_within`` scripted: round ``i`` returns
-    ``rounds[i]()`` (an item or None); after the last, the worker is stopped. Returns the timeout
-    each round waited with (the last entry: the round that stopped it)."""
+    """Run the training worker with its wait for an integrated frame scripted: round ``i`` calls
+    ``rounds[i]()``; a (depth, receive time) it returns is integrated as the model worker does
+    (the wait then returns that frame's signal), None is a wait that timed out. After the last
+    round the worker is stopped. Returns the timeout each round waited with (the last entry: the
+    round that stopped it)."""
     timeouts: list[float] = []
     script = list(rounds)
 
@@ -187,11 +198,14 @@ def _drive_model(d: Daemon, rounds: list[Callable[[], Any]]) -> list[float]:
         if not script:
             d._stopping = True
             return None
-        return script.pop(0)()
+        item = script.pop(0)()
+        if item is None or not await d._integrate(*item):
+            return None
+        return "frame"
 
-    d.depth_box.take_within = take_within  # type: ignore[method-assign]
+    d.integrated.take_within = take_within  # type: ignore[method-assign]
     try:
-        asyncio.run(asyncio.wait_for(d._model_worker(), 20.0))
+        asyncio.run(asyncio.wait_for(d._train_worker(), 20.0))
     finally:
         _shutdown(d)
     return timeouts
@@ -223,7 +237,7 @@ def test_each_integrated_frame_is_counted_and_followed_by_train_steps_per_frame(
     # each frame and each step is offered to the grasp worker; the mailbox keeps the latest
     assert d.model_changes.offered == 2 + 6 and d.model_changes.take_nowait() == "step"
     assert d.health.latency["frame_age_at_integrate"].summary()["n"] == 2
-    assert all(held for _, held in pipe.held), pipe.held  # integrate and train under the model lock
+    assert all(held for _, held in pipe.held), pipe.held  # each call under the locks it needs
 
 
 def test_without_train_steps_per_frame_a_frame_is_integrated_untrained(clock: Clock) -> None:
@@ -350,13 +364,13 @@ def test_the_default_idle_decay_halves_the_rates_after_100_idle_steps(clock: Clo
 def test_an_idle_round_stops_as_soon_as_grasps_become_urgent(clock: Clock) -> None:
     d, pipe = _lock_daemon(train_steps_per_frame=0, idle_train_steps=4)
     d.schedule.last_frame_s = 100.0
-    real = pipe.train_steps
+    real = pipe.train_on
 
-    def urgent_after(n: int, rate_scale: float = 1.0) -> TrainStats:
+    def urgent_after(batch: int, n: int, rate_scale: float = 1.0) -> TrainStats:
         d.schedule.grasps_urgent = True  # grasps for a new frame began during this step
-        return real(n, rate_scale)
+        return real(batch, n, rate_scale)
 
-    pipe.train_steps = urgent_after  # type: ignore[method-assign]
+    pipe.train_on = urgent_after  # type: ignore[method-assign]
     _drive_model(d, [lambda: None])
     assert pipe.steps == 1
 
@@ -391,7 +405,7 @@ def test_failed_idle_training_is_retried_with_a_doubling_backoff_capped_at_5_s(c
     # round 8 succeeded: the failure run is over and the next round is due at once
     assert waits[9:] == [0.0, 0.0] and "train" not in d.health.failures
     assert pipe.steps == 9  # rounds 8, 9 and 10, three steps each
-    assert len(pipe.held) == 8 + 9  # a failing round ends at its first step
+    assert sum(w == "train" for w, _ in pipe.held) == 8 + 9  # a failing round ends at its first step
 
 
 def test_train_yields_to_a_waiting_frame_unless_the_last_step_is_overdue(clock: Clock) -> None:
@@ -441,7 +455,7 @@ def test_a_round_that_meets_an_emptied_map_ends_without_changing_the_model(clock
         asyncio.run(main())
     finally:
         _shutdown(d)
-    assert [w for w, _ in pipe.held] == ["train"]  # the round ended at its first step
+    assert [w for w, _ in pipe.held] == ["batch"]  # the round ended at its first step
     assert not d.schedule.changed and d.schedule.steps_since_frame == 0
     assert "train_steps" not in d.health.counts and d.model_changes.offered == 0
     assert not d.health.failures and not d.health.rejected
@@ -456,8 +470,10 @@ def test_every_model_call_holds_the_model_lock() -> None:
         d._locked(pipe.warm_up)
     finally:
         _shutdown(d)
-    assert pipe.held == [("train", True), ("integrate", True), ("reset", True), ("warm_up", True)]
-    assert not d._model_lock.locked()
+    assert pipe.held == [
+        ("batch", True), ("train", True), ("integrate", True), ("reset", True), ("warm_up", True)
+    ]  # fmt: skip
+    assert not d._model_lock.locked() and not d._svgp_lock.locked()
 
 
 # --- the depth worker --------------------------------------------------------------------------------
@@ -1082,7 +1098,7 @@ def test_stopping_the_arm_closes_it_once_and_a_failing_close_is_logged_not_raise
 # --- shutdown ----------------------------------------------------------------------------------------
 
 
-_WORKERS = ("depth", "model", "grasps", "commands", "status", "watchdog", "gate", "arm")
+_WORKERS = ("depth", "model", "train", "grasps", "commands", "status", "watchdog", "gate", "arm")
 
 
 @pytest.mark.parametrize(("worker", "stage"), [("grasps", "grasps"), ("commands", "reset"), ("arm", "arm")])
@@ -1130,7 +1146,7 @@ def test_shutdown_lets_the_worker_in_a_call_with_an_effect_finish_and_cancels_th
 
 
 @pytest.mark.parametrize(
-    ("worker", "stage"), [("depth", "depth"), ("model", "integrate"), ("model", "train")]
+    ("worker", "stage"), [("depth", "depth"), ("model", "integrate"), ("train", "train")]
 )
 def test_shutdown_cancels_a_worker_whose_call_dies_with_the_process_at_once(
     worker: str, stage: str, caplog: pytest.LogCaptureFixture
@@ -1226,7 +1242,7 @@ def test_a_stop_before_the_warm_up_ends_never_declares_inputs_or_sends_ready() -
     notifier = RecordingNotifier()
     s = DeclSession()
     d = Daemon(load_config_dict({}), pipe, notifier=notifier, session=s)  # type: ignore[arg-type]
-    pipe.lock = d._model_lock
+    pipe.locks = {"model": d._model_lock, "svgp": d._svgp_lock}
 
     async def main() -> None:
         stop = asyncio.Event()
