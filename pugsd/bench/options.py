@@ -33,6 +33,8 @@ class BenchOptions:
     # the paper fit (and the streaming model) again with q(u) at its closed-form optimum
     optimal_q: bool = True
     ready_timeout_s: float = 60.0  # streaming: give up waiting for the readiness criterion
+    # fresh daemons fed the same sequence for the daemon's last frame -> grasps (their median)
+    daemon_repeats: int = 5
     thread_sweep: tuple[int, ...] = (1, 2)  # torch threads for the SVGP-step sweep (empty: skip)
     # sustained throughput through the daemon: input rates tried, highest first; the ladder
     # starts above the 10 Hz target so that the highest rate held is measured, not capped
@@ -64,6 +66,7 @@ class BenchOptions:
             streaming_at_paper_m=False,
             svgp_step_repeats=3,
             compute_repeats=1,
+            daemon_repeats=1,
             refine_steps=(4,),
             ready_timeout_s=5.0,
             thread_sweep=(),

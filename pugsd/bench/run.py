@@ -395,7 +395,7 @@ def section_weights(opts: BenchOptions, paper_epochs: int, cuda: bool) -> dict[s
         w["cuda"] = 60.0
     if opts.use_daemon:
         for traj in opts.trajectories:
-            w[f"daemon {traj}"] = 25.0
+            w[f"daemon {traj}"] = 25.0 + 12.0 * (opts.daemon_repeats - 1)
         w["throughput"] = sum(
             max(opts.throughput_trial_s, opts.n_frames / r) + 12.0 for r in opts.throughput_rates_hz
         )

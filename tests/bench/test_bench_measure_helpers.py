@@ -252,3 +252,30 @@ def test_idle_refinement_trains_at_the_daemons_idle_rates(decay: int) -> None:
     assert [s for _, s in pipe.calls] == pytest.approx(expected, abs=1e-12)
     assert pipe.asked_after == [3, 5]  # checkpoints sorted, cumulative
     assert [k for k, _, _ in out] == [3, 5] and out[1][2][0] == 5.0
+
+
+def test_median_latency_counts_a_missing_run_as_the_slowest() -> None:
+    assert measure.median_latency([0.5, 0.3, 0.4]) == 0.4
+    assert measure.median_latency([0.3, 0.5]) == 0.4
+    assert measure.median_latency([None, 0.3, 0.6]) == 0.6  # the missing run is above the median
+    assert measure.median_latency([None, None, 0.3]) is None  # the median run got nothing
+    assert measure.median_latency([None]) is None and measure.median_latency([]) is None
+
+
+def test_the_daemon_latency_is_the_median_of_fresh_daemons(monkeypatch: pytest.MonkeyPatch) -> None:
+    from pugsd.bench.options import BenchOptions
+
+    lat = iter([0.7, 0.3, None, 0.4, 0.45])
+    calls: list[float] = []
+
+    def feed(*a: Any, grasps_timeout_s: float = 0.0, **k: Any) -> dict[str, Any]:
+        calls.append(grasps_timeout_s)
+        return {"status": {"counts": {}}, "sent": 30, "last_frame_to_grasps_s": next(lat)}
+
+    monkeypatch.setattr(measure, "daemon_feed", feed)
+    monkeypatch.setattr(measure, "_drop_counts", lambda st: {})
+    lines: list[str] = []
+    out = measure.daemon_last_frame(None, [], BenchOptions(daemon_repeats=5), lines.append, None)  # type: ignore[arg-type]
+    assert out["last_frame_to_grasps_runs_s"] == [0.7, 0.3, None, 0.4, 0.45]
+    assert out["last_frame_to_grasps_s"] == 0.45  # the median, the missing run the slowest
+    assert calls == [60.0] * 5 and "median of 5 fresh daemons: 0.70, 0.30, -, 0.40, 0.45 s" in lines[-1]

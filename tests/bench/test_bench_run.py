@@ -632,9 +632,10 @@ def test_quick_preset_values() -> None:
     q = BenchOptions.quick_preset()
     assert q == BenchOptions(
         quick=True, n_frames=6, paper_epochs=3, paper_reference_seed=None, streaming_at_paper_m=False,
-        svgp_step_repeats=3, compute_repeats=1, refine_steps=(4,), ready_timeout_s=5.0, thread_sweep=(),
-        throughput_rates_hz=(10.0,), throughput_trial_s=2.0, throughput_min_frames=6, drain_timeout_s=3.0,
-        replay_sim_min=1.0, replay_window_min=(0.25, 1.0), replay_wall_s=4.0, replay_wall_cap_s=10.0,
+        svgp_step_repeats=3, compute_repeats=1, daemon_repeats=1, refine_steps=(4,), ready_timeout_s=5.0,
+        thread_sweep=(), throughput_rates_hz=(10.0,), throughput_trial_s=2.0, throughput_min_frames=6,
+        drain_timeout_s=3.0, replay_sim_min=1.0, replay_window_min=(0.25, 1.0), replay_wall_s=4.0,
+        replay_wall_cap_s=10.0,
     )  # fmt: skip
     # the quick preset keeps the full run's picture and the sections
     assert (q.width, q.height, q.rate_hz, q.seed, q.object_name) == (640, 480, 10.0, 0, "mug")
