@@ -36,6 +36,11 @@ class ModelNotReadyError(PugsdError):
     """The SVGP has not been trained enough to give uncertainty."""
 
 
+class Preempted(PugsdError):
+    """A computation gave way part-way because its caller's ``should_stop`` said so (not a
+    failure: its result would have been superseded)."""
+
+
 class DecodeError(PugsdError):
     """A wire message (CDR, packet, file) could not be decoded. ``reason``, when set, is the
     countable class of the failure, fixed by the code (the message may quote text from the wire)."""

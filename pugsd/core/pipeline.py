@@ -41,7 +41,7 @@ from pugsd.core.predictive import OccupancySVGP, SvgpSnapshot, TrainStats
 from pugsd.core.reconstruction import Reconstruction
 from pugsd.core.stereo import StereoDepth
 from pugsd.core.types import DepthFrame, ScoredGrasps, StereoFrame
-from pugsd.errors import EmptyCloudError, ModelNotReadyError
+from pugsd.errors import EmptyCloudError, ModelNotReadyError, Preempted
 
 
 @dataclass(frozen=True)
@@ -350,14 +350,22 @@ class PugsPipeline:
             cloud_W=cloud, views_W=views, timings_s={"cloud": time.perf_counter() - t0}, free=free
         )
 
-    def propose(self, inp: GraspInput, proposer: GraspProposer | None = None) -> Proposal:
+    def propose(
+        self,
+        inp: GraspInput,
+        proposer: GraspProposer | None = None,
+        should_stop: Callable[[], bool] | None = None,
+    ) -> Proposal:
         """Phase 2 of ``compute``: grasp candidates on the snapshot (by ``proposer``, default the
         configured one) and, where the snapshot holds the free-space map, the never-observed
         share of each one's swept volume (``pugsd.core.grasp.swept``). Touches no pipeline state
         (the proposer is stateless), so the daemon runs it without the model lock while frames
-        are integrated and the SVGP trains."""
+        are integrated and the SVGP trains. ``should_stop`` is asked during the proposal and
+        before the swept volumes: once it says True, :class:`pugsd.errors.Preempted` is raised."""
         t0 = time.perf_counter()
-        cands = (proposer or self.proposer).propose(inp.cloud_W, None, inp.views_W)
+        cands = (proposer or self.proposer).propose(inp.cloud_W, None, inp.views_W, should_stop)
+        if should_stop is not None and should_stop():
+            raise Preempted("the grasp proposal gave way")
         t1 = time.perf_counter()
         unk = None if inp.free is None else self._unknown_share(inp.free, inp.cloud_W, cands)
         timings = {**inp.timings_s, "propose": t1 - t0}

@@ -531,7 +531,7 @@ class Daemon:
             log.info("first frame integrated (%d points)", n)
         self.health.count("points", n)
         self.health.observe("frame_age_at_integrate", time.monotonic() - recv_s)
-        self.schedule.frame_integrated(time.monotonic())
+        self.schedule.frame_integrated(time.monotonic(), recv_s)
         self.model_changes.offer("frame")
         self._newest_recv_s = recv_s
         return True
@@ -585,7 +585,23 @@ class Daemon:
         """Whether the running computation's cloud gives way to fresh grasps (the schedule's
         ``cloud_gives_way``), and at shutdown at once: the cloud would not outlive the session,
         and would hold the exit. Called from the grasp thread; reads values only the loop writes."""
-        return self._stopping or self.schedule.cloud_gives_way(time.monotonic(), len(self.depth_box))
+        return self._stopping or self.schedule.cloud_gives_way(time.monotonic(), self.frames_in_flight())
+
+    def frames_in_flight(self) -> int:
+        """Frames received but not yet integrated: waiting for or in depth estimation, waiting
+        for or in integration. While there are any, the input has not paused."""
+        busy = sum(bool(self._busy.get(stage)) for stage in ("depth", "integrate"))
+        return len(self.stereo_box) + len(self.depth_box) + busy
+
+    def _proposal_gives_way(self, snapshot_map_version: int) -> bool:
+        """Whether the running computation's proposal, on the map of ``snapshot_map_version``,
+        gives way: a frame was integrated since its snapshot and the schedule's
+        ``proposal_gives_way`` holds; and at shutdown at once. Called from the grasp threads."""
+        if self._stopping:
+            return True
+        return self.map_version != snapshot_map_version and self.schedule.proposal_gives_way(
+            time.monotonic(), self.frames_in_flight()
+        )
 
     async def _grasp_worker(self) -> None:
         """A grasp round when the model changed and the schedule says grasps are due. Between

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pugsd.core.types import ScoredGrasps
+from pugsd.errors import Preempted
 from pugsd.stream.assembler import log_nth
 from pugsd.wire import codec
 from pugsd.wire.publisher import Publisher
@@ -68,12 +69,17 @@ class Outputs:
 
     async def grasp_round(self, loop: asyncio.AbstractEventLoop) -> None:
         """On the loop: one grasp computation (``compute_and_encode`` on the grasp thread) if
-        the schedule says grasps are due; else wait until they are, or the model changes."""
+        the schedule says grasps are due; else wait until they are, or the model changes. While
+        the input has paused and the newest frame's grasps wait (for its training steps, or the
+        rate limit), the proposal for its map is ``prepare``d meanwhile: it needs no model."""
         d = self.d
-        s, now, queued = d.schedule, self.clock(), len(d.depth_box)
+        s, now, queued = d.schedule, self.clock(), d.frames_in_flight()
         due_in = s.grasps_due_in(now, s.grasps_started_s, queued)
         if due_in > 0.0:
-            await d.model_changes.take_within(due_in)
+            if s.frame_unpublished and s.paused_in(now, queued) == 0.0 and self.prepared_for != d.map_version:
+                await self.prepare_now()
+            else:
+                await d.model_changes.take_within(due_in)
             return
         with_cloud = s.start_grasps(now, queued)
         newest_recv = d._newest_recv_s
@@ -95,6 +101,11 @@ class Outputs:
             d.health.count("clouds_preempted")
         elif outcome == "cloud discarded":
             d.health.count("clouds_discarded")
+        if outcome == "proposal preempted":
+            d.health.count("proposals_preempted")
+            s.grasps_preempted()
+        else:  # computed (or failed: a failure is not a reason to hold the next one)
+            s.grasps_completed()
         await asyncio.sleep(0)  # let the hand-over callbacks run before the next round
 
     async def propose_early(self, changes: Any) -> None:
@@ -102,26 +113,39 @@ class Outputs:
         as it is (it needs no model), so that the first grasps need only Algorithm 1 at the
         contacts when the model becomes ready. Until the pause, wait on ``changes``."""
         d = self.d
-        paused_in = d.schedule.paused_in(self.clock(), len(d.depth_box))
+        paused_in = d.schedule.paused_in(self.clock(), d.frames_in_flight())
         if paused_in == 0.0:
-            await d._guard("grasps", d._offload("grasps", self.prepare))
+            await self.prepare_now()
         elif paused_in < math.inf:
             await changes.take_within(paused_in)
         else:
             await changes.take()
 
-    def prepare(self) -> None:
-        """On the grasp thread, while the model is not ready: the snapshot and the proposal (the
+    def prepare(self) -> bool:
+        """On the grasp thread, while grasps cannot be computed yet (the model is not ready, or
+        the newest frame's training steps are not done): the snapshot and the proposal (the
         grasp candidates and their swept volumes' unknown shares need only the map), kept for
-        the first grasp computation, which uses it if the map is still the same (no frame
-        integrated, no reset: both bump ``map_version``)."""
+        the next grasp computation, which uses it if the map is still the same (no frame
+        integrated, no reset: both bump ``map_version``). It gives way like a computation's
+        proposal when a frame came since and the input paused: then it returns False."""
         d = self.d
         with d._model_lock:
             self.prepared, self.prepared_for = None, d.map_version
             inp = d.pipeline.grasp_input()
             stamp_ns = d._newest_stamp_ns
-        proposal = d.pipeline.propose(inp)
-        self.prepared = Prepared(proposal, stamp_ns, self.prepared_for)
+            version = d.map_version
+        try:
+            proposal = d.pipeline.propose(inp, should_stop=lambda: d._proposal_gives_way(version))
+        except Preempted:
+            return False
+        self.prepared = Prepared(proposal, stamp_ns, version)
+        return True
+
+    async def prepare_now(self) -> None:
+        """On the loop: ``prepare`` on the grasp thread; one that gave way is counted."""
+        d = self.d
+        if await d._guard("grasps", d._offload("grasps", self.prepare)) is False:
+            d.health.count("proposals_preempted")
 
     def compute_and_encode(
         self,
@@ -140,8 +164,11 @@ class Outputs:
         cloud is not published) as soon as grasps for a newer frame are due, unless clouds are
         overdue (``_cloud_gives_way``).
         The outputs are stamped with the newest frame in the snapshot (read with it).
+        The proposal gives way when a frame came since the snapshot and the input has paused
+        (``_proposal_gives_way``): the next computation then starts at once on the newest map.
         Returns "discarded" if a reset while this ran discarded the result ("cloud discarded" if
-        it came after the grasps), "preempted" if the cloud gave way, else "published"."""
+        it came after the grasps), "proposal preempted" if the proposal gave way, "preempted" if
+        the cloud did, else "published"."""
         d = self.d
         prep, self.prepared = self.prepared, None
         with d._model_lock:
@@ -149,8 +176,12 @@ class Outputs:
                 inp, proposal, stamp_ns = None, prep.proposal, prep.stamp_ns
             else:
                 inp, stamp_ns = d.pipeline.grasp_input(), d._newest_stamp_ns
+            version = d.map_version
         if inp is not None:
-            proposal = d.pipeline.propose(inp)
+            try:
+                proposal = d.pipeline.propose(inp, should_stop=lambda: d._proposal_gives_way(version))
+            except Preempted:
+                return "proposal preempted"
         with d._model_lock, d._svgp_lock:
             if generation != d._generation:
                 return "discarded"

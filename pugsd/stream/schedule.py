@@ -33,7 +33,7 @@ class StreamingSchedule:
 
     def __init__(self, d: Any) -> None:  # pugsd.config.DaemonConfig
         self.d = d
-        self.last_frame_s: float | None = None  # when the last frame was integrated
+        self.last_frame_s: float | None = None  # when the last integrated frame came
         self.steps_since_frame = 0  # training steps since the newest frame was integrated
         self.idle_steps = 0  # idle steps of a ready model since then (their learning rates decay)
         self.changed = False  # the model changed since the last grasp computation started
@@ -42,13 +42,17 @@ class StreamingSchedule:
         self.last_train_s = 0.0  # when the last training step started
         self.retry_train_at = 0.0  # a failing model's next idle round (backoff)
         self.last_cloud_published_s = -math.inf
+        self.gave_way = False  # the last computation's proposal gave way (none completed since)
         self.grasps_started_s = -math.inf  # when the last grasp computation started
         self.cloud_started_s = -math.inf  # when the last computation with a cloud started
+        self._before_start = (-math.inf, -math.inf)  # the two above before the last start
 
     # --- training ---------------------------------------------------------------------------
 
-    def frame_integrated(self, now: float) -> None:
-        self.last_frame_s = now
+    def frame_integrated(self, now: float, came_s: float | None = None) -> None:
+        """A frame was integrated at ``now``; it came (was received) at ``came_s`` (default
+        ``now``): the pause before early grasps counts from then."""
+        self.last_frame_s = now if came_s is None else came_s
         self.changed = True
         self.frame_unpublished = True
         self.steps_since_frame = 0
@@ -132,6 +136,7 @@ class StreamingSchedule:
         cloud's Algorithm 1 costs about as much as the grasps and occupies the grasp thread:
         while frames stream, at most every ``cloud_interval_s`` (the first one too)."""
         d = self.d
+        self._before_start = (self.grasps_started_s, self.cloud_started_s)
         self.grasps_started_s = now
         self.changed = False
         # grasps for a frame not yet published: idle training waits for them (less contention)
@@ -157,6 +162,24 @@ class StreamingSchedule:
             and not self.streaming(now, frames_queued)
             and now - self.last_cloud_published_s < self.d.cloud_interval_s
         )
+
+    def proposal_gives_way(self, now: float, frames_queued: int) -> bool:
+        """A frame was integrated since the running grasp computation began and the input has
+        paused: its proposal, on the older map, gives way to one on the newest, unless the
+        computation before it gave way too (else a camera whose every gap looks like a pause
+        could keep every proposal from finishing: at most every other one gives way)."""
+        return self.frame_unpublished and not self.streaming(now, frames_queued) and not self.gave_way
+
+    def grasps_preempted(self) -> None:
+        """The computation started last gave way before publishing anything: the rate limits
+        count from the one before it (the next computation may start at once), and the next
+        one does not give way."""
+        self.grasps_started_s, self.cloud_started_s = self._before_start
+        self.gave_way = True
+
+    def grasps_completed(self) -> None:
+        """The computation started last computed its grasps (its proposal did not give way)."""
+        self.gave_way = False
 
     def reset(self) -> None:
         """A map reset: nothing to publish until a new frame."""

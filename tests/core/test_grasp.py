@@ -26,7 +26,7 @@ from pugsd.core.grasp.proposer import (
 )
 from pugsd.core.grasp.scoring import rank_grasps, reweight
 from pugsd.core.predictive import farthest_point_sample
-from pugsd.errors import ConfigError, PugsdError
+from pugsd.errors import ConfigError, Preempted, PugsdError
 from pugsd.pipeline_factory import load_torchscript, make_pipeline
 from tests.helpers.scenes import box_mesh, cylinder_mesh
 
@@ -292,3 +292,36 @@ def test_cross_is_nps_cross_to_the_bit() -> None:
     a, b = rng.normal(size=(500, 3)) * 1e3, rng.normal(size=(500, 3)) * 1e-3
     assert np.array_equal(_cross(a, b), np.cross(a, b))
     assert np.array_equal(_cross(a, np.array([[1.0, 0.0, 0.0]])), np.cross(a, [[1.0, 0.0, 0.0]]))
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_run_parallel_stops_starting_work_once_should_stop_says_so(threads: int) -> None:
+    done: list[int] = []
+    proposer_module.run_parallel(done.append, 10, threads)
+    assert sorted(done) == list(range(10))
+    done.clear()
+    with pytest.raises(Preempted):
+        proposer_module.run_parallel(done.append, 100, threads, lambda: len(done) >= 5)
+    assert 5 <= len(done) < 5 + threads  # each thread finishes the call it is in, none starts after
+    done.clear()
+    proposer_module.run_parallel(done.append, 10, threads, lambda: False)
+    assert sorted(done) == list(range(10))
+
+
+def test_the_single_contact_proposal_gives_way_part_way_when_asked() -> None:
+    pts = _surface(cylinder_mesh(0.03, 0.15, (0.0, 0.0, 0.075)))
+    cfg = GraspConfig(threads=1)
+    p = make_proposer(cfg, 0, kind="single_contact")
+    asked = [0]
+
+    def after(n: int) -> bool:
+        asked[0] += 1
+        return asked[0] > n
+
+    full = p.propose(pts, None, VIEWS, lambda: after(10**9))
+    assert asked[0] == cfg.single_contact_max_contacts  # asked once before each contact
+    asked[0] = 0
+    with pytest.raises(Preempted):
+        p.propose(pts, None, VIEWS, lambda: after(10))
+    assert asked[0] == 11  # it stopped at the first "yes"
+    np.testing.assert_array_equal(p.propose(pts, None, VIEWS).contact, full.contact)

@@ -15,7 +15,7 @@ import pytest
 from pugsd.config import CoreConfig, FofConfig, SvgpConfig
 from pugsd.core.camera import PinholeCamera
 from pugsd.core.pipeline import PipelineResult, PugsPipeline
-from pugsd.errors import EmptyCloudError, ModelNotReadyError
+from pugsd.errors import EmptyCloudError, ModelNotReadyError, Preempted
 from tests.helpers.scenes import box_mesh, orbit_frames
 
 BOX = (0.05, 0.08, 0.12)
@@ -317,3 +317,19 @@ def test_a_target_scale_change_keeps_the_model_fitting_the_normalised_targets() 
     err1 = np.median(np.abs(pipe.svgp.predict(x1)[0] - y1))
     assert err1 < 1.5 * err0 + 0.02, (err0, err1)
     assert err1 < 0.25 * (1.0 - s0 / s1) * np.median(np.abs(y1))  # what a rescale would cost
+
+
+def test_a_proposal_asked_to_stop_raises_preempted_before_its_swept_volumes(partial_box) -> None:  # type: ignore[no-untyped-def]
+    pipe, r = partial_box
+    inp = pipe.grasp_input(r.cloud_W)
+    with pytest.raises(Preempted):
+        pipe.propose(inp, should_stop=lambda: True)
+    calls = [0]
+
+    def late() -> bool:  # the proposer's contacts all run; the stop comes before the swept volumes
+        calls[0] += 1
+        return calls[0] > pipe.cfg.grasp.single_contact_max_contacts
+
+    with pytest.raises(Preempted):
+        pipe.propose(inp, should_stop=late)
+    assert pipe.propose(inp, should_stop=lambda: False).unknown_share is not None

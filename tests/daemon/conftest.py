@@ -13,7 +13,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import AsyncIterator, Coroutine, Iterator
+from collections.abc import AsyncIterator, Callable, Coroutine, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,6 +24,7 @@ import zenoh
 
 from pugsd.core.camera import PinholeCamera, StereoRig
 from pugsd.core.types import DepthFrame, ScoredGrasps, StereoFrame
+from pugsd.errors import Preempted
 from pugsd.wire.session import check_loopback_safe, free_tcp_port, loopback_config, open_session
 
 
@@ -111,6 +112,19 @@ async def running_worker(d: Any, worker: Coroutine[Any, Any, None]) -> AsyncIter
             ex.shutdown(wait=True)
 
 
+def sleep_unless_stopped(duration_s: float, should_stop: Callable[[], bool] | None) -> None:
+    """Sleep ``duration_s`` in 10 ms slices, raising Preempted as soon as ``should_stop`` says so
+    (a stand-in for a proposal that gives way)."""
+    t_end = time.monotonic() + duration_s
+    while True:
+        if should_stop is not None and should_stop():
+            raise Preempted("the grasp proposal gave way")
+        left = t_end - time.monotonic()
+        if left <= 0:
+            return
+        time.sleep(min(left, 0.01))
+
+
 @dataclass
 class FakePipeline:
     """The PugsPipeline interface with trivial maths, for plumbing tests."""
@@ -166,8 +180,8 @@ class FakePipeline:
     def grasp_input(self) -> int:
         return self.version
 
-    def propose(self, inp: int) -> int:
-        time.sleep(self.compute_delay_s)
+    def propose(self, inp: int, should_stop: Callable[[], bool] | None = None) -> int:
+        sleep_unless_stopped(self.compute_delay_s, should_stop)
         return inp
 
     def score(self, proposal: int) -> Result:

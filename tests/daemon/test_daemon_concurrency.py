@@ -17,7 +17,15 @@ import zenoh
 from pugsd.config import load_config_dict
 from pugsd.wire import codec
 from pugsd.wire.topics import key_for
-from tests.daemon.conftest import FakePipeline, Result, Source, daemon_config_dict, query_json, wait_for
+from tests.daemon.conftest import (
+    FakePipeline,
+    Result,
+    Source,
+    daemon_config_dict,
+    query_json,
+    sleep_unless_stopped,
+    wait_for,
+)
 from tests.daemon.test_daemon_inprocess import DaemonThread, start_with_source
 
 
@@ -65,11 +73,11 @@ class TimedPipeline(FakePipeline):
     def grasp_input(self) -> int:
         return int(self._timed("grasp_input", super().grasp_input))
 
-    def propose(self, inp: int) -> int:
+    def propose(self, inp: int, should_stop: Any = None) -> int:
         t0 = self._enter("propose")
         self.propose_started.set()
         try:
-            time.sleep(self.propose_s)
+            sleep_unless_stopped(self.propose_s, should_stop)
             return inp
         finally:
             self._leave("propose", t0)
@@ -193,6 +201,42 @@ def test_the_cloud_gives_way_to_grasps_for_a_newer_frame(port: int, client: zeno
     assert st["counts"].get("clouds_preempted", 0) >= 1
     clouds = pipe.intervals("finish_cloud")
     assert clouds and min(b - a for a, b in clouds) < 5.0
+
+
+def test_a_proposal_on_an_older_map_gives_way_to_the_newest_frame_after_a_pause(
+    port: int, client: zenoh.Session
+) -> None:
+    """While a proposal (here 20 s) runs, a new frame arrives and the input pauses: that proposal
+    is abandoned (counted) and the next one, on the newest map, starts at once, so that frame's
+    grasps come within seconds."""
+    pipe = TimedPipeline(ready_after=1)
+    dt, src = _start(port, client, pipe, grasp_rate_hz=0.25, publish_cloud=False, pause_publish_s=0.15)
+    stamps: list[int] = []
+    sub = client.declare_subscriber(
+        key_for(src.topics, "grasps"),
+        lambda s: stamps.append(codec.decode_grasp_array(s.payload.to_bytes()).stamp_ns),
+    )
+    try:
+        _frame(src, 10**9)
+        wait_for(lambda: 10**9 in stamps, 10.0, "the first grasps")
+        pipe.propose_s = 20.0
+        pipe.propose_started.clear()
+        _frame(src, 2 * 10**9, seed=1)
+        assert pipe.propose_started.wait(10.0), "the slow proposal did not start"
+        pipe.propose_s = 0.0  # the next proposal is quick
+        t_new = time.monotonic()
+        _frame(src, 3 * 10**9, seed=2)
+        wait_for(lambda: 3 * 10**9 in stamps, 5.0, "grasps stamped with the newest frame")
+        latency_s = time.monotonic() - t_new
+        st = query_json(client, "pugs/status")
+    finally:
+        sub.undeclare()
+        src.close()
+        dt.stop()
+    assert latency_s < 2.0  # neither after the 20 s proposal nor after the period (4 s)
+    assert st["counts"].get("proposals_preempted", 0) == 1
+    assert 2 * 10**9 not in stamps  # the preempted round published nothing
+    _assert_locked_calls_never_overlap(pipe)
 
 
 def test_clouds_keep_coming_from_a_slow_camera(port: int, client: zenoh.Session) -> None:

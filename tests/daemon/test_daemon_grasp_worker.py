@@ -76,7 +76,7 @@ class RoundPipeline(FakePipeline):
         self.urgent.append(self.daemon.schedule.grasps_urgent)
         return super().grasp_input()
 
-    def propose(self, inp: int) -> int:
+    def propose(self, inp: int, should_stop: Any = None) -> int:
         self._maybe_fail("propose")
         return super().propose(inp)
 
@@ -216,10 +216,10 @@ def test_grasps_for_a_new_frame_are_urgent_for_their_round_only_and_carry_its_re
     steps = [_at(d, clock, 100.0, new_frame=True), _at(d, clock, 102.0), _at(d, clock, 103.0, new_frame=True)]
     pipe_propose = pipe.propose
 
-    def propose(inp: int) -> int:
+    def propose(inp: int, should_stop: Any = None) -> int:
         if pipe.rounds == [100.0]:
             newer()
-        return pipe_propose(inp)
+        return pipe_propose(inp, should_stop)
 
     pipe.propose = propose  # type: ignore[method-assign]
     _scripted_rounds(d, monkeypatch, steps)
@@ -629,7 +629,7 @@ class ProposingPipeline(RoundPipeline):
     def ready(self) -> bool:
         return self.ready_now
 
-    def propose(self, inp: int) -> int:
+    def propose(self, inp: int, should_stop: Any = None) -> int:
         self.proposals.append(self.clock.t)
         return super().propose(inp)
 
@@ -696,3 +696,24 @@ def test_an_early_proposal_that_fails_is_not_retried_on_the_same_map(
     assert pipe.proposals == [100.6]  # and not again at 100.9 s
     assert d.outputs.prepared is None and d.outputs.prepared_for == 7
     assert d.health.failures.get("grasps", 0) == 1
+
+
+def test_a_ready_model_proposes_at_the_pause_while_the_newest_frames_steps_are_still_running(
+    clock: Clock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ready, the input paused, the newest frame's training steps not all done (grasps not due
+    yet): the proposal is prepared meanwhile, once for this map; when the steps are done the
+    round scores it without proposing again."""
+    d, pipe = _not_ready_daemon(clock)
+    pipe.ready_now, d.ready = True, True
+    d.schedule.changed = True  # the frame, with 0 of its train_steps_per_frame steps
+    d.schedule.grasps_started_s = 99.9  # a round just before: not due until the steps are done
+
+    def steps_done() -> None:
+        clock.t = 100.7
+        d.schedule.steps_since_frame = d.cfg.daemon.train_steps_per_frame
+
+    _scripted_rounds(d, monkeypatch, [_at(d, clock, 100.5), _at(d, clock, 100.6), steps_done])
+    assert pipe.proposals == [100.5]  # at the pause, not again on the same map
+    assert pipe.scored == [pipe.version] and d.outputs.grasps_published == 1
+    assert d.outputs.prepared is None

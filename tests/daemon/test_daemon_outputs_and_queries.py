@@ -1081,7 +1081,7 @@ def test_the_grasp_worker_counts_each_outcome_of_a_round(caplog: pytest.LogCaptu
     class ResetBeforeScoring(FakePipeline):
         daemon: Daemon | None = None
 
-        def propose(self, inp: int) -> int:
+        def propose(self, inp: int, should_stop: Any = None) -> int:
             assert self.daemon is not None
             self.daemon._generation += 1
             return inp
@@ -1144,7 +1144,7 @@ def test_the_grasp_worker_marks_grasps_for_a_new_frame_urgent_while_they_are_com
     class Watching(FakePipeline):
         daemon: Daemon | None = None
 
-        def propose(self, inp: int) -> int:
+        def propose(self, inp: int, should_stop: Any = None) -> int:
             assert self.daemon is not None
             seen.append(self.daemon.schedule.grasps_urgent)
             return inp

@@ -30,7 +30,7 @@ class MapPipeline(FakePipeline):
     def grasp_input(self) -> int:
         return self.resets
 
-    def propose(self, inp: int) -> int:
+    def propose(self, inp: int, should_stop: Any = None) -> int:
         if not self.gate.is_set():
             self.held.set()
             self.gate.wait(30.0)

@@ -158,3 +158,35 @@ def test_the_input_counts_as_paused_pause_publish_s_after_the_last_frame_with_no
     assert s.paused_in(100.2, 0) == pytest.approx(0.3)
     assert s.paused_in(100.2, 1) == math.inf  # a frame waits: still streaming
     assert s.paused_in(100.5, 0) == 0.0 and s.paused_in(107.0, 0) == 0.0
+
+
+def test_a_proposal_gives_way_to_a_newer_frame_after_a_pause_but_not_twice_in_a_row() -> None:
+    s = _schedule(pause_publish_s=0.1)
+    s.last_frame_s = 90.0
+    assert not s.proposal_gives_way(100.0, 0)  # no newer frame
+    s.frame_unpublished = True
+    assert s.proposal_gives_way(100.0, 0)
+    assert not s.proposal_gives_way(100.0, 1)  # a frame is in flight: streaming
+    s.last_frame_s = 99.95
+    assert not s.proposal_gives_way(100.0, 0)  # the input has not paused yet
+    s.last_frame_s = 90.0
+    s.grasps_preempted()
+    assert not s.proposal_gives_way(100.0, 0)  # the one before gave way: this one finishes
+    s.grasps_completed()
+    assert s.proposal_gives_way(100.0, 0)
+
+
+def test_after_a_preempted_computation_the_rate_limits_count_from_the_one_before() -> None:
+    s = _schedule(grasp_rate_hz=1.0, pause_publish_s=0.1, cloud_interval_s=2.0, publish_cloud=True)
+    s.frame_integrated(10.0)
+    s.start_grasps(10.05, 1)  # streaming: the cloud's interval starts
+    s.frame_integrated(10.1)
+    s.steps_since_frame = s.d.train_steps_per_frame
+    s.start_grasps(10.3, 0)
+    assert (s.grasps_started_s, s.cloud_started_s) == (10.3, 10.3)
+    s.grasps_preempted()
+    assert (s.grasps_started_s, s.cloud_started_s) == (10.05, 10.05)
+    s.frame_integrated(10.6)
+    s.steps_since_frame = s.d.train_steps_per_frame
+    # the next may start at the pause, half a period after the computation before the preempted one
+    assert s.grasps_due_in(10.6, s.grasps_started_s, 0) == pytest.approx(0.1)

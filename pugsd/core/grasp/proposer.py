@@ -15,6 +15,7 @@ block 30 mm deep and 60 mm wide, and a depth of 90 mm from the wrist origin to t
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -26,7 +27,7 @@ from scipy.spatial import cKDTree
 
 from pugsd.core.config import GraspConfig, GripperConfig
 from pugsd.core.geometry import grid_centre
-from pugsd.errors import ConfigError, EmptyCloudError, PugsdError
+from pugsd.errors import ConfigError, EmptyCloudError, Preempted, PugsdError
 
 # open3d's bundled stubs reject valid numpy arguments (Tensor overloads): use it untyped
 o3d: Any = _o3d
@@ -67,8 +68,15 @@ def grasp_poses(
 
 
 class GraspProposer(Protocol):
+    """``should_stop``, when given, may be asked during the proposal; once it says True the
+    proposer raises :class:`pugsd.errors.Preempted` (one that cannot stop part-way ignores it)."""
+
     def propose(
-        self, points_W: np.ndarray, normals_W: np.ndarray | None, view_origins_W: np.ndarray
+        self,
+        points_W: np.ndarray,
+        normals_W: np.ndarray | None,
+        view_origins_W: np.ndarray,
+        should_stop: Callable[[], bool] | None = None,
     ) -> GraspSet: ...
 
 
@@ -103,22 +111,31 @@ def farthest_point_subset(points: np.ndarray, m: int, seed: int = 0) -> np.ndarr
     return np.sort(np.rint(np.asarray(picked.colors)[:, 0]).astype(np.int64))
 
 
-def run_parallel(fn: Callable[[int], None], n: int, threads: int) -> None:
+def run_parallel(
+    fn: Callable[[int], None], n: int, threads: int, should_stop: Callable[[], bool] | None = None
+) -> None:
     """``fn(i)`` for i in range(n), on up to ``threads`` threads in interleaved shares (each
-    ``fn(i)`` must touch only what belongs to i); in the caller's thread when ``threads`` <= 1."""
+    ``fn(i)`` must touch only what belongs to i); in the caller's thread when ``threads`` <= 1.
+    ``should_stop`` is asked before each ``fn(i)``: once it says True no further one starts and
+    :class:`Preempted` is raised when those running have ended."""
     threads = max(1, min(threads, n))
-    if threads == 1:
-        for i in range(n):
-            fn(i)
-        return
+    stopped = threading.Event()
 
     def share(t: int) -> None:
         for i in range(t, n, threads):
+            if should_stop is not None and (stopped.is_set() or should_stop()):
+                stopped.set()
+                return
             fn(i)
 
-    with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="pugsd-grasp") as pool:
-        for f in [pool.submit(share, t) for t in range(threads)]:
-            f.result()
+    if threads == 1:
+        share(0)
+    else:
+        with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="pugsd-grasp") as pool:
+            for f in [pool.submit(share, t) for t in range(threads)]:
+                f.result()
+    if stopped.is_set():
+        raise Preempted("the grasp proposal gave way")
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -182,7 +199,11 @@ class AntipodalProposer:
         self.seed = seed
 
     def propose(
-        self, points_W: np.ndarray, normals_W: np.ndarray | None, view_origins_W: np.ndarray
+        self,
+        points_W: np.ndarray,
+        normals_W: np.ndarray | None,
+        view_origins_W: np.ndarray,
+        should_stop: Callable[[], bool] | None = None,
     ) -> GraspSet:
         cfg, g = self.cfg, self.g
         origin_W, pts, views, normals, tree = local_cloud(
@@ -366,7 +387,11 @@ class TorchScriptProposer:
         self.model = model
 
     def propose(
-        self, points_W: np.ndarray, normals_W: np.ndarray | None, view_origins_W: np.ndarray
+        self,
+        points_W: np.ndarray,
+        normals_W: np.ndarray | None,
+        view_origins_W: np.ndarray,
+        should_stop: Callable[[], bool] | None = None,
     ) -> GraspSet:
         torch = self._torch
         if len(points_W) == 0:
@@ -488,7 +513,11 @@ class SingleContactProposer:
         return A, B, np.repeat(th, rolls)
 
     def propose(
-        self, points_W: np.ndarray, normals_W: np.ndarray | None, view_origins_W: np.ndarray
+        self,
+        points_W: np.ndarray,
+        normals_W: np.ndarray | None,
+        view_origins_W: np.ndarray,
+        should_stop: Callable[[], bool] | None = None,
     ) -> GraspSet:
         cfg, g = self.cfg, self.g
         origin_W, pts, views, normals, tree = local_cloud(
@@ -552,7 +581,7 @@ class SingleContactProposer:
 
         # each contact is independent and writes only its own rows: split over threads (numpy
         # releases the GIL in the array work), the same result for any number of threads
-        run_parallel(contact, m, cfg.threads)
+        run_parallel(contact, m, cfg.threads, should_stop)
         out_c += origin_W
         return GraspSet(
             contact=out_c,
