@@ -741,6 +741,8 @@ BOUNDS: list[tuple[str, str, float]] = [
     ("daemon.shutdown_timeout_s", "gt", 0.0),
     ("daemon.torch_threads", "ge", 0),
     ("daemon.torch_threads", "le", 1024),
+    ("daemon.blas_threads", "ge", 0),
+    ("daemon.blas_threads", "le", 1024),
     ("daemon.malloc_arena_max", "ge", 0),
     ("daemon.max_frame_rate_hz", "ge", 0.0),
     ("daemon.train_steps_per_frame", "ge", 0),

@@ -114,7 +114,7 @@ def test_the_daemon_integrates_the_golden_frames_and_grasps(recording: Path) -> 
     async def main() -> None:
         d = Daemon(cfg, pipe)
         d._loop = asyncio.get_running_loop()
-        workers = [asyncio.create_task(d._depth_worker()), asyncio.create_task(d._model_worker())]
+        workers = [asyncio.create_task(w) for w in (d._depth_worker(), d._model_worker(), d._train_worker())]
         try:
             for role, key, data in msgs:
                 d._on_inbound(Inbound(role, key, data, time.monotonic()))
@@ -131,7 +131,7 @@ def test_the_daemon_integrates_the_golden_frames_and_grasps(recording: Path) -> 
             for w in workers:
                 w.cancel()
             await asyncio.gather(*workers, return_exceptions=True)
-            for ex in (d._depth_exec, d._model_exec, d._grasp_exec):
+            for ex in (d._depth_exec, d._model_exec, d._train_exec, d._grasp_exec):
                 ex.shutdown(wait=True)
 
     asyncio.run(main())
