@@ -390,7 +390,7 @@ class GraspConfig:
         le=64,
     )
     single_contact_max_contacts: int = opt(
-        100, "single_contact: contacts sampled (farthest point) per proposal", ge=1, le=100_000
+        150, "single_contact: contacts sampled (farthest point) per proposal", ge=1, le=100_000
     )
     single_contact_face_deg: float = opt(
         45.0,
