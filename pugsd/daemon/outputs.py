@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pugsd.core.types import ScoredGrasps
-from pugsd.errors import Preempted
+from pugsd.errors import EmptyCloudError, Preempted
 from pugsd.stream.assembler import log_nth
 from pugsd.wire import codec
 from pugsd.wire.publisher import Publisher
@@ -127,11 +127,16 @@ class Outputs:
         grasp candidates and their swept volumes' unknown shares need only the map), kept for
         the next grasp computation, which uses it if the map is still the same (no frame
         integrated, no reset: both bump ``map_version``). It gives way like a computation's
-        proposal when a frame came since and the input paused: then it returns False."""
+        proposal when a frame came since and the input paused: then it returns False. A map
+        with no surface yet (after a first frame) has nothing to propose on: no proposal, and
+        not a rejected input."""
         d = self.d
         with d._model_lock:
             self.prepared, self.prepared_for = None, d.map_version
-            inp = d.pipeline.grasp_input()
+            try:
+                inp = d.pipeline.grasp_input()
+            except EmptyCloudError:
+                return True
             stamp_ns = d._newest_stamp_ns
             version = d.map_version
         try:

@@ -24,6 +24,7 @@ from pugsd.config import load_config_dict
 from pugsd.daemon.app import Daemon
 from pugsd.daemon.notify import Notifier
 from pugsd.daemon.ros_services import service_names
+from pugsd.errors import EmptyCloudError
 from pugsd.record.recorder import default_record_keys
 from pugsd.wire.topics import INPUT_ROLES, OUTPUT_ROLES, ros_graph_tokens
 from tests.daemon.conftest import FakePipeline, RecordingPublisher, running_worker
@@ -717,3 +718,22 @@ def test_a_ready_model_proposes_at_the_pause_while_the_newest_frames_steps_are_s
     assert pipe.proposals == [100.5]  # at the pause, not again on the same map
     assert pipe.scored == [pipe.version] and d.outputs.grasps_published == 1
     assert d.outputs.prepared is None
+
+
+def test_an_early_proposal_on_a_map_without_a_surface_is_skipped_and_rejects_nothing(
+    clock: Clock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """After a first frame the TSDF may hold no surface yet: the proposal at the pause has
+    nothing to work on; that is not a rejected input, and it is not retried on the same map."""
+    d, pipe = _not_ready_daemon(clock)
+
+    def no_surface() -> int:
+        pipe.rounds.append(clock.t)
+        raise EmptyCloudError("the TSDF holds no surface")
+
+    pipe.grasp_input = no_surface  # type: ignore[method-assign]
+    _scripted_rounds(d, monkeypatch, [_at(d, clock, 100.6), _at(d, clock, 100.9)])
+    assert pipe.rounds == [100.6] and pipe.proposals == []
+    assert d.outputs.prepared is None and d.outputs.prepared_for == 7
+    assert not d.health.rejected and "rejected" not in d.health.counts
+    assert not d.health.failures
