@@ -22,7 +22,6 @@ import time
 from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
-import numpy as np
 import zenoh
 
 from pugsd.config import config_warnings
@@ -48,8 +47,9 @@ from pugsd.daemon.process import FINISHED_AT_SHUTDOWN, WORKER_STAGES, apply_thre
 from pugsd.daemon.queries import QUERY_KEYS
 from pugsd.daemon.recording import start_recording, stop_recording
 from pugsd.daemon.ros_services import ARM_SERVICES, SERVICES, RosServices
+from pugsd.daemon.training import Training
 from pugsd.daemon.transforms import Transforms
-from pugsd.errors import DecodeError, EmptyCloudError, PugsdError
+from pugsd.errors import DecodeError, PugsdError
 from pugsd.stream.assembler import FrameAssembler, InputRejected, expected_type, frame_nbytes, log_nth
 from pugsd.stream.schedule import StreamingSchedule
 from pugsd.wire import codec
@@ -129,6 +129,7 @@ class Daemon:
         self._subscribers: list[Any] = []
         self._entities: list[Any] = []  # queryables, token (undeclared after the subscribers)
         self.outputs = Outputs(self, time.monotonic)
+        self.training = Training(self)
         self.ros_services = RosServices(self)
         self.transforms = Transforms(self)  # /tf and /tf_static
         # rmw_zenoh ROS graph tokens: the node's and its publishers', the subscriptions'
@@ -211,7 +212,7 @@ class Daemon:
                 workers = {
                     "depth": tg.create_task(self._depth_worker(), name="depth"),
                     "model": tg.create_task(self._model_worker(), name="model"),
-                    "train": tg.create_task(self._train_worker(), name="train"),
+                    "train": tg.create_task(self.training.worker(), name="train"),
                     "grasps": tg.create_task(self._grasp_worker(), name="grasps"),
                     "commands": tg.create_task(self._command_worker(), name="commands"),
                     "status": tg.create_task(self._status_worker(), name="status"),
@@ -465,23 +466,6 @@ class Daemon:
         with self._model_lock, self._svgp_lock:
             return fn(*args)
 
-    def _train_step_locked(self, rate_scale: float = 1.0) -> Any:
-        """On the training thread: one SVGP step. The batch is taken under the model lock, which
-        is handed over to the SVGP lock (taken before it is released: no reset comes between the
-        batch and the step), so that frames are integrated during the step. None when the map is
-        empty: a reset between two steps of a round emptied it, which ends the round and is not a
-        rejected input."""
-        with self._model_lock:
-            try:
-                batch = self.pipeline.training_batch()
-            except EmptyCloudError:
-                return None
-            self._svgp_lock.acquire()
-        try:
-            return self.pipeline.train_on(batch, 1, rate_scale=rate_scale)
-        finally:
-            self._svgp_lock.release()
-
     async def _guard(self, stage: str, coro: Awaitable[R]) -> R | None:
         return await self.report.guard(stage, coro)
 
@@ -496,22 +480,6 @@ class Daemon:
             elif depth is not None:
                 self.health.count("depth")
                 self.depth_box.offer((depth, recv_s))
-
-    async def _train(self, steps: int, idle: bool = False) -> None:
-        """Up to ``steps`` SVGP steps, one per offload, as the schedule allows each."""
-        s = self.schedule
-        for _ in range(steps):
-            if self._stopping or not s.may_step(time.monotonic(), len(self.depth_box), idle):
-                break
-            s.last_train_s = time.monotonic()
-            decaying = s.decaying(idle, self.ready)
-            step = self._offload("train", self._train_step_locked, s.rate_scale(decaying))
-            stats = await self._guard("train", step)
-            if stats is None:
-                break
-            self._note_train(stats, 1)
-            s.stepped(decaying)
-            self.model_changes.offer("step")
 
     async def _model_worker(self) -> None:
         """Integrates each depth frame; the training worker trains meanwhile."""
@@ -536,23 +504,6 @@ class Daemon:
         self._newest_recv_s = recv_s
         return True
 
-    async def _train_worker(self) -> None:
-        """Trains beside the ingest: ``train_steps_per_frame`` steps after each integrated frame;
-        while no frame comes, idle rounds of ``idle_train_steps`` (within ``idle_train_s`` of the
-        last frame, every 20 ms at most, with backoff after failures)."""
-        d, s = self.cfg.daemon, self.schedule
-        while not self._stopping:
-            idle = s.idle(time.monotonic())
-            frame = await self.integrated.take_within(0.02 if idle else 0.5)
-            if self._stopping:
-                break
-            if frame is not None:
-                if d.train_steps_per_frame > 0:
-                    await self._train(d.train_steps_per_frame)
-            elif idle and s.idle_round_due(time.monotonic()):
-                await self._train(d.idle_train_steps, idle=True)
-                s.round_ended(time.monotonic(), self.health.failures.get("train", 0))
-
     def _integrate_locked(self, depth: DepthFrame) -> int:
         """On the model thread: integrate ``depth`` and advance the outputs' stamp under the same
         hold of the model lock, so that a grasp computation's snapshot and its stamp agree."""
@@ -570,16 +521,6 @@ class Daemon:
             self.map_version += 1
             self.pipeline.reset()
         return True
-
-    def _note_train(self, stats: Any, steps: int) -> None:
-        self.health.count("train_steps", steps)
-        elbo = float(stats.elbo)
-        self.elbo = elbo if np.isfinite(elbo) else None
-        was = self.ready
-        self.ready = bool(stats.ready)
-        self.was_ready = self.was_ready or self.ready
-        if self.ready and not was:
-            log.info("model ready (ELBO %.4g)", elbo)
 
     def _cloud_gives_way(self) -> bool:
         """Whether the running computation's cloud gives way to fresh grasps (the schedule's

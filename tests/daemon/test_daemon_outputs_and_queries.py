@@ -559,10 +559,10 @@ def test_a_training_step_on_an_emptied_map_returns_none() -> None:
             raise EmptyCloudError("no points")
 
     d = _daemon()
-    stats = d._train_step_locked()
+    stats = d.training.step_locked()
     assert stats.elbo == -0.5 and d.pipeline.steps == 1  # type: ignore[attr-defined]
     e = _daemon(Emptied())
-    assert e._train_step_locked() is None and e.pipeline.steps == 0  # type: ignore[attr-defined]
+    assert e.training.step_locked() is None and e.pipeline.steps == 0  # type: ignore[attr-defined]
     for x in (d, e):
         assert not x._model_lock.locked() and not x._svgp_lock.locked()
 
@@ -580,24 +580,24 @@ def test_a_training_step_takes_its_batch_under_the_model_lock_and_steps_under_th
             return super().train_on(batch, n, rate_scale)
 
     d = _daemon(Spy())
-    d._train_step_locked()
+    d.training.step_locked()
     # the SVGP lock is taken before the model lock is released: no reset between batch and step
     assert held == [("batch", True, False), ("step", False, True)]
     assert not d._model_lock.locked() and not d._svgp_lock.locked()
 
 
-def test_note_train_counts_steps_latches_readiness_and_hides_a_non_finite_elbo(
+def test_a_noted_step_counts_steps_latches_readiness_and_hides_a_non_finite_elbo(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     d = _daemon()
     caplog.set_level(logging.INFO, logger="pugsd")
     stats = types.SimpleNamespace
-    d._note_train(stats(elbo=np.float32(-2.5), ready=False), 3)
+    d.training.note(stats(elbo=np.float32(-2.5), ready=False), 3)
     assert (d.elbo, d.ready, d.was_ready) == (-2.5, False, False)
-    d._note_train(stats(elbo=float("nan"), ready=True), 1)
+    d.training.note(stats(elbo=float("nan"), ready=True), 1)
     assert d.elbo is None and d.ready and d.was_ready
-    d._note_train(stats(elbo=-1.0, ready=True), 1)
-    d._note_train(stats(elbo=float("-inf"), ready=False), 1)
+    d.training.note(stats(elbo=-1.0, ready=True), 1)
+    d.training.note(stats(elbo=float("-inf"), ready=False), 1)
     assert (d.elbo, d.ready, d.was_ready) == (None, False, True)
     assert d.health.counts["train_steps"] == 6
     assert [r.getMessage() for r in caplog.records] == ["model ready (ELBO nan)"]

@@ -94,7 +94,7 @@ def test_a_reset_during_idle_training_rejects_nothing() -> None:
 
     async def main() -> None:
         d.schedule.last_frame_s = time.monotonic()  # a frame was integrated: idle training rounds run
-        async with running_worker(d, d._train_worker()):
+        async with running_worker(d, d.training.worker()):
             assert await asyncio.to_thread(pipe.training.wait, 10.0)  # a step holds the SVGP lock
             reset = asyncio.create_task(d._reset())  # bumps the generation, waits for both locks
             await asyncio.sleep(0.1)

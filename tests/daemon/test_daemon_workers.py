@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 
 import pugsd.daemon.app as app_mod
+import pugsd.daemon.training as training_mod
 from pugsd.config import load_config_dict
 from pugsd.core.types import DepthFrame, StereoFrame
 from pugsd.daemon.app import Command, Daemon
@@ -87,6 +88,7 @@ class Clock:
 def clock(monkeypatch: pytest.MonkeyPatch) -> Clock:
     c = Clock(100.0)
     monkeypatch.setattr(app_mod, "time", c)
+    monkeypatch.setattr(training_mod, "time", c)
     return c
 
 
@@ -205,7 +207,7 @@ def _drive_model(d: Daemon, rounds: list[Callable[[], Any]]) -> list[float]:
 
     d.integrated.take_within = take_within  # type: ignore[method-assign]
     try:
-        asyncio.run(asyncio.wait_for(d._train_worker(), 20.0))
+        asyncio.run(asyncio.wait_for(d.training.worker(), 20.0))
     finally:
         _shutdown(d)
     return timeouts
@@ -415,24 +417,24 @@ def test_train_yields_to_a_waiting_frame_unless_the_last_step_is_overdue(clock: 
         out = []
         d.depth_box.offer((_depth(1), 100.0))
         d.schedule.last_train_s = 99.5  # exactly min_train_interval_s ago: not overdue
-        await d._train(4)
+        await d.training.train(4)
         out.append(pipe.steps)
         assert not d.schedule.changed and d.model_changes.offered == 0  # no step: the model is unchanged
         d.schedule.last_train_s = 99.25  # overdue: one step is forced, then the frame goes first
-        await d._train(4)
+        await d.training.train(4)
         out.append(pipe.steps)
         assert d.schedule.changed  # a step changed the model: grasps are due again
         assert d.model_changes.take_nowait() == "step"  # and the grasp worker is woken
         d.depth_box.clear()
-        await d._train(4)  # nothing waiting: all four
+        await d.training.train(4)  # nothing waiting: all four
         out.append(pipe.steps)
         d.schedule.grasps_urgent = True
-        await d._train(4, idle=True)  # an idle round gives way to urgent grasps
+        await d.training.train(4, idle=True)  # an idle round gives way to urgent grasps
         out.append(pipe.steps)
-        await d._train(2)  # a round after a frame does not
+        await d.training.train(2)  # a round after a frame does not
         out.append(pipe.steps)
         d._stopping = True
-        await d._train(4)
+        await d.training.train(4)
         out.append(pipe.steps)
         return out
 
@@ -449,7 +451,7 @@ def test_a_round_that_meets_an_emptied_map_ends_without_changing_the_model(clock
     pipe.empty = True
 
     async def main() -> None:
-        await d._train(4)
+        await d.training.train(4)
 
     try:
         asyncio.run(main())
@@ -464,7 +466,7 @@ def test_a_round_that_meets_an_emptied_map_ends_without_changing_the_model(clock
 def test_every_model_call_holds_the_model_lock() -> None:
     d, pipe = _lock_daemon()
     try:
-        d._train_step_locked()
+        d.training.step_locked()
         d._integrate_locked(_depth(3))
         d._reset_locked()
         d._locked(pipe.warm_up)

@@ -114,7 +114,8 @@ def test_the_daemon_integrates_the_golden_frames_and_grasps(recording: Path) -> 
     async def main() -> None:
         d = Daemon(cfg, pipe)
         d._loop = asyncio.get_running_loop()
-        workers = [asyncio.create_task(w) for w in (d._depth_worker(), d._model_worker(), d._train_worker())]
+        loops = (d._depth_worker(), d._model_worker(), d.training.worker())
+        workers = [asyncio.create_task(w) for w in loops]
         try:
             for role, key, data in msgs:
                 d._on_inbound(Inbound(role, key, data, time.monotonic()))
