@@ -704,19 +704,16 @@ def daemon_last_frame(
     ``last_frame_to_grasps_s`` is their median (a daemon whose grasps never came counts as
     slowest; None if that is the median), each run's in ``last_frame_to_grasps_runs_s``. The
     agreement is the first run's."""
-    r = daemon_feed(
-        base, frames, len(frames), 1.0 / opts.rate_hz, opts.drain_timeout_s,
-        grasps_timeout_s=opts.ready_timeout_s,
-        cloud_timeout_s=opts.ready_timeout_s if reference is not None else 0.0,
-    )  # fmt: skip
+    def feed(cloud_timeout_s: float = 0.0) -> dict[str, Any]:
+        return daemon_feed(
+            base, frames, len(frames), 1.0 / opts.rate_hz, opts.drain_timeout_s,
+            grasps_timeout_s=opts.ready_timeout_s, cloud_timeout_s=cloud_timeout_s,
+        )  # fmt: skip
+
+    r = feed(opts.ready_timeout_s if reference is not None else 0.0)
     st = r["status"]
     runs = [r.get("last_frame_to_grasps_s")]
-    for _ in range(opts.daemon_repeats - 1):
-        again = daemon_feed(
-            base, frames, len(frames), 1.0 / opts.rate_hz, opts.drain_timeout_s,
-            grasps_timeout_s=opts.ready_timeout_s,
-        )  # fmt: skip
-        runs.append(again.get("last_frame_to_grasps_s"))
+    runs += [feed().get("last_frame_to_grasps_s") for _ in range(opts.daemon_repeats - 1)]
     lat = median_latency(runs)
     agreement: dict[str, Any] | None = None
     if reference is not None:

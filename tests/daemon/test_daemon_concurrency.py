@@ -117,6 +117,16 @@ def _frame(src: Source, stamp_ns: int, seed: int = 0) -> None:
     src.put("pose", codec.encode_pose_with_covariance(stamp_ns + 10**6, np.eye(4), np.eye(6) * 1e-6))
 
 
+def _grasp_stamps(client: zenoh.Session, src: Source) -> tuple[Any, list[int]]:
+    """A subscriber to the daemon's GraspArray and the header stamps it receives, in order."""
+    stamps: list[int] = []
+    sub = client.declare_subscriber(
+        key_for(src.topics, "grasps"),
+        lambda s: stamps.append(codec.decode_grasp_array(s.payload.to_bytes()).stamp_ns),
+    )
+    return sub, stamps
+
+
 def test_frames_are_integrated_while_grasps_are_proposed(port: int, client: zenoh.Session) -> None:
     """A 0.6 s proposal does not hold up ingest: frames sent meanwhile are integrated while it
     runs, and no call that touches the model state overlaps another (the model lock)."""
@@ -177,11 +187,7 @@ def test_the_cloud_gives_way_to_grasps_for_a_newer_frame(port: int, client: zeno
     grasps come within seconds."""
     pipe = TimedPipeline(cloud_s=0.0, ready_after=1)
     dt, src = _start(port, client, pipe, grasp_rate_hz=2.0, publish_cloud=True, pause_publish_s=0.15)
-    stamps: list[int] = []
-    sub = client.declare_subscriber(
-        key_for(src.topics, "grasps"),
-        lambda s: stamps.append(codec.decode_grasp_array(s.payload.to_bytes()).stamp_ns),
-    )
+    sub, stamps = _grasp_stamps(client, src)
     try:
         _frame(src, 10**9)
         wait_for(lambda: len(pipe.intervals("finish_cloud")) >= 1, 10.0, "a first (quick) cloud")
@@ -211,11 +217,7 @@ def test_a_proposal_on_an_older_map_gives_way_to_the_newest_frame_after_a_pause(
     grasps come within seconds."""
     pipe = TimedPipeline(ready_after=1)
     dt, src = _start(port, client, pipe, grasp_rate_hz=0.25, publish_cloud=False, pause_publish_s=0.15)
-    stamps: list[int] = []
-    sub = client.declare_subscriber(
-        key_for(src.topics, "grasps"),
-        lambda s: stamps.append(codec.decode_grasp_array(s.payload.to_bytes()).stamp_ns),
-    )
+    sub, stamps = _grasp_stamps(client, src)
     try:
         _frame(src, 10**9)
         wait_for(lambda: 10**9 in stamps, 10.0, "the first grasps")
@@ -268,7 +270,8 @@ def test_clouds_keep_coming_from_a_slow_camera(port: int, client: zenoh.Session)
 
 def test_a_reset_during_a_proposal_discards_its_grasps(port: int, client: zenoh.Session) -> None:
     pipe = TimedPipeline(propose_s=1.5, ready_after=1)
-    dt, src = _start(port, client, pipe, grasp_rate_hz=2.0, publish_cloud=False)
+    # no pause within the test: the proposal is a grasp round's, not one prepared at a pause
+    dt, src = _start(port, client, pipe, grasp_rate_hz=2.0, publish_cloud=False, pause_publish_s=30.0)
     try:
         _frame(src, 10**9)
         assert pipe.propose_started.wait(10.0), "no grasp proposal started"
