@@ -500,9 +500,13 @@ class PugsPipeline:
     # ------------------------------------------------------------------ helpers
     def warm_up(self) -> None:
         """Pay first-call costs before frames arrive: torch's optimizers import their compiler
-        machinery lazily (about 2.5 s measured on the first SVGP step, enough to drop a second
-        of 10 Hz frames). Trains and queries a throwaway 8-point SVGP; the pipeline's own state
-        is not touched."""
+        machinery lazily (seconds on the first SVGP step, enough to drop a second of 10 Hz
+        frames), and the single-contact proposer's search is compiled (or loaded from numba's
+        cache) on first use. Trains and queries a throwaway 8-point SVGP and compiles the
+        search; the pipeline's own state is not touched."""
+        compile_search = getattr(self.proposer, "compile_search", None)
+        if compile_search is not None:
+            compile_search()
         cfg = dataclasses.replace(self.cfg.svgp, num_inducing=8, batch_size=16)
         svgp = OccupancySVGP(cfg)
         rng = np.random.default_rng(0)

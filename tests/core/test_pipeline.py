@@ -333,3 +333,20 @@ def test_a_proposal_asked_to_stop_raises_preempted_before_its_swept_volumes(part
     with pytest.raises(Preempted):
         pipe.propose(inp, should_stop=late)
     assert pipe.propose(inp, should_stop=lambda: False).unknown_share is not None
+
+
+def test_the_warm_up_compiles_the_proposers_search_before_the_first_proposal() -> None:
+    """In a fresh process (the search compiles once per process, or loads from numba's cache)."""
+    code = (
+        "from pugsd.config import CoreConfig\n"
+        "from pugsd.core.grasp.orientation_search import best_orientation\n"
+        "from pugsd.core.pipeline import PugsPipeline\n"
+        "pipe = PugsPipeline(CoreConfig())\n"
+        "before = len(best_orientation.signatures)\n"
+        "pipe.warm_up()\n"
+        "print(before, len(best_orientation.signatures), pipe.frames, pipe.svgp.total_steps)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True
+    )
+    assert out.stdout.split() == ["0", "1", "0", "0"]

@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 
 from pugsd.core.config import GraspConfig, GripperConfig
 from pugsd.core.geometry import grid_centre
+from pugsd.core.grasp.orientation_search import HandLimits, best_orientation, compile_now
 from pugsd.errors import ConfigError, EmptyCloudError, Preempted, PugsdError
 
 # open3d's bundled stubs reject valid numpy arguments (Tensor overloads): use it untyped
@@ -543,44 +544,37 @@ class SingleContactProposer:
                 + (max(g.finger_width_m, g.palm_width_m) / 2 + cfg.clearance_m) ** 2
             )
         )
-        # the jaws and their closing slab lie within hand_r of the contact; only the palm's approach
-        # reaches farther (to reach)
-        hand_r = float(
-            np.sqrt(
-                (g.max_width_m + g.finger_thickness_m + cfg.clearance_m) ** 2
-                + (g.finger_length_m + cfg.clearance_m) ** 2
-                + (max(g.finger_width_m, g.palm_width_m) / 2 + cfg.clearance_m) ** 2
-            )
-        )
         A_all, B_all, th_all = self.orientations(normals[contacts], k1, k2)
         A_all, B_all, th = A_all.astype(np.float32), B_all.astype(np.float32), th_all.astype(np.float32)
+        Y_all = _cross(A_all, B_all)
+        z0 = self._pad_depths(th)
+        lim = self.limits()
         nears = tree_t.query_ball_point(pts[contacts], reach, return_sorted=False)
+
         def contact(i: int) -> None:
             p = pts[contacts[i]]
-            near = np.asarray(nears[i], dtype=np.int64)
-            local = pts_t[near] - p.astype(np.float32)
-            close = (local**2).sum(1) <= hand_r**2
-            A, B = A_all[i], B_all[i]
             cam = views[np.argmin(((views - p) ** 2).sum(1))] - p
             cam = (cam / max(float(np.linalg.norm(cam)), 1e-12)).astype(np.float32)
-            res = self._best(local[close], nrm_t[near[close]], A, B, th, local[~close], cam)
-            if res is None:
+            A, B = A_all[i], B_all[i]
+            k, centre_x, width, conf = best_orientation(
+                pts_t, nrm_t, np.asarray(nears[i], dtype=np.int64), p.astype(np.float32),
+                A, B, Y_all[i], z0, cam, lim,
+            )  # fmt: skip
+            if k < 0:
                 return
-            k, centre_x, width, conf = res
             # the frame in float64, orthonormal to rounding (the search ran in float32)
             b = B[k].astype(np.float64)
             b /= np.linalg.norm(b)
             a = A[k].astype(np.float64)
             a -= (a @ b) * b
             a /= np.linalg.norm(a)
-            z0 = self._pad_depth(float(th[k]))
-            centre = p + centre_x * b + z0 * a
+            centre = p + centre_x * b + float(z0[k]) * a
             out_c[i] = centre - 0.5 * width * b
             out_b[i], out_a[i], out_w[i], out_conf[i] = b, a, width, conf
             out_valid[i] = True
 
-        # each contact is independent and writes only its own rows: split over threads (numpy
-        # releases the GIL in the array work), the same result for any number of threads
+        # each contact is independent and writes only its own rows: split over threads (the
+        # compiled search runs without the GIL), the same result for any number of threads
         run_parallel(contact, m, cfg.threads, should_stop)
         out_c += origin_W
         return GraspSet(
@@ -593,6 +587,48 @@ class SingleContactProposer:
             valid=out_valid,
             src_index=contacts.astype(np.int64),
         )
+
+    def limits(self) -> HandLimits:
+        """The hand's dimensions and thresholds as the orientation search takes them."""
+        g, cfg = self.g, self.cfg
+        c = cfg.clearance_m
+        W = g.max_width_m
+        half_l = g.finger_length_m / 2
+        cp = 2.0 * c  # the palm meets a surface head on, where the depth error counts in full
+        # the jaws and their closing slab lie within hand_r of the contact; only the palm's
+        # approach reaches farther
+        hand_r = float(
+            np.sqrt(
+                (g.max_width_m + g.finger_thickness_m + c) ** 2
+                + (g.finger_length_m + c) ** 2
+                + (max(g.finger_width_m, g.palm_width_m) / 2 + c) ** 2
+            )
+        )
+        f32 = np.float32
+        return HandLimits(
+            finger_half_w_m=f32(g.finger_width_m / 2),
+            max_width_m=f32(W),
+            finger_thickness_m=f32(g.finger_thickness_m),
+            min_width_m=f32(g.min_width_m),
+            open_width_m=f32(W - 2.0 * c),
+            clearance_m=f32(c),
+            finger_x_in_m=f32(W / 2 - c),
+            outer_m=f32(W / 2 + g.finger_thickness_m + c),
+            finger_y_m=f32(g.finger_width_m / 2 + c),
+            palm_y_m=f32(max(g.palm_width_m, g.finger_width_m) / 2 + cp),
+            half_length_m=half_l,
+            finger_z_m=half_l + c,
+            palm_front_m=-half_l + cp,
+            palm_back_m=-half_l - g.palm_depth_m - cfg.approach_check_m - cp,
+            cos_face=float(np.cos(np.deg2rad(cfg.single_contact_face_deg))),
+            min_support=int(cfg.min_support),
+            hand_r2_m2=f32(hand_r**2),
+        )
+
+    def compile_search(self) -> None:
+        """Compile the orientation search (or load it from numba's cache): about a second on
+        first use, which a daemon pays before its first frame."""
+        compile_now(self.limits())
 
     def _pad_depths(self, theta: np.ndarray) -> np.ndarray:
         """``_pad_depth`` of each angle (cached: every contact has the same angles)."""
@@ -609,118 +645,6 @@ class SingleContactProposer:
         stops short of the contact by the palm's clearance and one more), none when tangential."""
         g, c = self.g, self.cfg.clearance_m
         return max(0.0, 0.5 * g.finger_length_m - 3.0 * c) * float(np.cos(theta))
-
-    def _best(
-        self,
-        local: np.ndarray,
-        nrm: np.ndarray,
-        A: np.ndarray,
-        B: np.ndarray,
-        th: np.ndarray,
-        far: np.ndarray | None = None,
-        to_camera: np.ndarray | None = None,
-    ) -> tuple[int, float, float, float] | None:
-        """The most confident collision-free orientation: (index, jaw centre along b, width,
-        confidence), or None. All K orientations at once as (K, P) arrays over the contact's
-        neighbourhood ``local`` (points relative to the contact) with normals ``nrm``; ``far``:
-        the points beyond the hand's reach that only the palm's approach can meet;
-        ``to_camera``: the direction from the contact to its nearest camera."""
-        if len(local) < max(self.cfg.min_support, 2):
-            return None  # too few points around the contact to hold a closing slab
-        if to_camera is None:
-            to_camera = np.zeros(3)
-        g, cfg = self.g, self.cfg
-        c = cfg.clearance_m
-        W = g.max_width_m
-        half_l = g.finger_length_m / 2
-        cos_f = np.cos(np.deg2rad(cfg.single_contact_face_deg))
-        z0 = self._pad_depths(th)[:, None]  # (K, 1)
-        Y = _cross(A, B)
-        x = B @ local.T  # (K, P)
-        y = np.abs(Y @ local.T)
-        z = A @ local.T - z0
-        slab = (y <= g.finger_width_m / 2) & (np.abs(z) <= half_l) & (np.abs(x) <= W)
-        K = len(A)
-        rows = np.arange(K)
-        # the contact's own connected run along b: from the contact (x = 0) outwards up to the
-        # first gap wider than a finger's thickness (another part of the object). Each row's
-        # slab points sorted along b, then +inf; only the first max(n_in) columns are kept
-        # (past them every row is +inf)
-        n_in = slab.sum(1)
-        xs = np.sort(np.where(slab, x, np.inf), axis=1)[:, : max(int(n_in.max()), 1)]
-        with np.errstate(invalid="ignore"):  # inf - inf past the slab's points: masked below
-            gap = np.diff(xs, axis=1) > g.finger_thickness_m
-        idx = np.arange(xs.shape[1] - 1)[None, :]
-        gap &= idx < (n_in - 1)[:, None]
-        i0 = (xs < 0.0).sum(1)[:, None]
-        lo = np.where(gap & (idx < i0), idx, -1).max(1) + 1
-        hi = np.where(gap & (idx >= i0), idx, np.iinfo(np.int64).max).min(1)
-        hi = np.minimum(hi, np.maximum(n_in - 1, 0))
-        x_lo = xs[rows, np.minimum(lo, xs.shape[1] - 1)][:, None]
-        x_hi = xs[rows, hi][:, None]
-        part = slab & (x >= x_lo - 1e-9) & (x <= x_hi + 1e-9)
-        support = part.sum(1)
-        extent = (x_hi - x_lo)[:, 0]
-        band = np.maximum(c, 0.1 * extent)[:, None]
-        # |normal . b|: a face's normal is parallel to the closing direction; its sign is not
-        # used, since normals are oriented towards the cameras and flip at silhouettes
-        nb = np.abs(B @ nrm.T)
-        lo_face = part & (x <= x_lo + band)
-        hi_face = part & (x >= x_hi - band)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            f_lo = np.clip((nb * lo_face).sum(1) / lo_face.sum(1), 0.0, 1.0)
-            f_hi = np.clip((nb * hi_face).sum(1) / hi_face.sum(1), 0.0, 1.0)
-        f_lo = np.where(np.isnan(f_lo), 0.0, f_lo)  # no face points: not seen
-        f_hi = np.where(np.isnan(f_hi), 0.0, f_hi)
-        lo_seen, hi_seen = f_lo >= cos_f, f_hi >= cos_f
-        both = lo_seen & hi_seen & (extent >= g.min_width_m)
-        # one face: the one towards the camera; the jaws open into the side away from it
-        thin = ~both & (extent < 0.5 * W)
-        cam_hi = (B @ to_camera) >= 0.0
-        only_hi = thin & cam_hi & hi_seen
-        only_lo = thin & ~cam_hi & lo_seen
-        x_lo1, x_hi1 = x_lo[:, 0], x_hi[:, 0]
-        width = np.where(both, extent, W - 2.0 * c)
-        centre = np.where(
-            both,
-            0.5 * (x_lo1 + x_hi1),
-            np.where(only_hi, x_hi1 + 2.0 * c - 0.5 * W, np.where(only_lo, x_lo1 - 2.0 * c + 0.5 * W, 0.0)),
-        )
-        conf = np.where(
-            both, f_lo * f_hi, np.where(only_hi, 0.5 * f_hi, np.where(only_lo, 0.5 * f_lo, 0.0))
-        )
-        conf = conf * (1.0 - np.exp(-support / 20.0))
-        ok = (both | only_hi | only_lo) & (support >= cfg.min_support) & (n_in > 0)
-        ok &= (width >= g.min_width_m) & (width <= W - 2.0 * c)
-        # collisions with observed points: the open fingers, the palm and its straight approach
-        # (tested on the orientations still in the running only)
-        outer = W / 2 + g.finger_thickness_m + c
-        # the palm meets a surface head on, where the reconstruction's depth error counts in
-        # full: it keeps twice the clearance
-        cp = 2.0 * c
-        palm_y = max(g.palm_width_m, g.finger_width_m) / 2 + cp
-        palm_back = -half_l - g.palm_depth_m - cfg.approach_check_m - cp
-        live = np.flatnonzero(ok)
-        if len(live):
-            xl, yl, zl = x[live], y[live], z[live]
-            ax = np.abs(xl - centre[live, None])
-            finger = (ax >= W / 2 - c) & (ax <= outer) & (yl <= g.finger_width_m / 2 + c)
-            finger &= np.abs(zl) <= half_l + c
-            palm = (ax <= outer) & (yl <= palm_y) & (zl < -half_l + cp) & (zl >= palm_back)
-            ok[live] = ~(finger.any(1) | palm.any(1))
-        # the palm's approach against the far points, most confident orientation first
-        for k in np.argsort(-np.where(ok, conf, -1.0), kind="stable"):
-            if not ok[k]:
-                return None
-            if far is not None and len(far):
-                xf = far @ B[k] - centre[k]
-                zf = far @ A[k] - z0[k, 0]
-                yf = np.abs(far @ Y[k])
-                hit = (np.abs(xf) <= outer) & (yf <= palm_y) & (zf < -half_l + cp) & (zf >= palm_back)
-                if hit.any():
-                    continue
-            return int(k), float(centre[k]), float(width[k]), float(conf[k])
-        return None
 
 
 def make_proposer(
