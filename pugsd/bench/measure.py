@@ -175,8 +175,10 @@ def run_streaming(
     ``ready_latch`` holds (the daemon's default); otherwise idle rounds of ``idle_steps`` run
     until the readiness criterion holds (the daemon publishes nothing before). Grasps first
     (Algorithm 1 at the contacts, Eq. 13), then the rest of the query cloud; the latency is taken
-    at the grasps, the cloud's completion is timed as well."""
+    at the grasps, the cloud's completion is timed as well. The pipeline is warmed up first, as
+    the daemon's is before it serves."""
     pipe = PugsPipeline(core, seed=opts.seed)
+    pipe.warm_up()
     samples: dict[str, list[float]] = defaultdict(list)
     was_ready = False
     for f in frames[:-1]:
@@ -284,8 +286,9 @@ def run_paper(
     """The paper's batch pipeline on the same frames: ingest everything (no training while frames
     arrive), then after the last frame a fresh SVGP, Adam lr 1e-3, ``paper_epochs`` epochs, and
     compute on the given query cloud. Returns (result, last frame -> grasps [s], SVGP steps, the
-    pipeline)."""
+    pipeline). Warmed up first, as the streaming run."""
     pipe = PugsPipeline(core, seed=opts.seed)
+    pipe.warm_up()
     for f in frames[:-1]:
         pipe.add_stereo(f)
     t_arrival = time.perf_counter()

@@ -279,3 +279,39 @@ def test_the_daemon_latency_is_the_median_of_fresh_daemons(monkeypatch: pytest.M
     assert out["last_frame_to_grasps_runs_s"] == [0.7, 0.3, None, 0.4, 0.45]
     assert out["last_frame_to_grasps_s"] == 0.45  # the median, the missing run the slowest
     assert calls == [60.0] * 5 and "median of 5 fresh daemons: 0.70, 0.30, -, 0.40, 0.45 s" in lines[-1]
+
+
+class _FirstFrame(Exception):
+    pass
+
+
+@pytest.mark.parametrize("run", ["streaming", "paper"])
+def test_the_synchronous_runs_warm_the_pipeline_up_before_the_first_frame(
+    run: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """As the daemon does before it serves: first-call costs (torch's optimizer, the proposer's
+    compiled search) are not timed as the last frame's latency."""
+    from pugsd.bench.options import BenchOptions
+
+    seen: list[str] = []
+
+    class Pipe:
+        def __init__(self, core: Any, seed: int = 0) -> None:
+            pass
+
+        def warm_up(self) -> None:
+            seen.append("warm_up")
+
+        def depth_from_stereo(self, frame: Any) -> None:
+            seen.append("frame")
+            raise _FirstFrame
+
+        add_stereo = depth_from_stereo
+
+    monkeypatch.setattr(measure, "PugsPipeline", Pipe)
+    with pytest.raises(_FirstFrame):
+        if run == "streaming":
+            measure.run_streaming(None, [None, None], BenchOptions(), 4, 8)  # type: ignore[arg-type]
+        else:
+            measure.run_paper(None, [None, None], np.zeros((1, 3)), BenchOptions())  # type: ignore[arg-type]
+    assert seen == ["warm_up", "frame"]
