@@ -25,8 +25,8 @@ T = TypeVar("T")
 
 
 class HandLimits(NamedTuple):
-    """The hand's dimensions and the search's thresholds, float32 where they meet float32
-    coordinates (finger_half_w_m to palm_y_m), float64 where they meet z or a confidence."""
+    """The hand's dimensions and the search's thresholds: np.float32 where they meet float32
+    coordinates, float where they meet z (float64) or a confidence."""
 
     finger_half_w_m: np.float32  # |y| bound of the closing slab
     max_width_m: np.float32  # W: the slab's |x| bound and the widest opening

@@ -537,6 +537,8 @@ class SingleContactProposer:
         out_w = np.zeros(m)
         out_conf = np.zeros(m)
         out_valid = np.zeros(m, dtype=bool)
+        # every point the open hand or the palm's approach can meet lies within reach of the
+        # contact (the search tells the jaws' neighbourhood from the farther points itself)
         reach = float(
             np.sqrt(
                 (g.max_width_m + g.finger_thickness_m + cfg.clearance_m) ** 2
@@ -626,8 +628,8 @@ class SingleContactProposer:
         )
 
     def compile_search(self) -> None:
-        """Compile the orientation search (or load it from numba's cache): about a second on
-        first use, which a daemon pays before its first frame."""
+        """Compile the orientation search (seconds), or load it from numba's cache (a fraction
+        of a second): what a daemon's warm-up pays before its first frame."""
         compile_now(self.limits())
 
     def _pad_depths(self, theta: np.ndarray) -> np.ndarray:
