@@ -537,21 +537,14 @@ class SingleContactProposer:
         out_w = np.zeros(m)
         out_conf = np.zeros(m)
         out_valid = np.zeros(m, dtype=bool)
-        # every point the open hand or the palm's approach can meet lies within reach of the
-        # contact (the search tells the jaws' neighbourhood from the farther points itself)
-        reach = float(
-            np.sqrt(
-                (g.max_width_m + g.finger_thickness_m + cfg.clearance_m) ** 2
-                + (g.finger_length_m + g.palm_depth_m + cfg.approach_check_m + cfg.clearance_m) ** 2
-                + (max(g.finger_width_m, g.palm_width_m) / 2 + cfg.clearance_m) ** 2
-            )
-        )
         A_all, B_all, th_all = self.orientations(normals[contacts], k1, k2)
         A_all, B_all, th = A_all.astype(np.float32), B_all.astype(np.float32), th_all.astype(np.float32)
         Y_all = _cross(A_all, B_all)
         z0 = self._pad_depths(th)
         lim = self.limits()
-        nears = tree_t.query_ball_point(pts[contacts], reach, return_sorted=False)
+        # every point the open hand or the palm's approach can meet (the search tells the jaws'
+        # neighbourhood from the farther points itself)
+        nears = tree_t.query_ball_point(pts[contacts], self._reach_m(palm=True), return_sorted=False)
 
         def contact(i: int) -> None:
             p = pts[contacts[i]]
@@ -597,15 +590,6 @@ class SingleContactProposer:
         W = g.max_width_m
         half_l = g.finger_length_m / 2
         cp = 2.0 * c  # the palm meets a surface head on, where the depth error counts in full
-        # the jaws and their closing slab lie within hand_r of the contact; only the palm's
-        # approach reaches farther
-        hand_r = float(
-            np.sqrt(
-                (g.max_width_m + g.finger_thickness_m + c) ** 2
-                + (g.finger_length_m + c) ** 2
-                + (max(g.finger_width_m, g.palm_width_m) / 2 + c) ** 2
-            )
-        )
         f32 = np.float32
         return HandLimits(
             finger_half_w_m=f32(g.finger_width_m / 2),
@@ -624,7 +608,22 @@ class SingleContactProposer:
             palm_back_m=-half_l - g.palm_depth_m - cfg.approach_check_m - cp,
             cos_face=float(np.cos(np.deg2rad(cfg.single_contact_face_deg))),
             min_support=int(cfg.min_support),
-            hand_r2_m2=f32(hand_r**2),
+            hand_r2_m2=f32(self._reach_m(palm=False) ** 2),
+        )
+
+    def _reach_m(self, palm: bool) -> float:
+        """How far from the contact the open hand reaches: the jaws and their closing slab, or
+        with ``palm`` the palm and its straight approach from ``approach_check_m`` back too."""
+        g, c = self.g, self.cfg.clearance_m
+        along_a = g.finger_length_m
+        if palm:
+            along_a = along_a + g.palm_depth_m + self.cfg.approach_check_m
+        return float(
+            np.sqrt(
+                (g.max_width_m + g.finger_thickness_m + c) ** 2
+                + (along_a + c) ** 2
+                + (max(g.finger_width_m, g.palm_width_m) / 2 + c) ** 2
+            )
         )
 
     def compile_search(self) -> None:
